@@ -1,0 +1,290 @@
+"""One environment interface for every environment, following gymnax conventions.
+
+An environment is a stateless Python object holding only static configuration. Everything that
+changes lives in two pytrees that the caller threads explicitly:
+
+* ``params`` -- the *level*: an ``EnvParams`` dataclass (gravity, terrain parameters, time limit...).
+  Every leaf is an array, so a batch of different levels is just a params pytree with a leading axis
+  and ``jax.vmap`` runs one level per env.
+* ``state`` -- the simulator state of one episode, an ``EnvState`` subclass.
+
+``reset(key, params) -> (obs, state)`` and ``step(key, state, action, params) -> (obs, state, reward,
+done, info)``. ``step`` auto-resets on ``done``: the returned ``obs``/``state`` belong to a fresh
+episode *of the same level*, drawn from the step's key (new terrain, new random draws -- never a
+cached first state). ``info`` carries ``terminated``, ``truncated``, ``final_obs`` (the observation
+before the reset, for bootstrapping on time limits) and, on the done step, ``episode_return`` and
+``episode_length`` (zero on other steps).
+
+Subclasses implement ``reset_env`` and ``step_env`` (no auto-reset, no time-limit bookkeeping),
+``default_params``, ``observation_space``, ``action_space`` and ``param_space``.
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+
+@struct.dataclass
+class EnvState:
+    """Fields every environment state carries; subclasses add their own after these."""
+
+    time: jax.Array  # steps taken in the current episode (int32)
+    episode_return: jax.Array  # undiscounted return accumulated in the current episode (float32)
+
+
+@struct.dataclass
+class EnvParams:
+    """Fields every level carries; subclasses add their own after these."""
+
+    max_steps: jax.Array  # time limit: the episode is truncated after this many steps (int32)
+
+
+# --------------------------------------------------------------------------------------------
+# Spaces
+# --------------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class Discrete:
+    """Actions {0, ..., n-1}, given as an integer scalar per env."""
+
+    n: int
+    shape: tuple = ()
+    dtype: Any = jnp.int32
+
+    def sample(self, key: jax.Array) -> jax.Array:
+        return jax.random.randint(key, self.shape, 0, self.n, dtype=self.dtype)
+
+    def contains(self, x) -> jax.Array:
+        x = jnp.asarray(x)
+        return jnp.logical_and(x >= 0, x < self.n)
+
+
+@dataclasses.dataclass(frozen=True)
+class Box:
+    """A box of real vectors ``low <= x <= high`` (bounds may be infinite)."""
+
+    low: Any
+    high: Any
+    shape: tuple
+    dtype: Any = jnp.float32
+
+    def sample(self, key: jax.Array) -> jax.Array:
+        low = jnp.broadcast_to(jnp.asarray(self.low, self.dtype), self.shape)
+        high = jnp.broadcast_to(jnp.asarray(self.high, self.dtype), self.shape)
+        low = jnp.where(jnp.isfinite(low), low, -1.0)
+        high = jnp.where(jnp.isfinite(high), high, 1.0)
+        return jax.random.uniform(key, self.shape, self.dtype, low, high)
+
+    def contains(self, x) -> jax.Array:
+        x = jnp.asarray(x)
+        return jnp.all((x >= self.low) & (x <= self.high))
+
+
+# --------------------------------------------------------------------------------------------
+# Level parameter space
+# --------------------------------------------------------------------------------------------
+
+
+def _is_concrete(x) -> bool:
+    return not isinstance(x, jax.core.Tracer)
+
+
+@dataclasses.dataclass(frozen=True)
+class ParamSpace:
+    """The teacher-controllable parameters of a level, as a box of named scalars.
+
+    ``to_vector``/``from_vector`` convert between an ``EnvParams`` pytree and a float vector of
+    shape ``[..., dim]`` (batched levels have leading axes). ``from_vector`` clips into the box and
+    fills the fields that are not controllable from ``base``. ``to_unit``/``from_unit`` are the
+    affine maps between the box and ``[-1, 1]^dim`` that teachers act in.
+    """
+
+    names: tuple[str, ...]
+    low: np.ndarray
+    high: np.ndarray
+    base: Any  # EnvParams used for the non-controllable fields
+
+    def __post_init__(self):
+        low = np.asarray(self.low, np.float32)
+        high = np.asarray(self.high, np.float32)
+        if low.shape != (len(self.names),) or high.shape != low.shape:
+            raise ValueError(f"ParamSpace bounds must have shape ({len(self.names)},), got {low.shape} and {high.shape}")
+        if np.any(low > high):
+            bad = [n for n, lo, hi in zip(self.names, low, high) if lo > hi]
+            raise ValueError(f"ParamSpace low > high for {bad}")
+        object.__setattr__(self, "low", low)
+        object.__setattr__(self, "high", high)
+        object.__setattr__(self, "names", tuple(self.names))
+
+    @property
+    def dim(self) -> int:
+        return len(self.names)
+
+    def with_bounds(self, low: Sequence[float] | None = None, high: Sequence[float] | None = None, base=None) -> "ParamSpace":
+        """A sub-box of this space (e.g. a teacher's Theta), validated to lie inside it."""
+        low = self.low if low is None else np.asarray(low, np.float32)
+        high = self.high if high is None else np.asarray(high, np.float32)
+        if np.any(low < self.low - 1e-6) or np.any(high > self.high + 1e-6):
+            raise ValueError(
+                f"bounds [{low}, {high}] leave the parameter space [{self.low}, {self.high}] of {self.names}"
+            )
+        return ParamSpace(self.names, low, high, self.base if base is None else base)
+
+    def to_vector(self, params) -> jax.Array:
+        return jnp.stack([jnp.asarray(getattr(params, n), jnp.float32) for n in self.names], axis=-1)
+
+    def from_vector(self, vec, base=None):
+        """Params from a ``[..., dim]`` vector, clipped into the box; other fields from ``base``."""
+        vec = jnp.asarray(vec, jnp.float32)
+        if vec.shape[-1] != self.dim:
+            raise ValueError(f"expected a parameter vector with last axis {self.dim} ({self.names}), got shape {vec.shape}")
+        vec = jnp.clip(vec, self.low, self.high)
+        base = self.base if base is None else base
+        batch = vec.shape[:-1]
+        base = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(jnp.asarray(x), batch + jnp.shape(x)), base)
+        fields = {}
+        for i, n in enumerate(self.names):
+            ref = getattr(base, n)
+            fields[n] = vec[..., i].astype(jnp.asarray(ref).dtype)
+        return base.replace(**fields)
+
+    def to_unit(self, vec) -> jax.Array:
+        """Box -> [-1, 1]^dim (affine)."""
+        span = np.where(self.high > self.low, self.high - self.low, 1.0)
+        return 2.0 * (jnp.asarray(vec, jnp.float32) - self.low) / span - 1.0
+
+    def from_unit(self, u) -> jax.Array:
+        """[-1, 1]^dim -> box (affine, clipped)."""
+        u = jnp.clip(jnp.asarray(u, jnp.float32), -1.0, 1.0)
+        return self.low + (u + 1.0) * 0.5 * (self.high - self.low)
+
+    def sample_vector(self, key: jax.Array, shape: tuple = ()) -> jax.Array:
+        return jax.random.uniform(key, shape + (self.dim,), jnp.float32, self.low, self.high)
+
+    def sample(self, key: jax.Array, shape: tuple = (), base=None):
+        """Levels drawn uniformly over the box (``shape`` leading batch axes)."""
+        return self.from_vector(self.sample_vector(key, shape), base)
+
+
+# --------------------------------------------------------------------------------------------
+# Environment base class
+# --------------------------------------------------------------------------------------------
+
+
+class Environment:
+    """Base class: auto-reset, time limits, episode statistics and input validation.
+
+    Subclasses define:
+      * ``default_params`` (property) -> EnvParams
+      * ``param_space`` (property) -> ParamSpace
+      * ``param_bounds`` (property) -> {field: (low, high, low_inclusive, high_inclusive)}, the
+        physically valid range checked eagerly (may be wider than ``param_space``)
+      * ``reset_env(key, params) -> (obs, state)``
+      * ``step_env(key, state, action, params) -> (obs, state, reward, terminated, info)``; must
+        not touch ``time``/``episode_return`` (the base class does) and must not auto-reset.
+      * ``observation_space(params)``, ``action_space(params)``
+    """
+
+    name: str = "env"
+
+    # --- to be provided by subclasses ---
+    @property
+    def default_params(self):
+        raise NotImplementedError
+
+    @property
+    def param_space(self) -> ParamSpace:
+        raise NotImplementedError
+
+    @property
+    def param_bounds(self) -> dict:
+        return {}
+
+    def reset_env(self, key, params):
+        raise NotImplementedError
+
+    def step_env(self, key, state, action, params):
+        raise NotImplementedError
+
+    def observation_space(self, params=None):
+        raise NotImplementedError
+
+    def action_space(self, params=None):
+        raise NotImplementedError
+
+    # --- public API ---
+    def reset(self, key: jax.Array, params=None):
+        params = self.default_params if params is None else params
+        self.check_params(params)
+        return self.reset_env(key, params)
+
+    def step(self, key: jax.Array, state, action, params=None):
+        params = self.default_params if params is None else params
+        self.check_params(params)
+        action = self.check_action(action)
+        key_step, key_reset = jax.random.split(key)
+        obs_st, state_st, reward, terminated, info = self.step_env(key_step, state, action, params)
+        reward = jnp.asarray(reward, jnp.float32)
+        terminated = jnp.asarray(terminated, bool)
+        time = state.time + 1
+        ep_return = state.episode_return + reward
+        state_st = state_st.replace(time=time, episode_return=ep_return)
+        truncated = jnp.logical_and(time >= params.max_steps, jnp.logical_not(terminated))
+        done = jnp.logical_or(terminated, truncated)
+        obs_re, state_re = self.reset_env(key_reset, params)
+        state_out = jax.tree_util.tree_map(lambda r, s: jnp.where(done, r, s), state_re, state_st)
+        obs_out = jnp.where(done, obs_re, obs_st)
+        info = dict(info)
+        info.update(
+            terminated=terminated,
+            truncated=truncated,
+            final_obs=obs_st,
+            episode_return=jnp.where(done, ep_return, 0.0),
+            episode_length=jnp.where(done, time, 0),
+        )
+        return obs_out, state_out, reward, done, info
+
+    # --- validation ---
+    def check_params(self, params) -> None:
+        """Raise ValueError for concrete (eager) parameters outside their valid range."""
+        for name, (lo, hi, lo_inc, hi_inc) in self.param_bounds.items():
+            value = getattr(params, name)
+            if not _is_concrete(value):
+                continue
+            v = np.asarray(value)
+            ok_lo = v >= lo if lo_inc else v > lo
+            ok_hi = v <= hi if hi_inc else v < hi
+            if not np.all(ok_lo & ok_hi):
+                bad = v[~(ok_lo & ok_hi)] if v.ndim else v
+                interval = f"{'[' if lo_inc else '('}{lo}, {hi}{']' if hi_inc else ')'}"
+                raise ValueError(f"{self.name}: parameter '{name}' must lie in {interval}, got {bad}")
+
+    def check_action(self, action):
+        """Static (trace-time) check of the action's shape and dtype for one env."""
+        space = self.action_space(None)
+        action = jnp.asarray(action)
+        if isinstance(space, Discrete):
+            if not jnp.issubdtype(action.dtype, jnp.integer):
+                raise TypeError(f"{self.name}: discrete action must be an integer, got dtype {action.dtype}")
+            if action.shape != ():
+                raise ValueError(f"{self.name}: discrete action must be a scalar per env, got shape {action.shape}")
+            return action.astype(jnp.int32)
+        if action.shape != tuple(space.shape):
+            raise ValueError(f"{self.name}: action must have shape {tuple(space.shape)}, got {action.shape}")
+        if not jnp.issubdtype(action.dtype, jnp.floating):
+            raise TypeError(f"{self.name}: continuous action must be floating point, got dtype {action.dtype}")
+        return action.astype(jnp.float32)
+
+    # --- rendering (host side) ---
+    def render(self, state, params=None) -> np.ndarray:
+        """One unbatched state -> RGB frame (H, W, 3) uint8. Optional per environment."""
+        raise NotImplementedError(f"{self.name} has no renderer")
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}(name={self.name!r})"

@@ -1,0 +1,13 @@
+"""Shared test set-up: CPU only, float32, a persistent compilation cache under .cache/."""
+import os
+import pathlib
+
+os.environ.setdefault("JAX_PLATFORMS", "cpu")
+os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
+
+import jax  # noqa: E402
+
+_cache = pathlib.Path(__file__).resolve().parents[1] / ".cache" / "jax"
+_cache.mkdir(parents=True, exist_ok=True)
+jax.config.update("jax_compilation_cache_dir", str(_cache))
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
