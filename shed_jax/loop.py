@@ -1,0 +1,112 @@
+"""The whole outer loop of a UED run as one ``lax.scan`` (PureJaxRL's ``make_train``, for UED).
+
+One *budget step* of the scan:
+
+1. at the first step of a teacher episode, re-initialise the student (the paper's Algorithm 1) and
+   let the method begin the episode (SHED evaluates the fresh student to get s_0);
+2. ``method.step``: generate levels, train the student, evaluate, reward, store, synthesise,
+   update the teacher (what exactly is the method's business; see ``shed_jax.methods``);
+3. evaluate the student on the fixed test set (stochastic policy, as the paper and DCD do) and
+   record it with the method's ``StepInfo``.
+
+``make_run`` returns ``(init, run)``: ``init(key) -> RunState`` and
+``run(state, num_steps) -> (state, metrics)`` where ``metrics`` is stacked over the ``num_steps``
+budget steps. ``run`` is jitted with ``num_steps`` static, so calling it on consecutive chunks (for
+progress bars and checkpoints) compiles once and gives exactly the same result as one long call.
+Seeds are batched with ``jax.vmap`` over ``init``'s key and ``run``'s state.
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Callable
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+
+@struct.dataclass
+class RunState:
+    student: Any  # StudentState of the reported student
+    method: Any  # the method's teacher state
+    key: jax.Array
+    step: jax.Array  # global budget-step index (int32)
+
+
+@dataclasses.dataclass(frozen=True)
+class LoopSpec:
+    """Static description of the loop: episodes, budget steps and the test protocol."""
+
+    steps_per_episode: int  # T, budget steps per teacher episode
+    num_episodes: int  # N_ep
+    test_episodes: int = 10  # episodes per test level, per budget step
+    test_max_steps: int | None = None  # None: the test levels' own time limit
+    test_every: int = 1  # evaluate on the test set every k budget steps (NaN in between)
+
+    def __post_init__(self):
+        for name in ("steps_per_episode", "num_episodes", "test_episodes", "test_every"):
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f"LoopSpec.{name} must be >= 1, got {getattr(self, name)}")
+
+    @property
+    def total_steps(self) -> int:
+        return self.steps_per_episode * self.num_episodes
+
+
+def make_run(student, method, test_levels, spec: LoopSpec) -> tuple[Callable, Callable]:
+    """Build ``init`` and ``run`` for one seed (vmap them for several).
+
+    ``student`` is the object from ``shed_jax.student.make_student``; ``method`` implements
+    ``shed_jax.methods.base.UEDMethod``; ``test_levels`` is an env params pytree with a leading
+    axis (one entry per test level).
+    """
+    n_test = jax.tree_util.tree_leaves(test_levels)[0].shape[0]
+
+    def init(key: jax.Array, hparams=None) -> RunState:
+        k_student, k_method, k_run = jax.random.split(key, 3)
+        return RunState(
+            student=student.init(k_student, hparams),
+            method=method.init(k_method),
+            key=k_run,
+            step=jnp.zeros((), jnp.int32),
+        )
+
+    def budget_step(state: RunState, _):
+        key, k_init, k_begin, k_step, k_test = jax.random.split(state.key, 5)
+        t_in_episode = state.step % spec.steps_per_episode
+        episode = state.step // spec.steps_per_episode
+
+        def start_episode(operand):
+            mstate, sstate = operand
+            fresh = student.init(k_init, sstate.hparams)
+            return method.begin_episode(k_begin, mstate, fresh)
+
+        mstate, sstate = jax.lax.cond(
+            t_in_episode == 0, start_episode, lambda operand: operand, (state.method, state.student)
+        )
+        mstate, sstate, info = method.step(k_step, mstate, sstate)
+
+        def run_test(s):
+            return student.evaluate(s, k_test, test_levels, spec.test_episodes, spec.test_max_steps)
+
+        do_test = (state.step + 1) % spec.test_every == 0
+        test_returns = jax.lax.cond(
+            do_test,
+            run_test,
+            lambda s: jnp.full((n_test, spec.test_episodes), jnp.nan, jnp.float32),
+            sstate,
+        )
+        metrics = {
+            "step": state.step,
+            "episode": episode,
+            "step_in_episode": t_in_episode,
+            "test_return_per_level": jnp.mean(test_returns, axis=-1),
+            "test_return": jnp.mean(test_returns),
+            "info": info,
+        }
+        return RunState(student=sstate, method=mstate, key=key, step=state.step + 1), metrics
+
+    def run(state: RunState, num_steps: int):
+        return jax.lax.scan(budget_step, state, None, length=num_steps)
+
+    return init, run
