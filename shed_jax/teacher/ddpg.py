@@ -1,0 +1,206 @@
+"""DDPG teacher (SPEC 1.6): a deterministic actor over u-space and a Q critic, with target copies.
+
+Actor  m -> 400 -> 300 -> d_a, ReLU, tanh output (u in [-1, 1]^{d_a}).
+Critic [s, u] -> 400 -> 300 -> 1, ReLU.
+Target y = r~ + gamma (1 - done) Q'(s', mu'(s')); critic loss MSE; actor loss -mean Q(s, mu(s)) using
+the freshly updated critic; then soft target updates theta' <- tau theta + (1 - tau) theta' (optax's
+``incremental_update``). Adam 1e-3 for both, no gradient clipping [official code].
+
+r~ is the batch's rewards z-scored per batch (real and synthetic parts separately in a mixed batch)
+when ``reward_norm`` is on [official code], else the raw rewards.
+
+Everything is a pure function of (config, state, ...); the config is a frozen, hashable dataclass so
+it can be a static argument of ``jax.jit``. Teacher actions stay in u-space; mapping u to level
+parameters is the caller's job (``env.param_space.from_unit``).
+
+Initialisation uses flax's defaults (LeCun-normal kernels, zero biases), not PyTorch's fan-in
+uniform; DDPG is not sensitive to this at these sizes.
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Sequence
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import optax
+from flax import struct
+
+from shed_jax.teacher.buffers import Transition
+from shed_jax.teacher.reward import zscore, zscore_mixed
+
+
+@dataclasses.dataclass(frozen=True)
+class DDPGConfig:
+    """Static DDPG settings. state_dim = m (or m + 1 with the t/T extension), action_dim = n*d."""
+
+    state_dim: int
+    action_dim: int
+    hidden: tuple = (400, 300)
+    actor_lr: float = 1e-3
+    critic_lr: float = 1e-3
+    gamma: float = 0.99
+    tau: float = 0.001
+    explore_sigma: float = 0.1  # Gaussian in u-space [our choice]; 0.0 = official code
+    reward_norm: bool = True  # per-batch z-scoring of rewards [official code]
+
+    def __post_init__(self):
+        object.__setattr__(self, "hidden", tuple(int(h) for h in self.hidden))
+        for name in ("state_dim", "action_dim"):
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f"DDPGConfig.{name} must be >= 1, got {getattr(self, name)}")
+        if not self.hidden or min(self.hidden) < 1:
+            raise ValueError(f"DDPGConfig.hidden must be non-empty positive widths, got {self.hidden}")
+        for name in ("actor_lr", "critic_lr"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"DDPGConfig.{name} must be > 0, got {getattr(self, name)}")
+        if not 0.0 <= self.gamma <= 1.0:
+            raise ValueError(f"DDPGConfig.gamma must lie in [0, 1], got {self.gamma}")
+        if not 0.0 < self.tau <= 1.0:
+            raise ValueError(f"DDPGConfig.tau must lie in (0, 1], got {self.tau}")
+        if not self.explore_sigma >= 0.0:
+            raise ValueError(f"DDPGConfig.explore_sigma must be >= 0, got {self.explore_sigma}")
+
+
+class Actor(nn.Module):
+    action_dim: int
+    hidden: Sequence[int] = (400, 300)
+
+    @nn.compact
+    def __call__(self, s):
+        x = s
+        for h in self.hidden:
+            x = nn.relu(nn.Dense(h)(x))
+        return jnp.tanh(nn.Dense(self.action_dim)(x))
+
+
+class Critic(nn.Module):
+    hidden: Sequence[int] = (400, 300)
+
+    @nn.compact
+    def __call__(self, s, u):
+        x = jnp.concatenate([s, u], axis=-1)
+        for h in self.hidden:
+            x = nn.relu(nn.Dense(h)(x))
+        return nn.Dense(1)(x)[..., 0]
+
+
+@struct.dataclass
+class DDPGState:
+    actor_params: dict
+    critic_params: dict
+    target_actor_params: dict
+    target_critic_params: dict
+    actor_opt_state: optax.OptState
+    critic_opt_state: optax.OptState
+    num_updates: jax.Array  # int32
+
+
+def _nets(config: DDPGConfig):
+    return Actor(config.action_dim, config.hidden), Critic(config.hidden)
+
+
+def _optims(config: DDPGConfig):
+    return optax.adam(config.actor_lr), optax.adam(config.critic_lr)
+
+
+def ddpg_init(config: DDPGConfig, key: jax.Array) -> DDPGState:
+    """Fresh networks, identical target copies and Adam states."""
+    actor, critic = _nets(config)
+    k_a, k_c = jax.random.split(key)
+    s = jnp.zeros((1, config.state_dim), jnp.float32)
+    u = jnp.zeros((1, config.action_dim), jnp.float32)
+    actor_params = actor.init(k_a, s)
+    critic_params = critic.init(k_c, s, u)
+    opt_a, opt_c = _optims(config)
+    return DDPGState(
+        actor_params=actor_params,
+        critic_params=critic_params,
+        target_actor_params=actor_params,
+        target_critic_params=critic_params,
+        actor_opt_state=opt_a.init(actor_params),
+        critic_opt_state=opt_c.init(critic_params),
+        num_updates=jnp.int32(0),
+    )
+
+
+def ddpg_act(config: DDPGConfig, state: DDPGState, s, key: jax.Array | None = None) -> jax.Array:
+    """u = clip(mu(s) + N(0, sigma^2), -1, 1); deterministic mu(s) when ``key`` is None or sigma = 0."""
+    actor, _ = _nets(config)
+    u = actor.apply(state.actor_params, jnp.asarray(s, jnp.float32))
+    if key is not None and config.explore_sigma > 0:
+        u = u + config.explore_sigma * jax.random.normal(key, u.shape)
+    return jnp.clip(u, -1.0, 1.0)
+
+
+def ddpg_q(config: DDPGConfig, state: DDPGState, s, u) -> jax.Array:
+    """Q(s, u) of the online critic."""
+    _, critic = _nets(config)
+    return critic.apply(state.critic_params, s, u)
+
+
+def ddpg_update(config: DDPGConfig, state: DDPGState, batch: Transition, num_real: int | None = None):
+    """One critic step, one actor step and one soft target update on ``batch`` (leading axis B).
+
+    ``num_real`` (static): for a mixed batch from ``buffers.sample_mixed``, the size of its real
+    prefix, so that rewards are z-scored per part. Returns (new state, metrics dict).
+    """
+    actor, critic = _nets(config)
+    opt_a, opt_c = _optims(config)
+    r = batch.r.astype(jnp.float32)
+    if config.reward_norm:
+        r = zscore(r) if num_real is None else zscore_mixed(r, num_real)
+    next_u = actor.apply(state.target_actor_params, batch.s_next)
+    q_next = critic.apply(state.target_critic_params, batch.s_next, next_u)
+    y = jax.lax.stop_gradient(r + config.gamma * (1.0 - batch.done) * q_next)
+
+    def critic_loss(p):
+        q = critic.apply(p, batch.s, batch.u)
+        return jnp.mean((q - y) ** 2), q
+
+    (c_loss, q), c_grads = jax.value_and_grad(critic_loss, has_aux=True)(state.critic_params)
+    c_updates, critic_opt_state = opt_c.update(c_grads, state.critic_opt_state, state.critic_params)
+    critic_params = optax.apply_updates(state.critic_params, c_updates)
+
+    def actor_loss(p):
+        return -jnp.mean(critic.apply(critic_params, batch.s, actor.apply(p, batch.s)))
+
+    a_loss, a_grads = jax.value_and_grad(actor_loss)(state.actor_params)
+    a_updates, actor_opt_state = opt_a.update(a_grads, state.actor_opt_state, state.actor_params)
+    actor_params = optax.apply_updates(state.actor_params, a_updates)
+
+    new_state = DDPGState(
+        actor_params=actor_params,
+        critic_params=critic_params,
+        target_actor_params=optax.incremental_update(actor_params, state.target_actor_params, config.tau),
+        target_critic_params=optax.incremental_update(critic_params, state.target_critic_params, config.tau),
+        actor_opt_state=actor_opt_state,
+        critic_opt_state=critic_opt_state,
+        num_updates=state.num_updates + 1,
+    )
+    metrics = {"critic_loss": c_loss, "actor_loss": a_loss, "q_mean": jnp.mean(q), "target_mean": jnp.mean(y)}
+    return new_state, metrics
+
+
+@dataclasses.dataclass(frozen=True)
+class DDPG:
+    """The functions above bound to one config (``make_ddpg``), mirroring ``make_student``."""
+
+    config: DDPGConfig
+
+    def init(self, key):
+        return ddpg_init(self.config, key)
+
+    def act(self, state, s, key=None):
+        return ddpg_act(self.config, state, s, key)
+
+    def q(self, state, s, u):
+        return ddpg_q(self.config, state, s, u)
+
+    def update(self, state, batch, num_real=None):
+        return ddpg_update(self.config, state, batch, num_real)
+
+
+def make_ddpg(config: DDPGConfig) -> DDPG:
+    return DDPG(config)

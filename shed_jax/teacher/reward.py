@@ -1,0 +1,133 @@
+"""The teacher's reward R(s, a, s') on performance vectors, and per-batch reward normalisation.
+
+Forms (SPEC 1.3), chosen by a frozen :class:`RewardConfig`:
+
+* ``paper_l1`` (default, [paper]):  R = ||s' - s||_1 - eta * cv
+* ``signed_sum`` ([our choice]):    R = sum_i (s'_i - s_i) - eta * cv   (does not reward drops)
+* ``code_mean`` ([official code]):  R = mean(s') - mean(s) [+ 0.01 * (cv_c(s) - cv_c(s'))]
+
+with omega = s' - s and cv = sample-std(omega) / |mean(omega)|.  The guard replaces mean^2 by
+max(mean^2, 1e-6) in the denominator (an unguarded cv is infinite when the student's average change is
+exactly zero, e.g. two identical evaluations, and would swamp the L1 term); the result is clipped at
+100 so that one near-zero mean change cannot dominate a batch of rewards either.
+
+All functions act on the last axis, so they broadcast over any leading batch axes and are jittable
+and vmappable.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+
+REWARD_FORMS = ("paper_l1", "signed_sum", "code_mean")
+
+
+@dataclasses.dataclass(frozen=True)
+class RewardConfig:
+    """Static choice of the teacher reward.
+
+    form:        'paper_l1' | 'signed_sum' | 'code_mean'.
+    eta:         fairness weight of cv in the paper forms (0.05 [paper v1]; ablation 10).
+    code_cv:     add the official code's optional term c * (cv_c(s) - cv_c(s')) to 'code_mean'.
+    code_cv_weight: its weight c (0.01 in the official code).
+    cv_guard:    lower bound on mean(omega)^2 in the cv denominator.
+    cv_clip:     upper bound on cv.
+    """
+
+    form: str = "paper_l1"
+    eta: float = 0.05
+    code_cv: bool = False
+    code_cv_weight: float = 0.01
+    cv_guard: float = 1e-6
+    cv_clip: float = 100.0
+
+    def __post_init__(self):
+        if self.form not in REWARD_FORMS:
+            raise ValueError(f"RewardConfig.form must be one of {REWARD_FORMS}, got {self.form!r}")
+        if not self.eta >= 0:
+            raise ValueError(f"RewardConfig.eta must be >= 0, got {self.eta}")
+        if not self.cv_guard > 0:
+            raise ValueError(f"RewardConfig.cv_guard must be > 0, got {self.cv_guard}")
+        if not self.cv_clip > 0:
+            raise ValueError(f"RewardConfig.cv_clip must be > 0, got {self.cv_clip}")
+        if self.code_cv and self.form != "code_mean":
+            raise ValueError("RewardConfig.code_cv only applies to form='code_mean'")
+
+
+def coefficient_of_variation(s, s_next, guard: float = 1e-6, clip: float = 100.0) -> jax.Array:
+    """cv of the per-environment change omega = s' - s (SPEC 1.3), guarded and clipped.
+
+    cv = sqrt( sum_i (omega_i - mean)^2 / (m - 1) / max(mean^2, guard) ), clipped to [0, clip].
+    Needs m >= 2 evaluation environments (the sample std is undefined for m = 1).
+    """
+    omega = jnp.asarray(s_next, jnp.float32) - jnp.asarray(s, jnp.float32)
+    m = omega.shape[-1]
+    if m < 2:
+        raise ValueError(f"cv needs at least 2 evaluation environments, got m={m}")
+    mean = jnp.mean(omega, axis=-1, keepdims=True)
+    var = jnp.sum((omega - mean) ** 2, axis=-1) / (m - 1)
+    cv = jnp.sqrt(var / jnp.maximum(mean[..., 0] ** 2, guard))
+    return jnp.minimum(cv, clip)
+
+
+def code_cv(x) -> jax.Array:
+    """The official code's cv_c(x) = 100 * population-std(x) / mean(x) of a performance vector.
+
+    Unguarded and signed, as in the code: it flips sign when mean(x) < 0 (documented in SPEC 1.3).
+    """
+    x = jnp.asarray(x, jnp.float32)
+    return 100.0 * jnp.std(x, axis=-1) / jnp.mean(x, axis=-1)
+
+
+def teacher_reward(config: RewardConfig, s, a, s_next) -> jax.Array:
+    """R(s, a, s') for performance vectors s, s' (last axis m); the action is unused by every form.
+
+    ``a`` is accepted so that this has the signature synthetic-experience generation expects.
+    """
+    del a
+    s = jnp.asarray(s, jnp.float32)
+    s_next = jnp.asarray(s_next, jnp.float32)
+    if config.form == "code_mean":
+        r = jnp.mean(s_next, axis=-1) - jnp.mean(s, axis=-1)
+        if config.code_cv:
+            r = r + config.code_cv_weight * (code_cv(s) - code_cv(s_next))
+        return r
+    cv = coefficient_of_variation(s, s_next, config.cv_guard, config.cv_clip)
+    if config.form == "paper_l1":
+        gain = jnp.sum(jnp.abs(s_next - s), axis=-1)
+    else:  # signed_sum
+        gain = jnp.sum(s_next - s, axis=-1)
+    return gain - config.eta * cv
+
+
+def make_reward_fn(config: RewardConfig):
+    """``(s, a, s') -> R`` closed over a config (what ``diffusion.synthesize`` takes)."""
+    return lambda s, a, s_next: teacher_reward(config, s, a, s_next)
+
+
+def zscore(r, eps: float = 1e-6) -> jax.Array:
+    """(r - mean) / (std + eps) over the last axis (population std, as numpy's default).
+
+    The DDPG teacher z-scores the rewards of every sampled batch [official code]: the raw scale of
+    R (hundreds of return points) would otherwise set the critic's learning rate.
+    """
+    r = jnp.asarray(r, jnp.float32)
+    mean = jnp.mean(r, axis=-1, keepdims=True)
+    std = jnp.std(r, axis=-1, keepdims=True)
+    return (r - mean) / (std + eps)
+
+
+def zscore_mixed(r, num_real: int, eps: float = 1e-6) -> jax.Array:
+    """Z-score the first ``num_real`` entries (real) and the rest (synthetic) separately.
+
+    ``num_real`` is static (the mixed batch layout is fixed by the batch size and psi). Either part
+    may be empty (pure real / pure synthetic batch).
+    """
+    r = jnp.asarray(r, jnp.float32)
+    n = r.shape[-1]
+    if not 0 <= num_real <= n:
+        raise ValueError(f"num_real must lie in [0, {n}], got {num_real}")
+    parts = [zscore(p, eps) for p in (r[..., :num_real], r[..., num_real:]) if p.shape[-1] > 0]
+    return jnp.concatenate(parts, axis=-1)
