@@ -1,0 +1,164 @@
+"""ACCEL's level editor and EASY base-level sampler, on parameter vectors.
+
+A level is a float vector in ``env.param_space`` order, so one editor serves every environment; only
+a per-environment table of edit steps (and the EASY box) differs. One edit (SPEC 2.4, 5.1):
+
+    i ~ U{0..d-1},  dir ~ U{-1, 0, +1},  v_i <- clip(v_i + dir * step_i, low_i, high_i)
+
+where ``step_i`` is a constant (``fixed``) or drawn from U(0, step_i) (``uniform``, the walker's
+roughness). ``num_edits`` edits are applied in sequence (3 [DCD]), so at most ``num_edits``
+coordinates change. Environments whose level also holds a terrain seed draw a fresh seed per child
+(:func:`new_seeds`), as DCD does.
+
+Tables [SPEC 2.4 / 5.1]:
+
+* lander (gravity, wind_power, turbulence_power): steps 0.36 / 0.48 / 0.06 (4 % of the teacher box
+  Θ), clipped to Θ; EASY g ~ U[-7, -3], wind ~ U[0.01, 1], turb ~ U[0.01, 0.1] [our choice].
+* walker (roughness, pit lo/hi, stump lo/hi, stair lo/hi, stair steps): steps U(0, 0.6), 0.4, 0.4,
+  0.2, 0.2, 0.2, 0.2, 1, clipped to FULL; EASY roughness ~ U[0, 0.6], pits 0/0.8, stumps 0/0.4,
+  stairs 0/0.4, steps 1 [DCD].
+
+The walker package may later ship its own editor; this module keeps the vector form so that the
+same code path (and tests) serve both environments and the tiny test environments.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+FIXED, UNIFORM = "fixed", "uniform"
+
+
+@dataclasses.dataclass(frozen=True)
+class EditTable:
+    """Per-parameter edit steps and EASY box for one environment (``param_space`` order)."""
+
+    steps: tuple[float, ...]
+    kinds: tuple[str, ...]  # FIXED: dir * step; UNIFORM: dir * U(0, step)
+    easy_low: tuple[float, ...]
+    easy_high: tuple[float, ...]
+
+    def __post_init__(self):
+        d = len(self.steps)
+        for name in ("kinds", "easy_low", "easy_high"):
+            if len(getattr(self, name)) != d:
+                raise ValueError(f"EditTable.{name} has {len(getattr(self, name))} entries, expected {d} (one per parameter)")
+        bad = [k for k in self.kinds if k not in (FIXED, UNIFORM)]
+        if bad:
+            raise ValueError(f"EditTable.kinds must be {FIXED!r} or {UNIFORM!r}, got {bad}")
+        if any(s < 0 for s in self.steps):
+            raise ValueError(f"EditTable.steps must be >= 0, got {self.steps}")
+        if any(lo > hi for lo, hi in zip(self.easy_low, self.easy_high)):
+            raise ValueError(f"EditTable EASY box has low > high: {self.easy_low} vs {self.easy_high}")
+
+    @property
+    def dim(self) -> int:
+        return len(self.steps)
+
+
+LANDER_TABLE = EditTable(
+    steps=(0.36, 0.48, 0.06),
+    kinds=(FIXED, FIXED, FIXED),
+    easy_low=(-7.0, 0.01, 0.01),
+    easy_high=(-3.0, 1.0, 0.1),
+)
+
+WALKER_TABLE = EditTable(
+    steps=(0.6, 0.4, 0.4, 0.2, 0.2, 0.2, 0.2, 1.0),
+    kinds=(UNIFORM,) + (FIXED,) * 7,
+    easy_low=(0.0, 0.0, 0.8, 0.0, 0.4, 0.0, 0.4, 1.0),
+    easy_high=(0.6, 0.0, 0.8, 0.0, 0.4, 0.0, 0.4, 1.0),
+)
+
+# Environment name -> table. Unknown environments get a generic table (see ``table_for``).
+TABLES = {"lander": LANDER_TABLE, "lander-continuous": LANDER_TABLE, "walker": WALKER_TABLE}
+
+
+def generic_table(low, high, step_fraction: float = 0.04) -> EditTable:
+    """Fallback for environments without a table: steps of ``step_fraction`` of the box width and
+    EASY = the whole box. Used for the small test environments (e.g. cartpole)."""
+    low = np.asarray(low, np.float64)
+    high = np.asarray(high, np.float64)
+    d = low.shape[0]
+    return EditTable(
+        steps=tuple(float(x) for x in step_fraction * (high - low)),
+        kinds=(FIXED,) * d,
+        easy_low=tuple(float(x) for x in low),
+        easy_high=tuple(float(x) for x in high),
+    )
+
+
+def table_for(env, space=None) -> EditTable:
+    """The edit table of ``env`` (by ``env.name``), validated against its parameter space."""
+    space = env.param_space if space is None else space
+    table = TABLES.get(getattr(env, "name", ""))
+    if table is None:
+        return generic_table(space.low, space.high)
+    if table.dim != space.dim:
+        raise ValueError(f"edit table for {env.name!r} has {table.dim} parameters but its param_space has {space.dim} ({space.names})")
+    return table
+
+
+@dataclasses.dataclass(frozen=True)
+class Mutator:
+    """ACCEL's edit operator and EASY sampler over ``[d]`` vectors in the box [low, high]."""
+
+    table: EditTable
+    low: np.ndarray
+    high: np.ndarray
+    num_edits: int = 3
+
+    def __post_init__(self):
+        low = np.asarray(self.low, np.float32)
+        high = np.asarray(self.high, np.float32)
+        if low.shape != (self.table.dim,) or high.shape != low.shape:
+            raise ValueError(f"Mutator bounds must have shape ({self.table.dim},), got {low.shape} and {high.shape}")
+        if not isinstance(self.num_edits, int) or self.num_edits < 0:
+            raise ValueError(f"Mutator.num_edits must be a non-negative int, got {self.num_edits!r}")
+        object.__setattr__(self, "low", low)
+        object.__setattr__(self, "high", high)
+
+    @classmethod
+    def for_env(cls, env, space=None, num_edits: int = 3) -> "Mutator":
+        """Editor clipping to ``space`` (the teacher box Θ; default ``env.param_space``)."""
+        space = env.param_space if space is None else space
+        return cls(table_for(env, space), space.low, space.high, num_edits)
+
+    def edit(self, key: jax.Array, vec: jax.Array) -> jax.Array:
+        """One edit of one ``[d]`` vector (see module docstring)."""
+        k_i, k_dir, k_mag = jax.random.split(key, 3)
+        d = self.table.dim
+        i = jax.random.randint(k_i, (), 0, d)
+        direction = jax.random.randint(k_dir, (), -1, 2).astype(jnp.float32)
+        steps = jnp.asarray(self.table.steps, jnp.float32)
+        uniform = jnp.asarray([k == UNIFORM for k in self.table.kinds])
+        mag = jnp.where(uniform[i], jax.random.uniform(k_mag) * steps[i], steps[i])
+        low, high = jnp.asarray(self.low), jnp.asarray(self.high)
+        new_i = jnp.clip(vec[i] + direction * mag, low[i], high[i])
+        return vec.at[i].set(new_i)
+
+    def mutate(self, key: jax.Array, vec: jax.Array) -> jax.Array:
+        """``num_edits`` sequential edits of one ``[d]`` vector (a ``lax.scan``)."""
+        vec = jnp.asarray(vec, jnp.float32)
+        keys = jax.random.split(key, self.num_edits)
+        out, _ = jax.lax.scan(lambda v, k: (self.edit(k, v), None), vec, keys)
+        return out
+
+    def mutate_batch(self, key: jax.Array, vecs: jax.Array) -> jax.Array:
+        """Edit each row of ``[n, d]`` with its own key."""
+        return jax.vmap(self.mutate)(jax.random.split(key, vecs.shape[0]), vecs)
+
+    def sample_easy(self, key: jax.Array, num: int) -> jax.Array:
+        """``num`` EASY base levels ``[num, d]`` (uniform in the EASY box, clipped to the bounds)."""
+        lo = jnp.asarray(self.table.easy_low, jnp.float32)
+        hi = jnp.asarray(self.table.easy_high, jnp.float32)
+        u = jax.random.uniform(key, (num, self.table.dim), jnp.float32)
+        return jnp.clip(lo + u * (hi - lo), self.low, self.high)
+
+
+def new_seeds(key: jax.Array, num: int) -> jax.Array:
+    """Fresh terrain seeds for ``num`` edited or newly generated levels (int32, non-negative)."""
+    return jax.random.randint(key, (num,), 0, jnp.iinfo(jnp.int32).max, dtype=jnp.int32)
