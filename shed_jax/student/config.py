@@ -1,0 +1,185 @@
+"""Static PPO configuration (`PPOConfig`) and dynamic hyperparameters (`PPOHyperparams`).
+
+The split is what makes sweeps cheap: everything that fixes array shapes or program structure
+(number of envs, rollout length, network sizes, on/off switches) is a frozen, hashable
+`PPOConfig` that the student closes over at trace time; every float one may want to sweep
+(learning rate, entropy coefficient, clip epsilon, discount, ...) is a leaf of the
+`PPOHyperparams` pytree stored inside the student state, so ``jax.vmap`` over a batch of
+hyperparameters is a single compile.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any
+
+import jax.numpy as jnp
+from flax import struct
+
+ACTIVATIONS = ("tanh", "relu", "elu", "gelu", "silu")
+
+_HPARAM_RANGES = {
+    # name: (low, high, low_inclusive, high_inclusive)
+    "lr": (0.0, math.inf, False, False),
+    "ent_coef": (0.0, math.inf, True, False),
+    "clip_eps": (0.0, math.inf, False, False),
+    "vf_coef": (0.0, math.inf, True, False),
+    "gamma": (0.0, 1.0, True, True),
+    "gae_lambda": (0.0, 1.0, True, True),
+    "max_grad_norm": (0.0, math.inf, False, False),
+}
+
+
+@struct.dataclass
+class PPOHyperparams:
+    """Dynamic PPO hyperparameters: a pytree of float scalars (or batches of them, for vmap).
+
+    Built with Python floats these are hashable and can sit inside a `PPOConfig` as defaults;
+    `as_arrays()` turns them into float32 arrays for the student state.
+    """
+
+    lr: Any = 3e-4
+    ent_coef: Any = 0.01
+    clip_eps: Any = 0.2
+    vf_coef: Any = 0.5
+    gamma: Any = 0.99
+    gae_lambda: Any = 0.95
+    max_grad_norm: Any = 0.5
+
+    def validate(self) -> "PPOHyperparams":
+        """Raise ValueError naming the field for concrete values outside their valid range."""
+        import numpy as np
+
+        for name, (lo, hi, lo_inc, hi_inc) in _HPARAM_RANGES.items():
+            value = getattr(self, name)
+            try:
+                v = np.asarray(value, dtype=np.float64)
+            except Exception:  # a tracer: nothing to check at trace time
+                continue
+            ok = (v >= lo if lo_inc else v > lo) & (v <= hi if hi_inc else v < hi) & np.isfinite(v)
+            if not np.all(ok):
+                interval = f"{'[' if lo_inc else '('}{lo}, {hi}{']' if hi_inc else ')'}"
+                raise ValueError(f"PPOHyperparams.{name} must be a finite value in {interval}, got {value}")
+        return self
+
+    def as_arrays(self) -> "PPOHyperparams":
+        return self.validate().replace(**{f: jnp.asarray(getattr(self, f), jnp.float32) for f in _HPARAM_RANGES})
+
+    @staticmethod
+    def stack(items: list["PPOHyperparams"]) -> "PPOHyperparams":
+        """A batch (leading axis) of hyperparameter sets, ready for ``jax.vmap``."""
+        items = [h.validate() for h in items]
+        return PPOHyperparams(**{f: jnp.asarray([getattr(h, f) for h in items], jnp.float32) for f in _HPARAM_RANGES})
+
+
+@dataclasses.dataclass(frozen=True)
+class PPOConfig:
+    """Static PPO settings (shapes and switches), validated on construction.
+
+    num_envs x num_steps transitions per rollout, split into num_minibatches minibatches for
+    update_epochs epochs. `hparams` holds the default dynamic hyperparameters used when
+    ``student.init`` is called without any.
+    """
+
+    num_envs: int = 40
+    num_steps: int = 128
+    update_epochs: int = 4
+    num_minibatches: int = 8
+    actor_hidden: tuple[int, ...] = (64, 64)
+    critic_hidden: tuple[int, ...] = (64, 64)
+    activation: str = "tanh"
+    normalize_advantages: bool = True
+    clip_value_loss: bool = False
+    normalize_observations: bool = False
+    normalize_returns: bool = True
+    reward_clip: float = 10.0  # clip of normalised rewards, as SB3 VecNormalize (ignored if not normalising)
+    obs_clip: float = 10.0  # clip of normalised observations, as SB3 VecNormalize
+    init_log_std: float = 0.0  # continuous actions: initial state-independent log-std
+    anneal_lr: bool = False
+    anneal_updates: int = 0  # updates over which lr decays linearly to 0 (required if anneal_lr)
+    hparams: PPOHyperparams = PPOHyperparams()
+
+    def __post_init__(self):
+        for name in ("num_envs", "num_steps", "update_epochs", "num_minibatches"):
+            v = getattr(self, name)
+            if not isinstance(v, int) or isinstance(v, bool) or v < 1:
+                raise ValueError(f"PPOConfig.{name} must be a positive int, got {v!r}")
+        if (self.num_envs * self.num_steps) % self.num_minibatches:
+            raise ValueError(
+                f"PPOConfig: num_envs*num_steps = {self.num_envs * self.num_steps} is not divisible by "
+                f"num_minibatches = {self.num_minibatches}"
+            )
+        for name in ("actor_hidden", "critic_hidden"):
+            v = tuple(getattr(self, name))
+            if not all(isinstance(h, int) and not isinstance(h, bool) and h > 0 for h in v):
+                raise ValueError(f"PPOConfig.{name} must be a tuple of positive ints, got {getattr(self, name)!r}")
+            object.__setattr__(self, name, v)
+        if self.activation not in ACTIVATIONS:
+            raise ValueError(f"PPOConfig.activation must be one of {ACTIVATIONS}, got {self.activation!r}")
+        for name in ("reward_clip", "obs_clip"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and v > 0):
+                raise ValueError(f"PPOConfig.{name} must be a positive number, got {v!r}")
+        if not isinstance(self.anneal_updates, int) or self.anneal_updates < 0:
+            raise ValueError(f"PPOConfig.anneal_updates must be a non-negative int, got {self.anneal_updates!r}")
+        if self.anneal_lr and self.anneal_updates < 1:
+            raise ValueError("PPOConfig.anneal_lr=True needs anneal_updates >= 1 (the length of the decay)")
+        if not isinstance(self.hparams, PPOHyperparams):
+            raise ValueError(f"PPOConfig.hparams must be a PPOHyperparams, got {type(self.hparams).__name__}")
+        hp = self.hparams.validate()
+        # keep the defaults hashable (Python floats) so the config can be a static jit argument
+        object.__setattr__(self, "hparams", hp.replace(**{f: float(getattr(hp, f)) for f in _HPARAM_RANGES}))
+
+    @property
+    def batch_size(self) -> int:
+        return self.num_envs * self.num_steps
+
+    @property
+    def minibatch_size(self) -> int:
+        return self.batch_size // self.num_minibatches
+
+    def replace(self, **changes) -> "PPOConfig":
+        return dataclasses.replace(self, **changes)
+
+    @classmethod
+    def for_env(cls, name: str, **overrides) -> "PPOConfig":
+        """The preset for a registered environment (SPEC 6.1), with optional field overrides."""
+        if name not in PRESETS:
+            raise ValueError(f"no PPO preset for environment {name!r}; known: {', '.join(sorted(PRESETS))}")
+        return dataclasses.replace(PRESETS[name], **overrides)
+
+
+# SPEC 6.1, lander column (SB3 LunarLander practice); shared by the discrete and continuous lander.
+_LANDER = PPOConfig(
+    num_envs=40,
+    num_steps=128,
+    update_epochs=4,
+    num_minibatches=8,
+    normalize_returns=True,
+    hparams=PPOHyperparams(lr=3e-4, ent_coef=0.01, clip_eps=0.2, vf_coef=0.5, gamma=0.999, gae_lambda=0.98, max_grad_norm=0.5),
+)
+
+PRESETS: dict[str, PPOConfig] = {
+    "lander": _LANDER,
+    "lander-continuous": _LANDER,
+    # SPEC 6.1, walker "default" column: 256 x 32, 5 epochs / 8 minibatches, returns normalised,
+    # no value clipping, Gaussian policy with state-independent log-std.
+    "walker": PPOConfig(
+        num_envs=256,
+        num_steps=32,
+        update_epochs=5,
+        num_minibatches=8,
+        normalize_returns=True,
+        clip_value_loss=False,
+        hparams=PPOHyperparams(lr=3e-4, ent_coef=1e-3, clip_eps=0.2, vf_coef=0.5, gamma=0.99, gae_lambda=0.9, max_grad_norm=0.5),
+    ),
+    # PureJaxRL's CartPole settings scaled to more envs; fast to train on CPU, used by the tests.
+    "cartpole": PPOConfig(
+        num_envs=16,
+        num_steps=64,
+        update_epochs=4,
+        num_minibatches=4,
+        normalize_returns=True,
+        hparams=PPOHyperparams(lr=1e-3, ent_coef=0.01, clip_eps=0.2, vf_coef=0.5, gamma=0.99, gae_lambda=0.95, max_grad_norm=0.5),
+    ),
+}

@@ -1,0 +1,109 @@
+"""Actor and critic networks and the two action distributions the student uses.
+
+Separate actor and critic MLPs (SPEC 6.1: 64-64 tanh, orthogonal init). Hidden layers use
+orthogonal(sqrt 2) weights; the policy head uses orthogonal(0.01) so the initial policy is close
+to uniform / zero-mean, and the value head orthogonal(1), as in PureJaxRL/CleanRL.
+
+The distributions are hand-written (a few lines each) because distrax is not a dependency and
+we only need log-prob, entropy, sampling and the mode for a categorical and a diagonal Gaussian.
+"""
+from __future__ import annotations
+
+import math
+from typing import Callable, Sequence
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+
+_ACT: dict[str, Callable] = {"tanh": jnp.tanh, "relu": nn.relu, "elu": nn.elu, "gelu": nn.gelu, "silu": nn.silu}
+
+
+class MLP(nn.Module):
+    """Dense layers with orthogonal init; the last layer is linear with gain `out_scale`."""
+
+    hidden: Sequence[int]
+    out_dim: int
+    activation: str = "tanh"
+    out_scale: float = 1.0
+
+    @nn.compact
+    def __call__(self, x):
+        act = _ACT[self.activation]
+        for h in self.hidden:
+            x = act(nn.Dense(h, kernel_init=nn.initializers.orthogonal(math.sqrt(2.0)), bias_init=nn.initializers.zeros)(x))
+        return nn.Dense(self.out_dim, kernel_init=nn.initializers.orthogonal(self.out_scale), bias_init=nn.initializers.zeros)(x)
+
+
+class Actor(nn.Module):
+    """Policy network: logits (discrete) or (mean, log_std) with state-independent log-std."""
+
+    hidden: Sequence[int]
+    action_dim: int
+    discrete: bool
+    activation: str = "tanh"
+    init_log_std: float = 0.0
+
+    @nn.compact
+    def __call__(self, obs):
+        out = MLP(self.hidden, self.action_dim, self.activation, out_scale=0.01)(obs)
+        if self.discrete:
+            return out
+        log_std = self.param("log_std", nn.initializers.constant(self.init_log_std), (self.action_dim,))
+        return out, jnp.broadcast_to(log_std, out.shape)
+
+
+class Critic(nn.Module):
+    """State-value network V(s) -> scalar."""
+
+    hidden: Sequence[int]
+    activation: str = "tanh"
+
+    @nn.compact
+    def __call__(self, obs):
+        return MLP(self.hidden, 1, self.activation, out_scale=1.0)(obs)[..., 0]
+
+
+# --------------------------------------------------------------------------------------------
+# Distributions (pure functions on the actor's output)
+# --------------------------------------------------------------------------------------------
+
+_LOG_2PI = math.log(2.0 * math.pi)
+
+
+def categorical_log_prob(logits, action):
+    logp = jax.nn.log_softmax(logits)
+    return jnp.take_along_axis(logp, action[..., None].astype(jnp.int32), axis=-1)[..., 0]
+
+
+def categorical_entropy(logits):
+    logp = jax.nn.log_softmax(logits)
+    return -jnp.sum(jnp.exp(logp) * logp, axis=-1)
+
+
+def gaussian_log_prob(mean, log_std, action):
+    z = (action - mean) * jnp.exp(-log_std)
+    return jnp.sum(-0.5 * z**2 - log_std - 0.5 * _LOG_2PI, axis=-1)
+
+
+def gaussian_entropy(log_std):
+    return jnp.sum(log_std + 0.5 * (1.0 + _LOG_2PI), axis=-1)
+
+
+def dist_log_prob(out, action, discrete: bool):
+    return categorical_log_prob(out, action) if discrete else gaussian_log_prob(out[0], out[1], action)
+
+
+def dist_entropy(out, discrete: bool):
+    return categorical_entropy(out) if discrete else gaussian_entropy(out[1])
+
+
+def dist_sample(key, out, discrete: bool):
+    if discrete:
+        return jax.random.categorical(key, out).astype(jnp.int32)
+    mean, log_std = out
+    return mean + jnp.exp(log_std) * jax.random.normal(key, mean.shape, mean.dtype)
+
+
+def dist_mode(out, discrete: bool):
+    return jnp.argmax(out, axis=-1).astype(jnp.int32) if discrete else out[0]
