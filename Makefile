@@ -7,7 +7,7 @@ STAMP  := $(VENV)/.installed-stamp
 ENV    ?= lander
 METHOD ?= shed
 PRESET ?= auto
-SEEDS  ?= 0
+SEEDS  ?=
 OUT    ?=
 ARGS   ?=
 
@@ -23,7 +23,7 @@ $(STAMP): pyproject.toml
 setup: $(STAMP)
 
 run: $(STAMP)
-	$(BIN)/python -m shed_jax run --env $(ENV) --method $(METHOD) --preset $(PRESET) --seeds $(SEEDS) $(if $(OUT),--out $(OUT),) $(ARGS)
+	$(BIN)/python -m shed_jax run --env $(ENV) --method $(METHOD) --preset $(PRESET) $(if $(SEEDS),--seeds $(SEEDS),) $(if $(OUT),--out $(OUT),) $(ARGS)
 
 demo: $(STAMP)
 	$(BIN)/python -m shed_jax demo --env $(ENV) $(ARGS)
