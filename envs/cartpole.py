@@ -80,7 +80,7 @@ class CartPole(Environment):
         pos = (0.0, math.inf, False, False)
         return {
             "max_steps": (1, 2**31 - 1, True, True),
-            "gravity": pos,
+            "gravity": (0.0, math.inf, True, False),
             "masscart": pos,
             "masspole": pos,
             "length": pos,

@@ -261,7 +261,7 @@ class PPOStudent:
             params, opt_state = carry
             grads, aux = jax.grad(loss_fn, has_aux=True)(params, mb)
             updates, opt_state = self.tx.update(grads, opt_state, params)
-            aux = dict(aux, grad_norm=optax.global_norm(grads))
+            aux = dict(aux, grad_norm=optax.tree.norm(grads))
             return (optax.apply_updates(params, updates), opt_state), aux
 
         def epoch(carry, k):
