@@ -1,0 +1,139 @@
+"""Walker terrain generator: DCD semantics (types, units, thresholds), statistics, rasterisation."""
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from envs.walker import constants as C
+from envs.walker import terrain as T
+from envs.walker.params import make_params
+
+S = C.TERRAIN_STEP
+N_SEEDS = 24
+
+
+@pytest.fixture(scope="module")
+def gen():
+    """One compiled generator for a batch of seeds of one level (shape-stable across levels)."""
+    f = jax.jit(jax.vmap(T.generate, in_axes=(0, None)))
+    keys = jax.random.split(jax.random.PRNGKey(7), N_SEEDS)
+    return lambda level: jax.tree_util.tree_map(np.asarray, f(keys, level))
+
+
+def boxes_of(t, i):
+    return t.boxes[i][t.box_valid[i]]
+
+
+def test_roughness_zero_is_flat_grass(gen):
+    t = gen(make_params(roughness=0.0))
+    np.testing.assert_allclose(t.y, C.TERRAIN_HEIGHT, atol=1e-6)
+    assert t.n_boxes.max() == 0 and np.all(t.kinds == C.GRASS)
+    np.testing.assert_allclose(t.x, np.broadcast_to(np.arange(200) * S, t.x.shape), atol=1e-5)
+
+
+def test_roughness_scales_the_random_walk(gen):
+    sd1 = np.std(gen(make_params(roughness=1.0)).y, axis=1).mean()
+    sd5 = np.std(gen(make_params(roughness=5.0)).y, axis=1).mean()
+    sd9 = np.std(gen(make_params(roughness=9.0)).y, axis=1).mean()
+    # SPEC 5.2 parity (20 seeds of DCD): 0.54 for roughness 5, 0.96 for 9 (seed noise ~ +-20 %).
+    assert 0.42 < sd5 < 0.70 and 0.78 < sd9 < 1.25
+    assert sd1 < sd5 < sd9
+    # The start pad (first 21 columns) is always flat.
+    t = gen(make_params(roughness=9.0))
+    np.testing.assert_allclose(t.y[:, :21], C.TERRAIN_HEIGHT, atol=1e-6)
+
+
+def test_stumps_heights_in_step_units_and_counts(gen):
+    t = gen(make_params(roughness=0.0, stump_height_low=2.0, stump_height_high=3.0))
+    assert np.all(np.isin(t.kinds, [C.GRASS, C.STUMP]))
+    for i in range(N_SEEDS):
+        b = boxes_of(t, i)
+        np.testing.assert_allclose(b[:, 1] - b[:, 0], S, atol=1e-5)  # width 1 step
+        h = (b[:, 3] - b[:, 2]) / S
+        assert np.all((h >= 2.0 - 1e-4) & (h <= 3.0 + 1e-4))
+        np.testing.assert_allclose(b[:, 2], C.TERRAIN_HEIGHT, atol=1e-5)  # stands on flat ground
+        assert b[:, 0].min() >= 20 * S - 1e-4  # nothing on the start pad
+    # Counter not reset after a stump: 4-8 flat columns follow; SPEC parity 13.3 boxes per level.
+    assert 11.5 < t.n_boxes.mean() < 15.0
+
+
+def test_pits_walls_and_gap(gen):
+    lo, hi = 3.0, 5.0
+    t = gen(make_params(roughness=0.0, pit_gap_low=hi, pit_gap_high=lo))  # unsorted pair
+    assert np.all(np.isin(t.kinds, [C.GRASS, C.PIT]))
+    for i in range(N_SEEDS):
+        b = boxes_of(t, i)
+        assert len(b) % 2 == 0 and len(b) > 0
+        w1, w2 = b[0::2], b[1::2]
+        gap = (w2[:, 0] - w1[:, 0]) / S  # = 1 + U(lo, hi)
+        assert np.all((gap >= 1 + lo - 1e-4) & (gap <= 1 + hi + 1e-4))
+        np.testing.assert_allclose(w1[:, 3] - w1[:, 2], C.PIT_DEPTH * S, atol=1e-5)
+        # The pit floor between the walls is 4 steps below the rim.
+        for wa, wb in zip(w1, w2):
+            inner = (t.x[i] > wa[1] + 1e-3) & (t.x[i] < wb[0] - 1e-3)
+            np.testing.assert_allclose(t.y[i][inner], wa[3] - 4 * S, atol=1e-4)
+    assert 20 < t.n_boxes.mean() < 30  # SPEC parity (gap 5): 25
+
+
+def test_pit_threshold_and_closing_column_moves_back(gen):
+    assert gen(make_params(roughness=0.0, pit_gap_high=0.79)).n_boxes.max() == 0
+    t = gen(make_params(roughness=0.0, pit_gap_low=0.9, pit_gap_high=0.9))  # gap 1.9: ceil 2, diff 0.1
+    assert t.n_boxes.min() > 0
+    dx = np.diff(t.x, axis=1)
+    assert np.all(dx > 0)  # still monotone
+    moved = np.isclose(dx, 0.9 * S, atol=1e-4) | np.isclose(dx, 1.1 * S, atol=1e-4)
+    # One shortened + one lengthened edge per pit (a pit cut off by the course end may lack both).
+    assert np.all(np.abs(moved.sum(axis=1) - t.n_boxes) <= 2) and np.mean(moved.sum(axis=1) == t.n_boxes) > 0.5
+
+
+def test_stairs_steps_below_n_and_heights(gen):
+    n = 5
+    t = gen(make_params(roughness=0.0, stair_height_low=2.0, stair_height_high=2.0, stair_steps=float(n)))
+    assert np.all(np.isin(t.kinds, [C.GRASS, C.STAIRS]))
+    counts = []
+    for i in range(N_SEEDS):
+        b = boxes_of(t, i)
+        np.testing.assert_allclose(b[:, 1] - b[:, 0], C.STAIR_WIDTH * S, atol=1e-4)
+        np.testing.assert_allclose(b[:, 3] - b[:, 2], 2.0 * S, atol=1e-4)
+        # Split into staircases: consecutive boxes that touch.
+        run = 1
+        for a, c in zip(b[:-1], b[1:]):
+            if abs(c[0] - a[1]) < 1e-4:
+                run += 1
+                assert abs(abs(c[3] - a[3]) - 2 * S) < 1e-4  # one step up or down
+            else:
+                counts.append(run)
+                run = 1
+        counts.append(run)
+    assert max(counts) <= n - 1
+    assert 20 < t.n_boxes.mean() < 28  # SPEC parity (Med-Stairs): 23.2
+    # EASY quirk: steps 1 -> randint(1) = 0 steps, stairs enabled but never built.
+    t1 = gen(make_params(roughness=0.0, stair_height_high=0.4, stair_steps=1.0))
+    assert t1.n_boxes.max() == 0 and np.any(t1.kinds == C.STAIRS)
+    # Below threshold: no stairs state at all.
+    t0 = gen(make_params(roughness=0.0, stair_height_high=0.19, stair_steps=9.0))
+    assert np.all(t0.kinds == C.GRASS)
+
+
+def test_all_types_present_when_all_on(gen):
+    t = gen(make_params(roughness=2.0, pit_gap_high=2.0, stump_height_high=1.0, stair_height_high=1.0, stair_steps=4.0))
+    for k in (C.STUMP, C.STAIRS, C.PIT):
+        assert np.mean(np.any(t.kinds == k, axis=1)) > 0.9
+    assert np.all(t.n_boxes <= 64)
+
+
+def test_rasterise_hand_made_terrain():
+    grid = T.make_grid(resolution=4)
+    xs = jnp.arange(200, dtype=jnp.float32) * S
+    ys = jnp.full(200, 3.0)
+    boxes = jnp.zeros((8, 4)).at[0].set(jnp.array([30 * S, 31 * S, 3.0, 4.0]))
+    terr = T.Terrain(x=xs, y=ys, boxes=boxes, box_valid=jnp.arange(8) < 1, n_boxes=jnp.int32(1), kinds=jnp.zeros(200, jnp.int32))
+    prof = np.asarray(T.rasterise(terr, grid))
+    gx = grid.x_min + grid.dx * np.arange(grid.n)
+    on_box = (gx >= 30 * S - 1e-4) & (gx <= 31 * S + 1e-4)
+    assert on_box.sum() == 5  # full top width: 4 cells, 5 samples
+    np.testing.assert_allclose(prof[on_box], 4.0)
+    np.testing.assert_allclose(prof[~on_box], 3.0)
+    # Height lookup interpolates linearly across the one-cell face.
+    x_mid = 30 * S - grid.dx / 2
+    assert abs(float(T.height_at(jnp.asarray(prof), grid, jnp.float32(x_mid))) - 3.5) < 1e-4
