@@ -9,6 +9,7 @@ truncated at `max_steps` (500) by the base class.
 """
 from __future__ import annotations
 
+import functools
 import math
 
 import jax
@@ -48,14 +49,17 @@ def _default_params(**kw) -> CartPoleParams:
     )
 
 
-# Named levels (used by `python -m shed_jax ppo --level NAME`).
-LEVELS = {
+# Named levels: field overrides of the default level.
+LEVEL_FIELDS = {
     "default": dict(),
     "moon": dict(gravity=1.62),
     "heavy": dict(gravity=20.0, masspole=0.3),
     "long_pole": dict(length=1.0),
     "short": dict(max_steps=200),
 }
+
+#: name -> builder(**overrides) -> CartPoleParams (used by `python -m shed_jax ppo --level NAME`).
+LEVELS = {name: functools.partial(_default_params, **fields) for name, fields in LEVEL_FIELDS.items()}
 
 
 class CartPole(Environment):
@@ -69,7 +73,7 @@ class CartPole(Environment):
     def level(name: str) -> CartPoleParams:
         if name not in LEVELS:
             raise ValueError(f"cartpole: unknown level {name!r}; known: {', '.join(LEVELS)}")
-        return _default_params(**LEVELS[name])
+        return LEVELS[name]()
 
     @property
     def param_space(self) -> ParamSpace:
