@@ -1,0 +1,51 @@
+"""``make_method(name, env, student, config)``: every UED method by name, behind one interface.
+
+Baselines live here (dr, plr, accel, accel-norevisit, paired); ``shed`` and ``hmdp`` come from
+``shed_jax.methods.shed`` (imported lazily, so the baselines work without the teacher's modules).
+
+``config`` may be ``None`` (the method's defaults), the method's own config object, or a dict of
+field overrides for it (e.g. ``{"updates_per_step": 2}``); unknown fields raise a ValueError that
+names them and the method.
+"""
+from __future__ import annotations
+
+import dataclasses
+import importlib
+from typing import Any
+
+# name -> (module, method class, config class)
+_BASELINES: dict[str, tuple[str, str, str]] = {
+    "dr": ("shed_jax.methods.dr", "DR", "DRConfig"),
+    "plr": ("shed_jax.methods.plr", "PLR", "PLRConfig"),
+    "accel": ("shed_jax.methods.accel", "ACCEL", "ACCELConfig"),
+    "accel-norevisit": ("shed_jax.methods.accel", "ACCELNR", "ACCELNRConfig"),
+    "paired": ("shed_jax.methods.paired", "PAIRED", "PAIREDConfig"),
+}
+_TEACHER_METHODS = ("shed", "hmdp")
+METHODS = tuple(_BASELINES) + _TEACHER_METHODS
+
+
+def _build_config(name: str, config_cls, config: Any):
+    if config is None:
+        return config_cls()
+    if isinstance(config, config_cls):
+        return config
+    if isinstance(config, dict):
+        fields = {f.name for f in dataclasses.fields(config_cls)}
+        unknown = sorted(set(config) - fields)
+        if unknown:
+            raise ValueError(f"method {name!r}: unknown config field(s) {unknown}; known: {sorted(fields)}")
+        return config_cls(**config)
+    raise TypeError(f"method {name!r}: config must be None, a dict or a {config_cls.__name__}, got {type(config).__name__}")
+
+
+def make_method(name: str, env, student, config: Any = None):
+    """The UED method ``name`` for ``env`` and ``student`` (see ``shed_jax.methods.base``)."""
+    if name in _TEACHER_METHODS:
+        shed = importlib.import_module("shed_jax.methods.shed")
+        return shed.make_method(name, env, student, config)
+    if name not in _BASELINES:
+        raise ValueError(f"unknown method {name!r}; known: {', '.join(METHODS)}")
+    module, cls_name, cfg_name = _BASELINES[name]
+    mod = importlib.import_module(module)
+    return getattr(mod, cls_name)(env, student, _build_config(name, getattr(mod, cfg_name), config))
