@@ -1,0 +1,166 @@
+"""Parity harness: Gymnasium's heuristic in our lander (vmapped) and in Gymnasium LunarLander-v3.
+
+Both sides report, per setting, the statistics SPEC 4.6 compares: mean / std return, the +100
+landing rate, the -100 crash rate, mean length (and the truncation rate). Our side runs every
+episode of every setting of one action type in a single compiled program (vmap over levels).
+
+    python -m envs.lander.parity --episodes 1000 --out runs/parity.json      # both sides
+    python -m envs.lander.parity --gym-only --episodes 1000 --out tests/test_lander_parity_reference.json
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from envs.lander.env import LunarLander, make_params
+from envs.lander.heuristic import heuristic
+
+# name -> (gravity, enable_wind, wind_power, turbulence_power)
+SETTINGS = {
+    "default": (-10.0, False, 15.0, 1.5),
+    "wind 15/1.5": (-10.0, True, 15.0, 1.5),
+    "wind 5/0.5": (-10.0, True, 5.0, 0.5),
+    "g -5": (-5.0, False, 15.0, 1.5),
+    "g -11.99": (-11.99, False, 15.0, 1.5),
+    "g -1": (-1.0, False, 15.0, 1.5),
+}
+
+
+def summarize(returns, lengths, landed, crashed, truncated) -> dict:
+    r = np.asarray(returns, np.float64)
+    return dict(
+        episodes=int(r.size), mean=float(r.mean()), std=float(r.std()), se=float(r.std() / np.sqrt(r.size)),
+        landed=float(np.mean(landed)), crashed=float(np.mean(crashed)), truncated=float(np.mean(truncated)),
+        length=float(np.mean(lengths)),
+    )
+
+
+def jax_episodes(continuous: bool, levels, key, max_steps: int = 1000, **env_kwargs):
+    """First episode of the heuristic on every level (params with leading axis n). Numpy dict of (n,)."""
+    env = LunarLander(continuous=continuous, **env_kwargs)
+
+    def one(key, params):
+        k0, k1 = jax.random.split(key)
+        obs, state = env.reset(k0, params)
+
+        def body(carry, k):
+            obs, state, done_before, out = carry
+            obs, state, reward, done, info = env.step(k, state, heuristic(obs, continuous), params)
+            first = done & ~done_before
+            out = jax.tree_util.tree_map(lambda o, n: jnp.where(first, n, o), out, dict(
+                ret=info["episode_return"], length=info["episode_length"], landed=info["landed"],
+                crashed=info["crashed"] & ~info["landed"], truncated=info["truncated"]))
+            return (obs, state, done_before | done, out), None
+
+        out0 = dict(ret=jnp.float32(0), length=jnp.int32(0), landed=jnp.bool_(False), crashed=jnp.bool_(False),
+                    truncated=jnp.bool_(False))
+        (_, _, _, out), _ = jax.lax.scan(body, (obs, state, jnp.bool_(False), out0), jax.random.split(k1, max_steps))
+        return out
+
+    n = levels.gravity.shape[0]
+    out = jax.jit(jax.vmap(one))(jax.random.split(key, n), levels)
+    return jax.tree_util.tree_map(np.asarray, out)
+
+
+def jax_stats(continuous: bool, settings=SETTINGS, episodes: int = 100, seed: int = 0, max_steps: int = 1000,
+              **env_kwargs) -> dict:
+    names = list(settings)
+    g, w, wp, tp = (np.repeat(np.asarray([settings[s][i] for s in names]), episodes) for i in range(4))
+    levels = make_params(max_steps=np.full(g.shape, max_steps), gravity=g, enable_wind=w.astype(bool),
+                         wind_power=wp, turbulence_power=tp)
+    out = jax_episodes(continuous, levels, jax.random.PRNGKey(seed), max_steps, **env_kwargs)
+    res = {}
+    for k, name in enumerate(names):
+        sl = slice(k * episodes, (k + 1) * episodes)
+        res[name] = summarize(out["ret"][sl], out["length"][sl], out["landed"][sl], out["crashed"][sl],
+                              out["truncated"][sl])
+    return res
+
+
+def gym_stats(continuous: bool, settings=SETTINGS, episodes: int = 100, seed: int = 0, max_steps: int = 1000) -> dict:
+    import gymnasium as gym
+
+    from envs.lander.heuristic import heuristic as h
+
+    res = {}
+    for name, (g, wind, wp, tp) in settings.items():
+        env = gym.make("LunarLander-v3", continuous=continuous, gravity=g, enable_wind=wind, wind_power=wp,
+                       turbulence_power=tp, max_episode_steps=max_steps)
+        rets, lens, landed, crashed, trunc = [], [], [], [], []
+        for ep in range(episodes):
+            obs, _ = env.reset(seed=seed + ep)
+            total, n = 0.0, 0
+            while True:
+                a = _np_heuristic(obs, continuous)
+                obs, r, term, tr, _ = env.step(a)
+                total += r
+                n += 1
+                if term or tr:
+                    break
+            rets.append(total)
+            lens.append(n)
+            landed.append(term and r == 100)
+            crashed.append(term and r == -100)
+            trunc.append(tr and not term)
+        env.close()
+        res[name] = summarize(rets, lens, landed, crashed, trunc)
+    return res
+
+
+def _np_heuristic(s, continuous):
+    """Gymnasium's heuristic on a numpy observation (same rules as heuristic.py, no JAX dispatch)."""
+    angle_targ = np.clip(s[0] * 0.5 + s[2], -0.4, 0.4)
+    hover_targ = 0.55 * abs(s[0])
+    angle_todo = (angle_targ - s[4]) * 0.5 - s[5]
+    hover_todo = (hover_targ - s[1]) * 0.5 - s[3] * 0.5
+    if s[6] or s[7]:
+        angle_todo = 0.0
+        hover_todo = -s[3] * 0.5
+    if continuous:
+        return np.clip(np.array([hover_todo * 20 - 1, -angle_todo * 20], np.float32), -1, 1)
+    if hover_todo > abs(angle_todo) and hover_todo > 0.05:
+        return 2
+    if angle_todo < -0.05:
+        return 3
+    if angle_todo > 0.05:
+        return 1
+    return 0
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--episodes", type=int, default=100)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--gym-only", action="store_true")
+    p.add_argument("--jax-only", action="store_true")
+    p.add_argument("--out", default=None)
+    args = p.parse_args(argv)
+    result = {"episodes": args.episodes, "seed": args.seed, "max_steps": 1000}
+    for continuous in (False, True):
+        mode = "continuous" if continuous else "discrete"
+        if not args.jax_only:
+            t = time.time()
+            result.setdefault("gym", {})[mode] = gym_stats(continuous, episodes=args.episodes, seed=args.seed)
+            print(f"gym {mode}: {time.time() - t:.1f}s", flush=True)
+        if not args.gym_only:
+            t = time.time()
+            result.setdefault("jax", {})[mode] = jax_stats(continuous, episodes=args.episodes, seed=args.seed)
+            print(f"jax {mode}: {time.time() - t:.1f}s", flush=True)
+    for side in ("gym", "jax"):
+        for mode, rows in result.get(side, {}).items():
+            for name, r in rows.items():
+                print(f"{side:4s} {mode:10s} {name:12s} mean {r['mean']:7.1f} std {r['std']:6.1f} "
+                      f"+100 {r['landed']:.2f} -100 {r['crashed']:.2f} trunc {r['truncated']:.2f} len {r['length']:6.1f}")
+    if args.out:
+        with open(args.out, "w") as f:
+            json.dump(result, f, indent=1)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

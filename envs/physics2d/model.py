@@ -1,0 +1,220 @@
+"""Static description of a 2-D rigid-body world and the pytrees that hold its dynamic state.
+
+The *model* (bodies' mass properties, polygon shapes, joints, solver settings) is plain Python /
+numpy, frozen and hashable by identity: it is baked into the traced program as constants, so the
+step compiles once per model. The *state* (`BodyState`, `WorldState`) is a ``flax.struct`` pytree
+with fixed-size arrays, so a batch of worlds is a ``vmap`` away.
+
+Conventions follow Box2D 2.3: a body's pose is its centre of mass ``com`` plus ``angle``; the body
+origin (the point users place and observe) is ``com - R(angle) @ local_com``. Polygons are convex,
+counter-clockwise, in the body-origin frame.
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Optional
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from envs.physics2d.mass import polygon_mass
+
+
+@dataclasses.dataclass(frozen=True)
+class Polygon:
+    """A convex polygon fixed to ``body`` (vertices CCW, body-origin frame, metres).
+
+    ``sensor`` polygons only report touching (like a Box2D sensor / contact listener); they are not
+    solved. Use it for shapes whose touch ends the episode anyway (e.g. a lander's hull).
+    """
+
+    body: int
+    vertices: tuple
+    density: float
+    friction: float
+    sensor: bool = False
+
+
+@dataclasses.dataclass(frozen=True)
+class RevoluteJoint:
+    """A pin between ``body_a`` and ``body_b`` with an optional motor and angle limits (Box2D 2.3).
+
+    Joint angle = angle_b - angle_a (reference angle 0). The motor drives the relative angular
+    velocity to ``motor_speed`` with at most ``max_motor_torque``.
+    """
+
+    body_a: int
+    body_b: int
+    local_anchor_a: tuple
+    local_anchor_b: tuple
+    lower: float = 0.0
+    upper: float = 0.0
+    enable_limit: bool = False
+    enable_motor: bool = False
+    motor_speed: float = 0.0
+    max_motor_torque: float = 0.0
+
+
+@dataclasses.dataclass(frozen=True)
+class SolverConfig:
+    """Time step, iteration counts and Box2D's tolerances (defaults = Box2D 2.3 b2Settings.h)."""
+
+    dt: float = 1.0 / 50.0
+    velocity_iterations: int = 8
+    position_iterations: int = 3
+    linear_slop: float = 0.005
+    angular_slop: float = 2.0 / 180.0 * np.pi
+    baumgarte: float = 0.2
+    max_linear_correction: float = 0.2
+    max_angular_correction: float = 8.0 / 180.0 * np.pi
+    max_translation: float = 2.0
+    max_rotation: float = 0.5 * np.pi
+    contact_radius: float = 0.02  # polygon skin + edge skin (2 x b2_polygonRadius)
+    ground_friction: float = 0.1
+    linear_sleep_tolerance: float = 0.01
+    angular_sleep_tolerance: float = 2.0 / 180.0 * np.pi
+    time_to_sleep: float = 0.5
+    warm_start: bool = True
+    unroll: int = 1  # unroll factor of the solver-iteration loops (speed knob, no effect on results)
+
+    def __post_init__(self):
+        if self.dt <= 0:
+            raise ValueError(f"SolverConfig.dt must be > 0, got {self.dt}")
+        if self.velocity_iterations < 1 or self.position_iterations < 0:
+            raise ValueError(
+                "SolverConfig needs velocity_iterations >= 1 and position_iterations >= 0, got "
+                f"{self.velocity_iterations}, {self.position_iterations}"
+            )
+        if self.unroll < 1:
+            raise ValueError(f"SolverConfig.unroll must be >= 1, got {self.unroll}")
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Model:
+    """Bodies (mass from their polygons), joints, solver config; see ``make_model``."""
+
+    num_bodies: int
+    polygons: tuple
+    joints: tuple
+    config: SolverConfig
+    mass: np.ndarray  # (B,)
+    inertia: np.ndarray  # (B,) about the centre of mass
+    local_com: np.ndarray  # (B, 2)
+    # contact slots: one per vertex of every polygon, in polygon order
+    slot_body: tuple
+    slot_vertex: np.ndarray  # (V, 2) body-origin frame
+    slot_friction: tuple
+    slot_sensor: tuple
+    slot_polygon: tuple
+
+    @property
+    def inv_mass(self) -> np.ndarray:
+        return np.where(self.mass > 0, 1.0 / np.maximum(self.mass, 1e-30), 0.0)
+
+    @property
+    def inv_inertia(self) -> np.ndarray:
+        return np.where(self.inertia > 0, 1.0 / np.maximum(self.inertia, 1e-30), 0.0)
+
+    @property
+    def num_slots(self) -> int:
+        return len(self.slot_body)
+
+
+def make_model(num_bodies: int, polygons, joints=(), config: Optional[SolverConfig] = None) -> Model:
+    """Build a model; each body's mass, inertia and centre come from its polygons (Box2D formula)."""
+    config = SolverConfig() if config is None else config
+    polygons = tuple(polygons)
+    joints = tuple(joints)
+    for p in polygons:
+        if not 0 <= p.body < num_bodies:
+            raise ValueError(f"polygon body index {p.body} outside [0, {num_bodies})")
+    for j in joints:
+        if not (0 <= j.body_a < num_bodies and 0 <= j.body_b < num_bodies) or j.body_a == j.body_b:
+            raise ValueError(f"joint bodies ({j.body_a}, {j.body_b}) invalid for {num_bodies} bodies")
+        if j.enable_limit and j.lower > j.upper:
+            raise ValueError(f"joint limits lower={j.lower} > upper={j.upper}")
+    mass = np.zeros(num_bodies)
+    first_moment = np.zeros((num_bodies, 2))
+    inertia_origin = np.zeros(num_bodies)
+    for p in polygons:
+        m, c, i_origin = polygon_mass(np.asarray(p.vertices, np.float64), p.density)
+        mass[p.body] += m
+        first_moment[p.body] += m * c
+        inertia_origin[p.body] += i_origin
+    local_com = np.where(mass[:, None] > 0, first_moment / np.maximum(mass, 1e-30)[:, None], 0.0)
+    inertia = inertia_origin - mass * np.sum(local_com**2, axis=1)
+    slot_body, slot_vertex, slot_fric, slot_sensor, slot_poly = [], [], [], [], []
+    for k, p in enumerate(polygons):
+        for v in p.vertices:
+            slot_body.append(p.body)
+            slot_vertex.append(v)
+            slot_fric.append(float(np.sqrt(p.friction * config.ground_friction)))  # Box2D mixing
+            slot_sensor.append(p.sensor)
+            slot_poly.append(k)
+    return Model(
+        num_bodies, polygons, joints, config, mass, inertia, local_com,
+        tuple(slot_body), np.asarray(slot_vertex, np.float64).reshape(-1, 2), tuple(slot_fric),
+        tuple(slot_sensor), tuple(slot_poly),
+    )
+
+
+@struct.dataclass
+class BodyState:
+    """Pose and velocity of every body (leading axis = body)."""
+
+    com: jax.Array  # (B, 2) world position of the centre of mass
+    angle: jax.Array  # (B,)
+    vel: jax.Array  # (B, 2) linear velocity of the centre of mass
+    omega: jax.Array  # (B,)
+
+
+@struct.dataclass
+class WorldState:
+    """Everything the solver carries between steps."""
+
+    bodies: BodyState
+    sleep_time: jax.Array  # (B,) Box2D per-body sleep timers
+    normal_impulse: jax.Array  # (V,) accumulated contact impulses, kept for warm starting
+    tangent_impulse: jax.Array  # (V,)
+    joint_impulse: jax.Array  # (J, 3) point (x, y) and limit impulses
+    motor_impulse: jax.Array  # (J,)
+    limit_state: jax.Array  # (J,) int32 joint limit state of the last step (see joint.py)
+    touching: jax.Array  # (V,) bool: slot touched the ground at the start of the last step
+    asleep: jax.Array  # () bool: the island fell asleep during the last step
+
+
+def body_origin(model: Model, bodies: BodyState) -> jax.Array:
+    """World position of each body's origin (B, 2)."""
+    lc = jnp.asarray(model.local_com, jnp.float32)
+    c, s = jnp.cos(bodies.angle), jnp.sin(bodies.angle)
+    return bodies.com - jnp.stack([c * lc[:, 0] - s * lc[:, 1], s * lc[:, 0] + c * lc[:, 1]], -1)
+
+
+def bodies_from_origin(model: Model, origin, angle, vel=None, omega=None) -> BodyState:
+    """BodyState from body-origin positions (what a user places), COM computed from the model."""
+    origin = jnp.asarray(origin, jnp.float32)
+    angle = jnp.asarray(angle, jnp.float32)
+    lc = jnp.asarray(model.local_com, jnp.float32)
+    c, s = jnp.cos(angle), jnp.sin(angle)
+    com = origin + jnp.stack([c * lc[:, 0] - s * lc[:, 1], s * lc[:, 0] + c * lc[:, 1]], -1)
+    vel = jnp.zeros_like(origin) if vel is None else jnp.asarray(vel, jnp.float32)
+    omega = jnp.zeros_like(angle) if omega is None else jnp.asarray(omega, jnp.float32)
+    return BodyState(com=com, angle=angle, vel=vel, omega=omega)
+
+
+def init_world(model: Model, bodies: BodyState) -> WorldState:
+    """A world at rest in the solver sense: no contacts, no accumulated impulses, awake."""
+    v, j = model.num_slots, len(model.joints)
+    return WorldState(
+        bodies=bodies,
+        sleep_time=jnp.zeros((model.num_bodies,), jnp.float32),
+        normal_impulse=jnp.zeros((v,), jnp.float32),
+        tangent_impulse=jnp.zeros((v,), jnp.float32),
+        joint_impulse=jnp.zeros((j, 3), jnp.float32),
+        motor_impulse=jnp.zeros((j,), jnp.float32),
+        limit_state=jnp.zeros((j,), jnp.int32),
+        touching=jnp.zeros((v,), bool),
+        asleep=jnp.zeros((), bool),
+    )

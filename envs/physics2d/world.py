@@ -1,0 +1,256 @@
+"""One world step (Box2D 2.3 island solver, sequential impulses), plus impulse helpers.
+
+Order inside ``step`` (as b2World::Step / b2Island::Solve):
+  1. collide at the start pose: polygon vertices vs the ground polyline -> touching slots
+  2. integrate velocities (gravity, forces, torques; semi-implicit Euler, no damping)
+  3. warm start contacts (impulses kept for slots touching on both steps) and joints
+  4. ``velocity_iterations`` Gauss-Seidel passes: joints, then contacts (friction, then normal)
+  5. integrate positions (translation / rotation per step clamped like Box2D)
+  6. ``position_iterations`` NGS passes (contacts, then joints), frozen once within tolerance
+  7. sleep timers; the island (all bodies, linked by joints) sleeps when every timer >= 0.5 s and
+     positions were solved.
+All bodies are treated as one island (true for jointed mechanisms such as the lander; see
+docs/lander.md). Sensor polygons are detected in 1 but never solved.
+"""
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from envs.physics2d import joint as jnt
+from envs.physics2d.collision import polyline_points_in_polygon, vertex_vs_polyline
+from envs.physics2d.model import BodyState, Model, WorldState
+from envs.physics2d.vec import cross, cross_sv, dot, rotate
+
+
+def slot_points(model: Model, bodies: BodyState):
+    """World positions (V, 2) of every contact slot (polygon vertex) and their arms from the COM."""
+    b = list(model.slot_body)
+    lc = jnp.asarray(model.local_com, jnp.float32)
+    local = jnp.asarray(model.slot_vertex, jnp.float32) - jnp.stack([lc[i] for i in b])
+    angle = jnp.stack([bodies.angle[i] for i in b])
+    com = jnp.stack([bodies.com[i] for i in b])
+    arm = rotate(angle, local)
+    return com + arm, arm
+
+
+def collide(model: Model, bodies: BodyState, ground):
+    """Touching slots (V,) and touching polygons (num_polygons,), plus contact frames."""
+    cfg = model.config
+    points, arm = slot_points(model, bodies)
+    sep, normal, _, inside = vertex_vs_polyline(points, ground)
+    touching = inside & (sep <= cfg.contact_radius)
+    poly_touch = []
+    for k, poly in enumerate(model.polygons):
+        idx = [i for i, p in enumerate(model.slot_polygon) if p == k]
+        t = jnp.any(jnp.stack([touching[i] for i in idx]))
+        if poly.sensor:  # also terrain points inside the polygon (peaks touching a face)
+            t = t | polyline_points_in_polygon(ground, jnp.stack([points[i] for i in idx]), cfg.contact_radius)
+        poly_touch.append(t)
+    return touching, jnp.stack(poly_touch), normal, sep, arm
+
+
+def apply_impulse(model: Model, bodies: BodyState, body: int, impulse, point) -> BodyState:
+    """Box2D ApplyLinearImpulse: instant change of COM velocity and spin (point in world frame)."""
+    impulse = jnp.asarray(impulse, jnp.float32)
+    r = jnp.asarray(point, jnp.float32) - bodies.com[body]
+    vel = bodies.vel.at[body].add(model.inv_mass[body] * impulse)
+    omega = bodies.omega.at[body].add(model.inv_inertia[body] * cross(r, impulse))
+    return bodies.replace(vel=vel, omega=omega)
+
+
+def step(model: Model, world: WorldState, ground, gravity, force=None, torque=None, projector=None,
+         position_iterations=None):
+    """Advance ``world`` by one time step. Returns (new world, info).
+
+    ``projector``: optional constant (3B, 3B) matrix from ``locked_velocity_projector``; when given,
+    the velocity phase is that exact projection (joints locked, contacts ignored) instead of the
+    Gauss-Seidel passes, and no impulses are stored. ``position_iterations`` overrides the config.
+
+    ``ground``: (P, 2) polyline with increasing x. ``gravity``: (2,) or scalar y-gravity.
+    ``force`` (B, 2) at the centres of mass and ``torque`` (B,), applied during this step only.
+    info: ``touching`` (V,) slots and ``polygon_touching`` (num_polygons,) at the start pose,
+    ``position_solved`` (), ``asleep`` ().
+    """
+    cfg = model.config
+    dt = cfg.dt
+    nb = model.num_bodies
+    n_pos = cfg.position_iterations if position_iterations is None else int(position_iterations)
+    gravity = jnp.asarray(gravity, jnp.float32)
+    if gravity.ndim == 0:
+        gravity = jnp.stack([jnp.zeros_like(gravity), gravity])
+    force = jnp.zeros((nb, 2), jnp.float32) if force is None else jnp.asarray(force, jnp.float32)
+    torque = jnp.zeros((nb,), jnp.float32) if torque is None else jnp.asarray(torque, jnp.float32)
+    inv_m = [float(x) for x in model.inv_mass]
+    inv_i = [float(x) for x in model.inv_inertia]
+    lc = jnp.asarray(model.local_com, jnp.float32)
+    b = world.bodies
+
+    # 1. collide at the start pose
+    touching, poly_touch, normal, _, arm = collide(model, b, ground)
+    solid = jnp.asarray([(not s) and projector is None for s in model.slot_sensor])
+    active = touching & solid
+    keep = active & world.touching & cfg.warm_start
+    lam_n = jnp.where(keep, world.normal_impulse, 0.0)
+    lam_t = jnp.where(keep, world.tangent_impulse, 0.0)
+
+    # 2. integrate velocities
+    vel = [b.vel[i] + dt * (gravity + inv_m[i] * force[i]) for i in range(nb)]
+    omg = [b.omega[i] + dt * inv_i[i] * torque[i] for i in range(nb)]
+
+    # 3. contact constraint frames and warm start
+    slots = [k for k in range(model.num_slots) if not model.slot_sensor[k] and projector is None]
+    tangent = jnp.stack([normal[:, 1], -normal[:, 0]], -1)
+    rn = cross(arm, normal)
+    rt = cross(arm, tangent)
+    sb = model.slot_body
+    mslot = jnp.asarray([inv_m[sb[k]] for k in range(model.num_slots)], jnp.float32)
+    islot = jnp.asarray([inv_i[sb[k]] for k in range(model.num_slots)], jnp.float32)
+    normal_mass = 1.0 / (mslot + islot * rn**2)
+    tangent_mass = 1.0 / (mslot + islot * rt**2)
+    mu = jnp.asarray(model.slot_friction, jnp.float32)
+    for k in slots:
+        p = lam_n[k] * normal[k] + lam_t[k] * tangent[k]
+        i = sb[k]
+        vel[i] = vel[i] + inv_m[i] * p
+        omg[i] = omg[i] + inv_i[i] * cross(arm[k], p)
+
+    # joints: arms, limit states, warm start
+    jprep = []
+    jimp, jmot, jstate = [], [], []
+    for j, J in enumerate(model.joints):
+        m = (inv_m[J.body_a], inv_m[J.body_b], inv_i[J.body_a], inv_i[J.body_b])
+        ra, rb, st, imp = jnt.prepare(J, lc[J.body_a], lc[J.body_b], b.angle[J.body_a], b.angle[J.body_b],
+                                      world.limit_state[j], world.joint_impulse[j], cfg)
+        mot = world.motor_impulse[j] if (J.enable_motor and cfg.warm_start) else jnp.zeros((), jnp.float32)
+        if not cfg.warm_start:
+            imp = jnp.zeros_like(imp)
+        va, wa, vb, wb = jnt.warm_start(J, m, ra, rb, imp, mot, vel[J.body_a], omg[J.body_a], vel[J.body_b], omg[J.body_b])
+        vel[J.body_a], omg[J.body_a], vel[J.body_b], omg[J.body_b] = va, wa, vb, wb
+        jprep.append((m, ra, rb))
+        jimp.append(imp)
+        jmot.append(mot)
+        jstate.append(st)
+
+    # 4. velocity iterations
+    def vel_iter(_, carry):
+        vel, omg, jimp, jmot, ln, lt = carry
+        vel, omg, jimp, jmot, ln, lt = list(vel), list(omg), list(jimp), list(jmot), list(ln), list(lt)
+        for j, J in enumerate(model.joints):
+            m, ra, rb = jprep[j]
+            a_, b_ = J.body_a, J.body_b
+            jimp[j], jmot[j], vel[a_], omg[a_], vel[b_], omg[b_] = jnt.solve_velocity(
+                J, m, ra, rb, jstate[j], jimp[j], jmot[j], vel[a_], omg[a_], vel[b_], omg[b_], dt)
+        for s, k in enumerate(slots):
+            i = sb[k]
+            on = active[k].astype(jnp.float32)
+            # friction first (Box2D order), bounded by the current normal impulse
+            dv = vel[i] + cross_sv(omg[i], arm[k])
+            vt = dot(dv, tangent[k])
+            max_f = mu[k] * ln[s]
+            new_t = jnp.clip(lt[s] - tangent_mass[k] * vt, -max_f, max_f) * on
+            p = (new_t - lt[s]) * tangent[k]
+            lt[s] = new_t
+            vel[i] = vel[i] + inv_m[i] * p
+            omg[i] = omg[i] + inv_i[i] * cross(arm[k], p)
+            dv = vel[i] + cross_sv(omg[i], arm[k])
+            vn = dot(dv, normal[k])
+            new_n = jnp.maximum(ln[s] - normal_mass[k] * vn, 0.0) * on
+            p = (new_n - ln[s]) * normal[k]
+            ln[s] = new_n
+            vel[i] = vel[i] + inv_m[i] * p
+            omg[i] = omg[i] + inv_i[i] * cross(arm[k], p)
+        return tuple(vel), tuple(omg), tuple(jimp), tuple(jmot), tuple(ln), tuple(lt)
+
+    carry = (tuple(vel), tuple(omg), tuple(jimp), tuple(jmot),
+             tuple(lam_n[k] for k in slots), tuple(lam_t[k] for k in slots))
+    if projector is None:
+        vel, omg, jimp, jmot, ln, lt = jax.lax.fori_loop(0, cfg.velocity_iterations, vel_iter, carry,
+                                                         unroll=cfg.unroll)
+        vel, omg = list(vel), list(omg)
+    else:  # exact locked-joint solve from the integrated (not warm-started) velocities
+        v = jnp.concatenate([jnp.concatenate([b.vel[i] + dt * (gravity + inv_m[i] * force[i]),
+                                              (b.omega[i] + dt * inv_i[i] * torque[i])[None]]) for i in range(nb)])
+        v = jnp.asarray(projector, jnp.float32) @ v
+        vel = [v[3 * i: 3 * i + 2] for i in range(nb)]
+        omg = [v[3 * i + 2] for i in range(nb)]
+        jimp = [jnp.zeros_like(x) for x in jimp]
+        jmot = [jnp.zeros_like(x) for x in jmot]
+
+    # 5. integrate positions (Box2D clamps the motion per step)
+    com, ang = [], []
+    for i in range(nb):
+        tr = dt * vel[i]
+        tr2 = dot(tr, tr)
+        vel[i] = jnp.where(tr2 > cfg.max_translation**2, vel[i] * (cfg.max_translation / jnp.sqrt(tr2)), vel[i])
+        rot = dt * omg[i]
+        omg[i] = jnp.where(rot * rot > cfg.max_rotation**2, omg[i] * (cfg.max_rotation / jnp.abs(rot)), omg[i])
+        com.append(b.com[i] + dt * vel[i])
+        ang.append(b.angle[i] + dt * omg[i])
+
+    # 6. position iterations (non-linear Gauss-Seidel); stop changing once solved
+    local_v = jnp.asarray(model.slot_vertex, jnp.float32)
+    plane_n = normal
+    # plane point: start of the ground segment under the vertex at the start pose (fixed for the step)
+    _, _, plane_q, _ = vertex_vs_polyline(slot_points(model, b)[0], ground)
+
+    def pos_iter(_, carry):
+        com, ang, solved = carry
+        com0, ang0 = com, ang
+        com, ang = list(com), list(ang)
+        min_sep = jnp.asarray(0.0, jnp.float32)
+        for k in slots:
+            i = sb[k]
+            on = active[k]
+            arm_k = rotate(ang[i], local_v[k] - lc[i])
+            point = com[i] + arm_k
+            sep = dot(point - plane_q[k], plane_n[k]) - cfg.contact_radius
+            min_sep = jnp.where(on, jnp.minimum(min_sep, sep), min_sep)
+            c = jnp.clip(cfg.baumgarte * (sep + cfg.linear_slop), -cfg.max_linear_correction, 0.0)
+            rnk = cross(arm_k, plane_n[k])
+            kk = inv_m[i] + inv_i[i] * rnk * rnk
+            imp = jnp.where(on & (kk > 0), -c / kk, 0.0)
+            p = imp * plane_n[k]
+            com[i] = com[i] + inv_m[i] * p
+            ang[i] = ang[i] + inv_i[i] * cross(arm_k, p)
+        ok = min_sep >= -3.0 * cfg.linear_slop
+        for j, J in enumerate(model.joints):
+            a_, b_ = J.body_a, J.body_b
+            com[a_], ang[a_], com[b_], ang[b_], jok = jnt.solve_position(
+                J, jprep[j][0], lc[a_], lc[b_], jstate[j], com[a_], ang[a_], com[b_], ang[b_], cfg)
+            ok = ok & jok
+        com = tuple(jnp.where(solved, c0, c1) for c0, c1 in zip(com0, com))
+        ang = tuple(jnp.where(solved, a0, a1) for a0, a1 in zip(ang0, ang))
+        return com, ang, solved | ok
+
+    solved0 = jnp.zeros((), bool)
+    if n_pos > 0:
+        com, ang, solved = jax.lax.fori_loop(0, n_pos, pos_iter, (tuple(com), tuple(ang), solved0),
+                                             unroll=cfg.unroll)
+    else:
+        solved = solved0
+
+    # 7. sleep
+    vel_a = jnp.stack(vel)
+    omg_a = jnp.stack(omg)
+    moving = (omg_a**2 > cfg.angular_sleep_tolerance**2) | (dot(vel_a, vel_a) > cfg.linear_sleep_tolerance**2)
+    sleep_time = jnp.where(moving, 0.0, world.sleep_time + dt)
+    asleep = (jnp.min(sleep_time) >= cfg.time_to_sleep) & solved
+
+    zero = jnp.zeros((), jnp.float32)
+    pos_of = {k: s for s, k in enumerate(slots)}
+    ln_full = jnp.stack([ln[pos_of[k]] if k in pos_of else zero for k in range(model.num_slots)])
+    lt_full = jnp.stack([lt[pos_of[k]] if k in pos_of else zero for k in range(model.num_slots)])
+    new_world = WorldState(
+        bodies=BodyState(com=jnp.stack(com), angle=jnp.stack(ang), vel=vel_a, omega=omg_a),
+        sleep_time=sleep_time,
+        normal_impulse=ln_full,
+        tangent_impulse=lt_full,
+        joint_impulse=jnp.stack(jimp) if jimp else world.joint_impulse,
+        motor_impulse=jnp.stack(jmot) if jmot else world.motor_impulse,
+        limit_state=jnp.stack(jstate) if jstate else world.limit_state,
+        touching=active,
+        asleep=asleep,
+    )
+    info = dict(touching=touching, polygon_touching=poly_touch, position_solved=solved, asleep=asleep)
+    return new_world, info
