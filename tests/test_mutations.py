@@ -91,3 +91,19 @@ def test_generic_table_and_validation():
         EditTable(steps=(1.0,), kinds=("gauss",), easy_low=(0.0,), easy_high=(1.0,))
     with pytest.raises(ValueError, match="num_edits"):
         Mutator(LANDER_TABLE, LANDER_THETA.low, LANDER_THETA.high, num_edits=-1)
+
+
+def test_walker_uses_the_walker_package_editor():
+    from envs.walker.params import param_space
+
+    space = param_space()
+    m = Mutator.for_env(_env("walker", space), num_edits=3)
+    assert m.external is not None  # envs.walker.levels.mutate
+    parents = space.sample_vector(jax.random.PRNGKey(0), (500,))
+    children = np.asarray(jax.jit(m.mutate_batch)(jax.random.PRNGKey(1), parents))
+    assert np.all(children >= space.low) and np.all(children <= space.high)
+    changed = np.sum(children != np.asarray(parents), axis=1)
+    assert changed.max() <= 3 and np.mean(changed > 0) > 0.5
+    # a sub-box Θ must clip at every edit, so it falls back to the vector editor
+    sub = space.with_bounds(high=space.high / 2)
+    assert Mutator.for_env(_env("walker", space), sub).external is None

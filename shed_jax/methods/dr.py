@@ -31,20 +31,24 @@ from shed_jax.methods.mutations import new_seeds
 # SPEC 1.6: the lander teacher box Θ, (gravity, wind_power, turbulence_power).
 LANDER_THETA_LOW = (-9.0, 0.01, 0.01)
 LANDER_THETA_HIGH = (-0.01, 12.0, 1.5)
+LANDER_TRAIN_MAX_STEPS = 600  # SPEC 4.1: training envs 600 steps, eval/test 500 [official code]
 
 
 def teacher_space(env, low=None, high=None) -> ParamSpace:
     """The box Θ the teacher samples from.
 
     Explicit ``low``/``high`` (validated to lie inside ``env.param_space``) win. Otherwise the
-    lander uses the SPEC 1.6 box with ``enable_wind=True`` for every generated level, and any other
-    environment its whole ``param_space`` (walker: FULL).
+    lander uses the SPEC 1.6 box with ``enable_wind=True`` and the 600-step training time limit for
+    every generated level, and any other environment its whole ``param_space`` (walker: FULL).
     """
     space = env.param_space
     base = space.base
+    lander = getattr(env, "name", "").startswith("lander")
     if base is not None and hasattr(base, "enable_wind"):
         base = base.replace(enable_wind=jnp.asarray(True, jnp.asarray(base.enable_wind).dtype))
-    if low is None and high is None and getattr(env, "name", "").startswith("lander"):
+    if base is not None and lander:
+        base = base.replace(max_steps=jnp.asarray(LANDER_TRAIN_MAX_STEPS, jnp.asarray(base.max_steps).dtype))
+    if low is None and high is None and lander:
         if space.dim != 3:
             raise ValueError(f"lander teacher box expects 3 parameters (gravity, wind, turbulence), got {space.names}")
         low, high = LANDER_THETA_LOW, LANDER_THETA_HIGH

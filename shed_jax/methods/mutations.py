@@ -18,12 +18,16 @@ Tables [SPEC 2.4 / 5.1]:
   0.2, 0.2, 0.2, 0.2, 1, clipped to FULL; EASY roughness ~ U[0, 0.6], pits 0/0.8, stumps 0/0.4,
   stairs 0/0.4, steps 1 [DCD].
 
-The walker package may later ship its own editor; this module keeps the vector form so that the
-same code path (and tests) serve both environments and the tiny test environments.
+The walker package ships DCD's editor as ``envs.walker.levels.mutate`` (on ``WalkerParams``);
+:meth:`Mutator.for_env` uses it for the walker (through a vector <-> params round trip) so there
+is one walker editor in the project. The table above is the same operator on vectors, used for
+every other environment and as the fallback when the walker package has no ``mutate``.
 """
 from __future__ import annotations
 
 import dataclasses
+import importlib
+from typing import Callable
 
 import jax
 import jax.numpy as jnp
@@ -110,8 +114,14 @@ class Mutator:
     low: np.ndarray
     high: np.ndarray
     num_edits: int = 3
+    # optional environment editor on params: (key, params, num_edits) -> params, with ``space`` to
+    # convert vectors; used for the walker (envs.walker.levels.mutate)
+    external: Callable | None = None
+    space: object = None
 
     def __post_init__(self):
+        if self.external is not None and self.space is None:
+            raise ValueError("Mutator: an external editor needs the ParamSpace to convert vectors")
         low = np.asarray(self.low, np.float32)
         high = np.asarray(self.high, np.float32)
         if low.shape != (self.table.dim,) or high.shape != low.shape:
@@ -125,7 +135,9 @@ class Mutator:
     def for_env(cls, env, space=None, num_edits: int = 3) -> "Mutator":
         """Editor clipping to ``space`` (the teacher box Θ; default ``env.param_space``)."""
         space = env.param_space if space is None else space
-        return cls(table_for(env, space), space.low, space.high, num_edits)
+        table = table_for(env, space)
+        external = _env_editor(env, space)
+        return cls(table, space.low, space.high, num_edits, external, space if external else None)
 
     def edit(self, key: jax.Array, vec: jax.Array) -> jax.Array:
         """One edit of one ``[d]`` vector (see module docstring)."""
@@ -143,6 +155,9 @@ class Mutator:
     def mutate(self, key: jax.Array, vec: jax.Array) -> jax.Array:
         """``num_edits`` sequential edits of one ``[d]`` vector (a ``lax.scan``)."""
         vec = jnp.asarray(vec, jnp.float32)
+        if self.external is not None:
+            out = self.external(key, self.space.from_vector(vec), self.num_edits)
+            return jnp.clip(self.space.to_vector(out), self.low, self.high)
         keys = jax.random.split(key, self.num_edits)
         out, _ = jax.lax.scan(lambda v, k: (self.edit(k, v), None), vec, keys)
         return out
@@ -157,6 +172,21 @@ class Mutator:
         hi = jnp.asarray(self.table.easy_high, jnp.float32)
         u = jax.random.uniform(key, (num, self.table.dim), jnp.float32)
         return jnp.clip(lo + u * (hi - lo), self.low, self.high)
+
+
+def _env_editor(env, space):
+    """The environment's own editor on params, if its package has one and its box is FULL."""
+    if getattr(env, "name", "") != "walker" or not hasattr(space.base, "terrain_seed"):
+        return None
+    try:
+        levels = importlib.import_module("envs.walker.levels")
+    except ImportError:
+        return None
+    fn = getattr(levels, "mutate", None)
+    full = env.param_space
+    if fn is None or not (np.array_equal(space.low, full.low) and np.array_equal(space.high, full.high)):
+        return None  # a sub-box Θ needs clipping to Θ at every edit: use the vector editor
+    return fn
 
 
 def new_seeds(key: jax.Array, num: int) -> jax.Array:
