@@ -1,0 +1,50 @@
+"""Static (compile-time) options of the walker: physics, solver and terrain resolution knobs."""
+from __future__ import annotations
+
+import dataclasses
+
+
+@dataclasses.dataclass(frozen=True)
+class WalkerOptions:
+    """Validated static configuration; everything here changes compiled shapes or the model.
+
+    substeps:            physics steps per 0.02 s control step (timestep = 0.02 / substeps).
+    solver_iterations:   Newton iterations per physics step (MJX; 1 is Playground's choice).
+    ls_iterations:       line-search iterations per Newton iteration.
+    terrain_resolution:  heightfield samples per TERRAIN_STEP (0.4667 m); faces are 1 sample wide.
+    kv:                  velocity-servo gain of the motor (N m per rad/s), see docs/walker.md.
+    collide_upper_legs:  also collide the thighs with the ground (Box2D does; costs 2 more pairs).
+    max_boxes:           obstacle box slots per level (extra boxes are dropped; 64 covers FULL).
+    z_span:              vertical extent of the heightfield above its per-level base (m).
+    contact_threshold:   a lower leg touches the ground if a contact's distance is <= this (m).
+    unroll_substeps:     unroll the substep loop in Python (faster on GPU) instead of lax.scan.
+    """
+
+    substeps: int = 5
+    solver_iterations: int = 1
+    ls_iterations: int = 5
+    terrain_resolution: int = 4
+    kv: float = 20.0
+    collide_upper_legs: bool = True
+    max_boxes: int = 64
+    z_span: float = 100.0
+    contact_threshold: float = 0.01
+    unroll_substeps: bool = False
+
+    def __post_init__(self):
+        ints = dict(substeps=(1, 50), solver_iterations=(1, 100), ls_iterations=(0, 100), terrain_resolution=(1, 32), max_boxes=(8, 512))
+        for name, (lo, hi) in ints.items():
+            v = getattr(self, name)
+            if not isinstance(v, int) or isinstance(v, bool) or not lo <= v <= hi:
+                raise ValueError(f"WalkerOptions.{name} must be an int in [{lo}, {hi}], got {v!r}")
+        for name in ("kv", "z_span", "contact_threshold"):
+            v = getattr(self, name)
+            if not isinstance(v, (int, float)) or not v > 0:
+                raise ValueError(f"WalkerOptions.{name} must be a positive number, got {v!r}")
+        for name in ("collide_upper_legs", "unroll_substeps"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"WalkerOptions.{name} must be a bool, got {getattr(self, name)!r}")
+
+    @property
+    def timestep(self) -> float:
+        return 0.02 / self.substeps
