@@ -7,8 +7,9 @@ real buffer; then, at one fixed (s, a), 200 real and 200 synthetic s' are drawn 
 the per-dimension Wasserstein-1 distance and the energy distance, next to the noise floor (the same
 distance between two independent sets of 200 real samples), per noise level sigma.
 
-Run:  python experiments/diffusion_check.py [--out DIR] [--steps N] [--quick]
-Writes DIR/diffusion_check.json and DIR/diffusion_check.png (DIR defaults to $OUT or docs/).
+Run:  python experiments/diffusion_check.py [--out DIR] [--steps N] [--ema 0 0.995] [--quick]
+Writes DIR/diffusion_check.json, DIR/diffusion_check.png (no EMA, the official setting) and
+DIR/diffusion_check_ema0.995.png (sampling with an EMA of the weights); DIR defaults to $OUT or docs/.
 CPU, a few minutes at the defaults.
 """
 from __future__ import annotations
@@ -69,7 +70,7 @@ def fill_buffer(s, a, s_next):
 def train_model(key, buf, steps, config=None):
     model = make_diffusion(config or DiffusionConfig(STATE_DIM, ACTION_DIM))
     k_init, k_train = jax.random.split(key)
-    state = model.init(k_init)
+    state = jax.jit(model.init)(k_init)
     state, losses = jax.jit(model.train_steps, static_argnums=3)(state, k_train, buf, steps)
     return model, state, losses
 
@@ -107,38 +108,46 @@ def compare_at_point(key, model, state, f, s0, a0, sigma, n=200, repeats=10, noi
     return stats, real_sets[0], syn_sets[0]
 
 
-def run(steps=3000, num_data=4096, seed=0, out_dir="docs"):
+def run(steps=3000, num_data=4096, seed=0, out_dir="docs", ema_decays=(0.0, 0.995), batch_size=64):
     key = jax.random.PRNGKey(seed)
     k_f, k_pt, key = jax.random.split(key, 3)
     f = random_mlp(k_f)
     ks0, ka0 = jax.random.split(k_pt)
     s0 = jax.random.normal(ks0, (STATE_DIM,))
     a0 = jax.random.uniform(ka0, (ACTION_DIM,), minval=-1.0, maxval=1.0)
-    results, samples = [], []
-    for sigma in NOISE_LEVELS:
-        k_data, k_train, k_cmp, key = jax.random.split(key, 4)
-        t0 = time.time()
-        buf = fill_buffer(*make_dataset(k_data, f, num_data, sigma))
-        model, state, losses = train_model(k_train, buf, steps)
-        stats, real, syn = compare_at_point(k_cmp, model, state, f, s0, a0, sigma)
-        stats.update(sigma=sigma, final_loss=float(np.mean(np.asarray(losses)[-100:])), seconds=time.time() - t0)
-        results.append(stats)
-        samples.append((real, syn))
-        print(
-            f"sigma={sigma:5.2f}  W1 {stats['w1']:.4f} (floor {stats['w1_floor']:.4f})  "
-            f"energy {stats['energy']:.4f} (floor {stats['energy_floor']:.4f})  loss {stats['final_loss']:.3f}  "
-            f"{stats['seconds']:.0f}s",
-            flush=True,
-        )
     os.makedirs(out_dir, exist_ok=True)
-    meta = {"steps": steps, "num_data": num_data, "seed": seed, "samples": 200, "repeats": 10, "device": jax.devices()[0].platform}
+    results = []
+    for ema in ema_decays:  # same data, training keys and evaluation keys for every setting
+        samples = []
+        k_run = key
+        for sigma in NOISE_LEVELS:
+            k_data, k_train, k_cmp, k_run = jax.random.split(k_run, 4)
+            t0 = time.time()
+            buf = fill_buffer(*make_dataset(k_data, f, num_data, sigma))
+            cfg = DiffusionConfig(STATE_DIM, ACTION_DIM, batch_size=batch_size, ema_decay=ema)
+            model, state, losses = train_model(k_train, buf, steps, cfg)
+            stats, real, syn = compare_at_point(k_cmp, model, state, f, s0, a0, sigma)
+            stats.update(sigma=sigma, ema_decay=ema, final_loss=float(np.mean(np.asarray(losses)[-100:])), seconds=time.time() - t0)
+            results.append(stats)
+            samples.append((real, syn))
+            print(
+                f"ema={ema:5.3f} sigma={sigma:5.2f}  W1 {stats['w1']:.4f} (floor {stats['w1_floor']:.4f})  "
+                f"energy {stats['energy']:.4f} (floor {stats['energy_floor']:.4f})  loss {stats['final_loss']:.3f}  "
+                f"{stats['seconds']:.0f}s",
+                flush=True,
+            )
+        name = "diffusion_check.png" if ema == 0 else f"diffusion_check_ema{ema:g}.png"
+        plot(samples, out_dir, name, f"ema_decay={ema:g}")
+    meta = {
+        "steps": steps, "batch_size": batch_size, "num_data": num_data, "seed": seed, "samples": 200, "repeats": 10,
+        "device": jax.devices()[0].platform,
+    }
     with open(os.path.join(out_dir, "diffusion_check.json"), "w") as fh:
         json.dump({"meta": meta, "results": results}, fh, indent=1)
-    plot(samples, out_dir)
     return results
 
 
-def plot(samples, out_dir):
+def plot(samples, out_dir, name, title):
     import matplotlib
 
     matplotlib.use("Agg")
@@ -154,8 +163,9 @@ def plot(samples, out_dir):
             ax.set_title(f"noise {sigma:g}: s'_{j + 1}", fontsize=9)
             if row == 0 and j == 0:
                 ax.legend(fontsize=8)
+    fig.suptitle(f"real (red) vs synthetic (blue) s' at a fixed (s, a); {title}", fontsize=10)
     fig.tight_layout()
-    fig.savefig(os.path.join(out_dir, "diffusion_check.png"), dpi=110)
+    fig.savefig(os.path.join(out_dir, name), dpi=110)
     plt.close(fig)
 
 
@@ -165,6 +175,8 @@ if __name__ == "__main__":
     p.add_argument("--steps", type=int, default=3000)
     p.add_argument("--num-data", type=int, default=4096)
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--quick", action="store_true", help="500 steps (smoke run)")
+    p.add_argument("--batch-size", type=int, default=64)
+    p.add_argument("--ema", type=float, nargs="+", default=[0.0, 0.995], help="EMA decays to compare (0 = off)")
+    p.add_argument("--quick", action="store_true", help="300 steps (smoke run)")
     args = p.parse_args()
-    run(500 if args.quick else args.steps, args.num_data, args.seed, args.out)
+    run(300 if args.quick else args.steps, args.num_data, args.seed, args.out, tuple(args.ema), args.batch_size)

@@ -20,7 +20,7 @@ Sets here:
 * ``lander_test_set``: the official 10 test landers.
 * ``walker_ladder_set`` (``walker_eval_set`` seed 92, ``walker_test_set_b`` seed 2024): the SPEC 3.1
   difficulty ladder over the DCD FULL ranges, each level with its own fixed terrain seed.
-* ``walker_test_set_a``: DCD's named test levels, taken from ``envs.walker.LEVELS`` (imported lazily).
+* ``walker_test_set_a``: DCD's named test levels, from ``envs.walker.levels.LEVELS`` (imported lazily).
 
 All generation is host-side numpy (run once, at set-up); the result is fixed data.
 """
@@ -270,11 +270,18 @@ def stack_params(levels: Sequence):
     return jax.tree_util.tree_map(lambda *xs: jnp.stack([jnp.asarray(x) for x in xs]), *levels)
 
 
-def walker_test_set_a(names: Sequence[str] = DCD_TEST_LEVELS):
-    """DCD's named test levels as one stacked WalkerParams (from ``envs.walker.LEVELS``)."""
-    from envs.walker import LEVELS  # lazy: the walker package pulls in MJX
+def walker_test_set_a(names: Sequence[str] = DCD_TEST_LEVELS, terrain_seeds: Sequence[int] | None = None):
+    """DCD's named test levels as one stacked WalkerParams (from ``envs.walker.levels.LEVELS``).
+
+    Each level gets a fixed terrain (``fixed_terrain=True``) from a fixed seed list (default
+    1000 + i; DCD seeds test terrains from the wall clock, SPEC 5.5 fixes them).
+    """
+    from envs.walker.levels import LEVELS  # lazy: keeps this module free of env imports
 
     missing = [n for n in names if n not in LEVELS]
     if missing:
         raise KeyError(f"unknown walker test level(s) {missing}; known: {sorted(LEVELS)}")
-    return stack_params([LEVELS[n] for n in names])
+    seeds = [1000 + i for i in range(len(names))] if terrain_seeds is None else list(terrain_seeds)
+    if len(seeds) != len(names):
+        raise ValueError(f"walker_test_set_a got {len(seeds)} terrain seeds for {len(names)} levels")
+    return stack_params([LEVELS[n](terrain_seed=s, fixed_terrain=True) for n, s in zip(names, seeds)])

@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from shed_jax.teacher.buffers import buffer_add_many, buffer_init, make_transition
+from shed_jax.teacher.buffers import Transition, buffer_add_many, buffer_init, make_transition
 from shed_jax.teacher.diffusion import (
     DiffusionConfig,
     ancestral_step,
@@ -78,7 +78,7 @@ def test_reverse_steps_against_formula():
 def test_loss_on_fixed_input_matches_hand_computation():
     cfg = DiffusionConfig(state_dim=3, action_dim=2, hidden=16)
     model = make_diffusion(cfg)
-    st = model.init(jax.random.PRNGKey(0))
+    st = jax.jit(model.init)(jax.random.PRNGKey(0))
     s = jnp.arange(12.0).reshape(4, 3) / 10
     a = jnp.linspace(-1, 1, 8).reshape(4, 2)
     sn = -s
@@ -90,14 +90,15 @@ def test_loss_on_fixed_input_matches_hand_computation():
     xk = np.sqrt(ab) * np.asarray(sn) + np.sqrt(1 - ab) * np.asarray(eps)
     pred = model.net.apply(st.params, jnp.asarray(xk), s, a, k - 1)
     expect = np.mean((np.asarray(eps) - np.asarray(pred)) ** 2)
-    assert float(model.loss(st.params, key, s, a, sn)) == pytest.approx(expect, rel=1e-5)
+    loss = jax.jit(model.loss)
+    assert float(loss(st.params, key, s, a, sn)) == pytest.approx(expect, rel=1e-5)
     # with a zeroed output layer the prediction is 0 and the loss is E[eps^2] = 1 (large batch)
     params = jax.tree_util.tree_map(lambda x: x, st.params)
     head = params["params"]["state_head"]
     last = sorted(head)[-1]
     head[last] = jax.tree_util.tree_map(jnp.zeros_like, head[last])
     big = jnp.zeros((4000, 3))
-    loss0 = model.loss(params, key, big, jnp.zeros((4000, 2)), big)
+    loss0 = loss(params, key, big, jnp.zeros((4000, 2)), big)
     assert float(loss0) == pytest.approx(1.0, abs=0.05)
 
 
@@ -111,53 +112,69 @@ def test_config_validation_names_the_field():
 
 
 def _tiny_buffer(n=64, m=3, da=2):
-    key = jax.random.PRNGKey(3)
-    tr = make_transition(m, da, (n,))
-    tr = tr.replace(
-        s=100 + 50 * jax.random.normal(key, (n, m)),
-        s_next=150 + 50 * jax.random.normal(jax.random.PRNGKey(4), (n, m)),
-        u=jax.random.uniform(key, (n, da), minval=-1, maxval=1),
-        r=jnp.arange(n, dtype=jnp.float32),
-        done=(jnp.arange(n) % 4 == 3).astype(jnp.float32),
+    rng = np.random.default_rng(3)  # host data: no per-op compiles
+    f32 = lambda x: np.asarray(x, np.float32)
+    tr = Transition(
+        s=f32(100 + 50 * rng.normal(size=(n, m))),
+        u=f32(rng.uniform(-1, 1, (n, da))),
+        r=f32(np.arange(n)),
+        s_next=f32(150 + 50 * rng.normal(size=(n, m))),
+        done=f32(np.arange(n) % 4 == 3),
     )
-    return buffer_add_many(buffer_init(make_transition(m, da), 128), tr)
+    return jax.jit(buffer_add_many)(buffer_init(make_transition(m, da), 128), tr)
 
 
 def test_synthesize_shapes_reward_and_copies():
     buf = _tiny_buffer()
     rcfg = RewardConfig()
-    for train_bc, syn_action in ((False, "uniform"), (True, "bc")):
-        model = make_diffusion(DiffusionConfig(3, 2, hidden=16, train_bc=train_bc, sampler="code_posterior"))
-        st = model.init(jax.random.PRNGKey(0))
-        st, losses = model.train_steps(st, jax.random.PRNGKey(1), buf, 3)
-        assert losses.shape == (3,) and bool(jnp.all(jnp.isfinite(losses)))
-        # buffer normaliser: pooled mean of s and s' over the 64 valid entries
-        pooled = jnp.concatenate([buf.data.s[:64], buf.data.s_next[:64]])
-        np.testing.assert_allclose(st.norm.mean, pooled.mean(0), rtol=1e-4)
-        np.testing.assert_allclose(st.norm.std, pooled.std(0), rtol=1e-3)
-        syn = model.synthesize(st, jax.random.PRNGKey(2), buf, 10, make_reward_fn(rcfg), syn_action, "recompute")
-        assert syn.s.shape == (10, 3) and syn.u.shape == (10, 2) and syn.r.shape == (10,)
+    rf = make_reward_fn(rcfg)
+    model = make_diffusion(DiffusionConfig(3, 2, hidden=16, train_bc=True, sampler="code_posterior"))
+
+    @jax.jit
+    def run(key):
+        st = model.init(key)
+        st, losses = model.train_steps(st, jax.random.fold_in(key, 1), buf, 3)
+        k = jax.random.fold_in(key, 2)
+        outs = [model.synthesize(st, k, buf, 10, rf, act, rew) for act, rew in (("uniform", "recompute"), ("bc", "recompute"), ("bc", "copy"))]
+        return st, losses, outs
+
+    st, losses, (uni, bc, bc_copy) = run(jax.random.PRNGKey(0))
+    assert losses.shape == (3,) and bool(jnp.all(jnp.isfinite(losses)))
+    # buffer normaliser: pooled mean/std of s and s' over the 64 valid entries
+    pooled = jnp.concatenate([buf.data.s[:64], buf.data.s_next[:64]])
+    np.testing.assert_allclose(st.norm.mean, pooled.mean(0), rtol=1e-4)
+    np.testing.assert_allclose(st.norm.std, pooled.std(0), rtol=1e-3)
+    for syn in (uni, bc):
+        assert syn.s.shape == (10, 3) and syn.u.shape == (10, 2) and syn.r.shape == (10,) and syn.done.shape == (10,)
         assert bool(jnp.all(jnp.abs(syn.u) <= 1.0))
         np.testing.assert_allclose(syn.r, teacher_reward(rcfg, syn.s, syn.u, syn.s_next), rtol=1e-5)
-        # s and done come from real transitions: each s matches a buffer row whose done equals the copied done
+        # s and done come from one real transition each
         idx = jnp.argmin(jnp.sum(jnp.abs(buf.data.s[None, :64] - syn.s[:, None]), -1), axis=1)
         np.testing.assert_allclose(buf.data.s[idx], syn.s)
         np.testing.assert_allclose(buf.data.done[idx], syn.done)
-        copied = model.synthesize(st, jax.random.PRNGKey(2), buf, 10, make_reward_fn(rcfg), syn_action, "copy")
-        np.testing.assert_allclose(copied.r, buf.data.r[idx])
+    # the code sampler clamps states to +-state_clip
+    assert float(jnp.max(jnp.abs(bc.s_next))) <= 300.0 + 1e-3
+    # 'copy' takes r from the source transition (same key -> same sources as the 'bc' call)
+    idx = jnp.argmin(jnp.sum(jnp.abs(buf.data.s[None, :64] - bc_copy.s[:, None]), -1), axis=1)
+    np.testing.assert_allclose(bc_copy.s, bc.s)
+    np.testing.assert_allclose(bc_copy.r, buf.data.r[idx])
     with pytest.raises(ValueError, match="train_bc"):
-        make_diffusion(DiffusionConfig(3, 2, hidden=16)).synthesize(st, jax.random.PRNGKey(2), buf, 4, make_reward_fn(rcfg), "bc")
+        make_diffusion(DiffusionConfig(3, 2, hidden=16)).synthesize(st, jax.random.PRNGKey(2), buf, 4, rf, "bc")
+    with pytest.raises(ValueError, match="syn_reward"):
+        model.synthesize(st, jax.random.PRNGKey(2), buf, 4, rf, "uniform", "zero")
 
 
-# the learning checks share one budget: default network (3 x 256), batch 128, 1600 Adam steps
-_STEPS, _BATCH = 1600, 128
+# The learning checks share one budget: default network (3 x 256), batch 128, 1800 Adam steps, and
+# sampling with an EMA of the parameters (decay 0.995): without it the sample at one fixed (s, a)
+# follows the last Adam steps' jitter and W1 wanders between 2x and 3.5x the floor at this budget.
+_STEPS, _BATCH, _EMA = 1800, 128, 0.995
 
 
 def _train(noise, key):
     f = dc.random_mlp(jax.random.PRNGKey(11))
     k_data, k_train, k_pt = jax.random.split(key, 3)
     s, a, sn = dc.make_dataset(k_data, f, 4096, 1.0, noise)
-    cfg = DiffusionConfig(dc.STATE_DIM, dc.ACTION_DIM, batch_size=_BATCH)
+    cfg = DiffusionConfig(dc.STATE_DIM, dc.ACTION_DIM, batch_size=_BATCH, ema_decay=_EMA)
     model, st, _ = dc.train_model(k_train, dc.fill_buffer(s, a, sn), _STEPS, cfg)
     s0 = jax.random.normal(k_pt, (dc.STATE_DIM,))
     a0 = jnp.array([0.3, -0.5, 0.1])
@@ -185,7 +202,7 @@ def test_captures_bimodal_conditional_where_gaussian_fails():
     gap = lambda x: float(np.mean(np.abs(x[:, 0] - centre[0]) < 1.0))
     upper = lambda x: float(np.mean(x[:, 0] > centre[0]))
     assert gap(gauss) > 0.25, gap(gauss)
-    assert gap(syn) < 0.08, gap(syn)
+    assert gap(syn) < 0.1, gap(syn)
     assert 0.3 < upper(syn) < 0.7, upper(syn)
     # and the synthetic modes sit where the real ones are
     up = syn[syn[:, 0] > centre[0], 0]

@@ -49,7 +49,9 @@ class DiffusionConfig:
     """Static settings of the conditional diffusion model.
 
     state_dim / action_dim: m and d_a.  num_steps: K.  state_clip: the code sampler's clamp of x0 and
-    of the output, in raw state units (S_max; None disables).
+    of the output, in raw state units (S_max; None disables).  ema_decay: if > 0, sampling uses an
+    exponential moving average of the parameters (updated every training step), as Diffusion-QL
+    does; 0 (default) samples with the trained parameters, as the official SHED code does.
     """
 
     state_dim: int
@@ -68,6 +70,7 @@ class DiffusionConfig:
     scale: float = 100.0
     min_std: float = 1e-2
     train_bc: bool = False
+    ema_decay: float = 0.0
 
     def __post_init__(self):
         for name in ("state_dim", "action_dim", "num_steps", "hidden", "num_layers", "batch_size"):
@@ -85,6 +88,8 @@ class DiffusionConfig:
             raise ValueError(f"DiffusionConfig.lr must be > 0, got {self.lr}")
         if not self.scale > 0 or not self.min_std > 0:
             raise ValueError(f"DiffusionConfig.scale and min_std must be > 0, got {self.scale}, {self.min_std}")
+        if not 0.0 <= self.ema_decay < 1.0:
+            raise ValueError(f"DiffusionConfig.ema_decay must lie in [0, 1), got {self.ema_decay}")
         if self.state_clip is not None and not self.state_clip > 0:
             raise ValueError(f"DiffusionConfig.state_clip must be > 0 or None, got {self.state_clip}")
 
@@ -214,6 +219,7 @@ class NormStats:
 @struct.dataclass
 class DiffusionState:
     params: dict
+    ema_params: dict  # sampling parameters: EMA of params if ema_decay > 0, else equal to params
     opt_state: optax.OptState
     norm: NormStats
     num_updates: jax.Array  # int32
@@ -269,7 +275,7 @@ class DiffusionModel:
         params = self.net.init(key, s, s, a, jnp.zeros((1,)), method=Denoiser.init_both)
         m = c.state_dim
         std = jnp.full((m,), c.scale if c.normalizer == "scale" else 1.0, jnp.float32)
-        return DiffusionState(params, self.optimizer.init(params), NormStats(jnp.zeros((m,)), std), jnp.int32(0))
+        return DiffusionState(params, params, self.optimizer.init(params), NormStats(jnp.zeros((m,)), std), jnp.int32(0))
 
     def loss(self, params, key: jax.Array, s, a, s_next) -> jax.Array:
         """Noise-prediction loss on a normalised batch (s, a, s' each [B, .]); + BC loss if train_bc."""
@@ -301,17 +307,23 @@ class DiffusionModel:
         state = self.refresh_norm(state, buffer)
         norm, opt = state.norm, self.optimizer
 
+        decay = self.config.ema_decay
+
         def one(carry, k):
-            params, opt_state = carry
+            params, ema, opt_state = carry
             k_b, k_l = jax.random.split(k)
             b: Transition = buffer_sample(buffer, k_b, self.config.batch_size)
             s, sn = normalize(norm, b.s), normalize(norm, b.s_next)
             loss, grads = jax.value_and_grad(self.loss)(params, k_l, s, b.u, sn)
             updates, opt_state = opt.update(grads, opt_state, params)
-            return (optax.apply_updates(params, updates), opt_state), loss
+            params = optax.apply_updates(params, updates)
+            ema = optax.incremental_update(params, ema, 1.0 - decay) if decay > 0 else params
+            return (params, ema, opt_state), loss
 
-        (params, opt_state), losses = jax.lax.scan(one, (state.params, state.opt_state), jax.random.split(key, num_steps))
-        return state.replace(params=params, opt_state=opt_state, num_updates=state.num_updates + num_steps), losses
+        carry = (state.params, state.ema_params, state.opt_state)
+        (params, ema, opt_state), losses = jax.lax.scan(one, carry, jax.random.split(key, num_steps))
+        new = state.replace(params=params, ema_params=ema, opt_state=opt_state, num_updates=state.num_updates + num_steps)
+        return new, losses
 
     def _reverse(self, key, shape, eps_fn, lo, hi):
         c, sched = self.config, self.schedule
@@ -337,7 +349,7 @@ class DiffusionModel:
         lo = hi = None
         if c.state_clip is not None:
             lo, hi = normalize(norm, -c.state_clip), normalize(norm, c.state_clip)
-        eps_fn = lambda x, k: self.net.apply(state.params, x, s_n, a, jnp.full(x.shape[:-1], k - 1))
+        eps_fn = lambda x, k: self.net.apply(state.ema_params, x, s_n, a, jnp.full(x.shape[:-1], k - 1))
         return denormalize(norm, self._reverse(key, s.shape[:-1] + (c.state_dim,), eps_fn, lo, hi))
 
     def sample_action(self, state: DiffusionState, key: jax.Array, s) -> jax.Array:
@@ -345,7 +357,7 @@ class DiffusionModel:
         c = self.config
         s_n = normalize(state.norm, s)
         eps_fn = lambda x, k: self.net.apply(
-            state.params, x, s_n, jnp.full(x.shape[:-1], k - 1), method=Denoiser.eps_action
+            state.ema_params, x, s_n, jnp.full(x.shape[:-1], k - 1), method=Denoiser.eps_action
         )
         return jnp.clip(self._reverse(key, s.shape[:-1] + (c.action_dim,), eps_fn, -1.0, 1.0), -1.0, 1.0)
 

@@ -1,0 +1,134 @@
+"""DDPG teacher: action bounds, target/critic arithmetic, soft updates, and a bandit it must solve."""
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from shed_jax.teacher.buffers import Transition
+from shed_jax.teacher.ddpg import Actor, Critic, DDPGConfig, make_ddpg
+
+SMALL = dict(hidden=(32, 32))
+
+
+def _batch(key, B=8, m=3, da=2, done=None):
+    ks = jax.random.split(key, 4)
+    return Transition(
+        s=jax.random.normal(ks[0], (B, m)),
+        u=jax.random.uniform(ks[1], (B, da), minval=-1, maxval=1),
+        r=jax.random.normal(ks[2], (B,)),
+        s_next=jax.random.normal(ks[3], (B, m)),
+        done=jnp.zeros(B) if done is None else done,
+    )
+
+
+def test_network_shapes_and_action_bounds():
+    cfg = DDPGConfig(state_dim=10, action_dim=15)  # the official sizes: 400-300
+    agent = make_ddpg(cfg)
+    st = jax.jit(agent.init)(jax.random.PRNGKey(0))
+    shapes = jax.tree_util.tree_map(jnp.shape, st.actor_params)["params"]
+    assert [shapes[f"Dense_{i}"]["kernel"] for i in range(3)] == [(10, 400), (400, 300), (300, 15)]
+    cshapes = jax.tree_util.tree_map(jnp.shape, st.critic_params)["params"]
+    assert [cshapes[f"Dense_{i}"]["kernel"] for i in range(3)] == [(25, 400), (400, 300), (300, 1)]
+    s = 100 * jax.random.normal(jax.random.PRNGKey(1), (64, 10))
+    act = jax.jit(agent.act)
+    u_det = act(st, s)
+    u_noisy = act(st, s, jax.random.PRNGKey(2))
+    assert u_det.shape == (64, 15) and bool(jnp.all(jnp.abs(u_noisy) <= 1.0))
+    assert not np.allclose(u_det, u_noisy)
+    # sigma = 0 (official code) is deterministic even with a key
+    zero = make_ddpg(DDPGConfig(10, 15, explore_sigma=0.0))
+    np.testing.assert_array_equal(zero.act(st, s, jax.random.PRNGKey(2)), u_det)
+    # exploration noise has the configured scale where the actor is not saturated
+    sm = make_ddpg(DDPGConfig(3, 2, explore_sigma=0.1, **SMALL))
+    st2 = jax.jit(sm.init)(jax.random.PRNGKey(0))
+    s0 = jnp.zeros((4000, 3))
+    d = jax.jit(lambda st, k: sm.act(st, s0, k) - sm.act(st, s0))(st2, jax.random.PRNGKey(3))
+    assert float(jnp.std(d)) == pytest.approx(0.1, rel=0.1)
+
+
+def test_update_arithmetic_critic_target_and_soft_update():
+    cfg = DDPGConfig(3, 2, tau=0.1, gamma=0.9, reward_norm=False, **SMALL)
+    agent = make_ddpg(cfg)
+    st = jax.jit(agent.init)(jax.random.PRNGKey(0))
+    # make targets differ from the online nets so the soft update is visible
+    st = st.replace(target_actor_params=jax.tree_util.tree_map(lambda x: x + 0.05, st.target_actor_params))
+    done = jnp.array([0, 1, 0, 1, 0, 0, 1, 0], jnp.float32)
+    b = _batch(jax.random.PRNGKey(1), done=done)
+    new, metrics = jax.jit(agent.update)(st, b)
+    actor, critic = Actor(2, (32, 32)), Critic((32, 32))
+    q_next = critic.apply(st.target_critic_params, b.s_next, actor.apply(st.target_actor_params, b.s_next))
+    y = np.asarray(b.r) + 0.9 * (1 - np.asarray(done)) * np.asarray(q_next)
+    q = critic.apply(st.critic_params, b.s, b.u)
+    assert float(metrics["critic_loss"]) == pytest.approx(float(np.mean((np.asarray(q) - y) ** 2)), rel=1e-5)
+    assert float(metrics["target_mean"]) == pytest.approx(float(np.mean(y)), rel=1e-5)
+    # actor loss uses the updated critic and the old actor
+    a_loss = -np.mean(np.asarray(critic.apply(new.critic_params, b.s, actor.apply(st.actor_params, b.s))))
+    assert float(metrics["actor_loss"]) == pytest.approx(a_loss, rel=1e-5)
+    # soft update by hand: target' = tau * new_online + (1 - tau) * old_target, every leaf
+    for tgt_new, online_new, tgt_old in (
+        (new.target_actor_params, new.actor_params, st.target_actor_params),
+        (new.target_critic_params, new.critic_params, st.target_critic_params),
+    ):
+        expect = jax.tree_util.tree_map(lambda o, t: 0.1 * o + 0.9 * t, online_new, tgt_old)
+        jax.tree_util.tree_map(lambda a, e: np.testing.assert_allclose(a, e, rtol=1e-5, atol=1e-7), tgt_new, expect)
+    assert int(new.num_updates) == 1
+    # online params moved
+    assert not np.allclose(new.critic_params["params"]["Dense_0"]["kernel"], st.critic_params["params"]["Dense_0"]["kernel"])
+
+
+def test_reward_normalisation_per_part():
+    agent = make_ddpg(DDPGConfig(3, 2, gamma=0.0, **SMALL))  # gamma 0: target = normalised reward
+    st = jax.jit(agent.init)(jax.random.PRNGKey(0))
+    b = _batch(jax.random.PRNGKey(1)).replace(r=jnp.array([1.0, 2.0, 3.0, 4.0, 100.0, 200.0, 300.0, 400.0]))
+    _, m_all = jax.jit(agent.update)(st, b)
+    _, m_mixed = jax.jit(agent.update, static_argnums=2)(st, b, 4)
+    # targets are z-scores: mean zero either way; but per-part scaling changes the critic loss
+    assert abs(float(m_all["target_mean"])) < 1e-5 and abs(float(m_mixed["target_mean"])) < 1e-5
+    actor, critic = Actor(2, (32, 32)), Critic((32, 32))
+    q = np.asarray(critic.apply(st.critic_params, b.s, b.u))
+    z = np.concatenate([(np.arange(1, 5) - 2.5) / (np.sqrt(1.25) + 1e-6)] * 2)
+    assert float(m_mixed["critic_loss"]) == pytest.approx(float(np.mean((q - z) ** 2)), rel=1e-4)
+
+
+def test_config_validation():
+    with pytest.raises(ValueError, match="tau"):
+        DDPGConfig(3, 2, tau=0.0)
+    with pytest.raises(ValueError, match="gamma"):
+        DDPGConfig(3, 2, gamma=1.5)
+    with pytest.raises(ValueError, match="action_dim"):
+        DDPGConfig(3, 0)
+    with pytest.raises(ValueError, match="explore_sigma"):
+        DDPGConfig(3, 2, explore_sigma=-0.1)
+
+
+def test_solves_one_step_quadratic_bandit():
+    """r(s, u) = -||u - c(s)||^2 with c(s) = 0.5 * tanh(s W): the actor must output the argmax c(s)."""
+    cfg = DDPGConfig(2, 2, hidden=(64, 64), tau=0.05, reward_norm=False)
+    agent = make_ddpg(cfg)
+    W = jnp.array([[1.0, -0.5], [0.3, 0.8]])
+    target = lambda s: 0.5 * jnp.tanh(s @ W)
+
+    def step(st, key):
+        ks, ku = jax.random.split(key)
+        s = jax.random.normal(ks, (64, 2))
+        u = jax.random.uniform(ku, (64, 2), minval=-1, maxval=1)  # uniform exploration of the action box
+        r = -jnp.sum((u - target(s)) ** 2, -1)
+        b = Transition(s=s, u=u, r=r, s_next=s, done=jnp.ones(64))
+        return agent.update(st, b)
+
+    @jax.jit
+    def train(key):
+        st = agent.init(key)
+        st, metrics = jax.lax.scan(step, st, jax.random.split(key, 1500))
+        return st, metrics
+
+    st, metrics = train(jax.random.PRNGKey(0))
+    s_test = jax.random.normal(jax.random.PRNGKey(9), (256, 2))
+    error = jax.jit(lambda st: jnp.abs(agent.act(st, s_test) - target(s_test)))
+    err0 = error(jax.jit(agent.init)(jax.random.PRNGKey(0)))
+    err = error(st)
+    assert float(jnp.mean(err0)) > 0.2, float(jnp.mean(err0))  # untrained actor is far off
+    assert float(jnp.mean(err)) < 0.08, float(jnp.mean(err))
+    assert float(jnp.max(err)) < 0.3, float(jnp.max(err))
+    # the critic learnt the reward: small loss at the end
+    assert float(jnp.mean(metrics["critic_loss"][-100:])) < 0.02
