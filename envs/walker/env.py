@@ -181,3 +181,10 @@ class BipedalWalker(Environment):
         new = new.replace(prev_shaping=shaping)
         info = {"hull_contact": hull_hit, "finished": finish & ~crash, "x": qpos[0], "terrain_clipped": state.clipped}
         return self._obs(new), new, reward, crash | finish, info
+
+    # ------------------------------------------------------------------ rendering
+    def render(self, state: WalkerState, params=None, width: int = 400, height: int = 267) -> np.ndarray:
+        """One unbatched state -> RGB frame [height, width, 3] uint8 (PIL, host side)."""
+        from envs.walker.render import draw
+
+        return draw(np.asarray(state.qpos), np.asarray(state.profile), self.grid, width, height)

@@ -9,7 +9,7 @@ class WalkerOptions:
     """Validated static configuration; everything here changes compiled shapes or the model.
 
     substeps:            physics steps per 0.02 s control step (timestep = 0.02 / substeps).
-    solver_iterations:   Newton iterations per physics step (MJX; 1 is Playground's choice).
+    solver_iterations:   Newton iterations per physics step (4: converged, see docs/walker.md).
     ls_iterations:       line-search iterations per Newton iteration.
     terrain_resolution:  heightfield samples per TERRAIN_STEP (0.4667 m); faces are 1 sample wide.
     kv:                  velocity-servo gain of the motor (N m per rad/s), see docs/walker.md.
@@ -21,7 +21,7 @@ class WalkerOptions:
     """
 
     substeps: int = 5
-    solver_iterations: int = 1
+    solver_iterations: int = 4
     ls_iterations: int = 5
     terrain_resolution: int = 4
     kv: float = 20.0
