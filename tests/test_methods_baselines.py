@@ -36,23 +36,29 @@ def setup():
 
 
 def _two_steps(method, student):
-    """key -> (info 1, info 2, initial params, final params, method state, PPO updates after each step).
+    """keys [B] -> (info 1, info 2, initial params, final params, method state, PPO updates after
+    each step), all with a leading seed axis.
 
-    ``step`` is jitted on its own and called twice, so each method compiles one step.
+    Seeds are ``vmap``ped (the contract: vmappable over seeds) and ``step`` is jitted on its own
+    and called twice, so each method compiles one step.
     """
-    start = jax.jit(lambda k_s, k_m, k_b: method.begin_episode(k_b, method.init(k_m), student.init(k_s)))
-    step = jax.jit(method.step)
+    start = jax.jit(jax.vmap(lambda k_s, k_m, k_b: method.begin_episode(k_b, method.init(k_m), student.init(k_s))))
+    step = jax.jit(jax.vmap(method.step))
 
-    def run(key):
-        k_s, k_m, k_b, k1, k2 = jax.random.split(key, 5)
-        m, s = start(k_s, k_m, k_b)
+    def run(keys):
+        ks = jax.vmap(lambda k: jax.random.split(k, 5))(keys)
+        m, s = start(ks[:, 0], ks[:, 1], ks[:, 2])
         params0 = s.params
-        m, s, i1 = step(k1, m, s)
-        n1 = int(s.update_step)
-        m, s, i2 = step(k2, m, s)
-        return i1, i2, params0, s.params, m, (n1, int(s.update_step))
+        m, s, i1 = step(ks[:, 3], m, s)
+        n1 = np.asarray(s.update_step)
+        m, s, i2 = step(ks[:, 4], m, s)
+        return i1, i2, params0, s.params, m, (n1, np.asarray(s.update_step))
 
     return run
+
+
+def _seed(tree, i):
+    return jax.tree_util.tree_map(lambda x: x[i], tree)
 
 
 def _changed(p0, p1):
@@ -60,19 +66,19 @@ def _changed(p0, p1):
 
 
 def _check_common(env, run, num_levels):
+    """Run seeds (0, 0, 1) in one vmapped call; check levels in Θ and determinism; return seed 0."""
     space = env.param_space
-    out = run(jax.random.PRNGKey(0))
-    again = run(jax.random.PRNGKey(0))
-    other = run(jax.random.PRNGKey(1))
-    i1, i2 = out[0], out[1]
-    for info in (i1, i2):
+    out = run(jnp.stack([jax.random.PRNGKey(0), jax.random.PRNGKey(0), jax.random.PRNGKey(1)]))
+    first, again, other = (_seed(out[:5], i) for i in range(3))
+    for info in (first[0], first[1], other[1]):
         lv = np.asarray(info.levels)
         assert lv.shape == (num_levels, space.dim)
         assert np.all(lv >= space.low - 1e-5) and np.all(lv <= space.high + 1e-5)
-    for a, b in zip(jax.tree_util.tree_leaves(out[:5]), jax.tree_util.tree_leaves(again[:5])):
+    for a, b in zip(jax.tree_util.tree_leaves(first), jax.tree_util.tree_leaves(again)):
         np.testing.assert_array_equal(a, b)  # same key -> identical
-    assert not np.array_equal(np.asarray(out[1].levels), np.asarray(other[1].levels))  # other key -> other levels
-    return out
+    assert not np.array_equal(np.asarray(first[1].levels), np.asarray(other[1].levels))  # other key -> other levels
+    updates = (int(out[5][0][0]), int(out[5][1][0]))
+    return (*first, updates)
 
 
 def test_registry_knows_every_method_and_validates(setup):

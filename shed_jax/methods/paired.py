@@ -203,6 +203,8 @@ class PAIRED:
     def begin_episode(self, key: jax.Array, mstate: PAIREDState, sstate):
         if self.config.reset_on_episode:
             mstate = self.init(key, sstate.hparams)
+        else:  # keep the learners, but the antagonist follows the protagonist's hyperparameters
+            mstate = mstate.replace(antagonist=mstate.antagonist.replace(hparams=sstate.hparams))
         return mstate, sstate
 
     def step(self, key: jax.Array, mstate: PAIREDState, sstate):
