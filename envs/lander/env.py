@@ -41,7 +41,8 @@ def make_params(max_steps=1000, gravity=-10.0, enable_wind=False, wind_power=15.
 class LanderState(EnvState):
     world: physics2d.WorldState
     terrain_y: jax.Array  # (CHUNKS,) smoothed ground heights at CHUNK_X
-    leg_contact: jax.Array  # (2,) bool, from the last physics step
+    leg_contact: jax.Array  # (2,) bool, Gymnasium's legs[i].ground_contact after the last step
+    leg_pairs: jax.Array  # (2, CHUNKS - 1) bool, leg touching each ground edge after the last step
     prev_shaping: jax.Array  # ()
     wind_idx: jax.Array  # () int32
     torque_idx: jax.Array  # () int32
@@ -184,10 +185,15 @@ class LunarLander(Environment):
                                          position_iterations=M.RESET_POSITION_ITERATIONS)
         else:
             world, info = physics2d.step(model, world.replace(bodies=bodies), ground, params.gravity, force, torque)
-        leg_contact = info["polygon_touching"][1:3]
+        # Gymnasium's ContactDetector: one Box2D contact per (leg, ground edge) pair; BeginContact
+        # sets the leg's flag, EndContact clears it -- even while the leg still touches another edge
+        pairs = info["pair_touching"][1:3]
+        began = jnp.any(pairs & ~state.leg_pairs, axis=1)
+        ended = jnp.any(~pairs & state.leg_pairs, axis=1)
+        leg_contact = jnp.where(ended, False, jnp.where(began, True, state.leg_contact))
         game_over = info["polygon_touching"][0]
         obs = observation(model, world, leg_contact)
-        state = state.replace(world=world, leg_contact=leg_contact, wind_idx=wind_idx, torque_idx=torque_idx,
+        state = state.replace(world=world, leg_contact=leg_contact, leg_pairs=pairs, wind_idx=wind_idx, torque_idx=torque_idx,
                               main_power=p_m, side_power=p_s * direction)
         return obs, state, game_over, info["asleep"]
 
@@ -202,6 +208,7 @@ class LunarLander(Environment):
             world=physics2d.init_world(self.model, bodies),
             terrain_y=terrain(k_terrain),
             leg_contact=jnp.zeros((2,), bool),
+            leg_pairs=jnp.zeros((2, M.CHUNKS - 1), bool),
             prev_shaping=jnp.zeros((), jnp.float32),
             wind_idx=idx[0],
             torque_idx=idx[1],

@@ -60,6 +60,9 @@ def lander_model(velocity_iterations: int = VELOCITY_ITERATIONS, position_iterat
         lower, upper = (0.4, 0.9) if i == -1 else (-0.9, -0.4)
         joints.append(physics2d.RevoluteJoint(
             body_a=0, body_b=k + 1, local_anchor_a=(0.0, 0.0), local_anchor_b=(i * LEG_AWAY, LEG_DOWN),
+            # pybox2d's joint definition with bodies stores their creation angle difference (i * 0.05)
+            # as the reference angle, so the limits act on (leg - hull - 0.05 i)
+            reference_angle=i * LEG_START_TILT,
             lower=lower, upper=upper, enable_limit=True, enable_motor=True, motor_speed=0.3 * i,
             max_motor_torque=LEG_SPRING_TORQUE,
         ))

@@ -51,3 +51,20 @@ def polyline_points_in_polygon(ground, vertices, radius):
     out = out / jnp.sqrt(dot(out, out))[:, None]  # outward face normals (F, 2)
     s = jnp.einsum("pk,fk->pf", ground, out) - dot(v0, out)[None]  # (P, F)
     return jnp.any(jnp.max(s, axis=1) <= radius)
+
+
+def vertex_segment_touching(points, ground, radius):
+    """(V, S) bool: vertex within ``radius`` of segment s (finite segment, from its upper side).
+
+    This is the per (shape, ground edge) view of contact that Box2D's contact listener reports
+    (one contact per fixture pair), used by environments that react to begin/end events.
+    """
+    p0, normal, _, _ = segment_frames(ground)
+    d = ground[1:] - ground[:-1]  # (S, 2)
+    rel = points[:, None, :] - p0[None]  # (V, S, 2)
+    t = jnp.clip(jnp.sum(rel * d[None], -1) / jnp.sum(d * d, -1)[None], 0.0, 1.0)
+    closest = p0[None] + t[..., None] * d[None]
+    diff = points[:, None, :] - closest
+    dist = jnp.sqrt(jnp.sum(diff * diff, -1))
+    above = jnp.sum(rel * normal[None], -1) >= 0.0
+    return jnp.where(above, dist, -dist) <= radius

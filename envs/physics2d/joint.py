@@ -55,7 +55,7 @@ def prepare(joint, lc_a, lc_b, angle_a, angle_b, prev_state, impulse, cfg):
     """Anchor arms, limit state and (possibly reset) accumulated impulses at the start of a step."""
     ra = rotate(angle_a, jnp.asarray(joint.local_anchor_a, jnp.float32) - lc_a)
     rb = rotate(angle_b, jnp.asarray(joint.local_anchor_b, jnp.float32) - lc_b)
-    angle = angle_b - angle_a
+    angle = angle_b - angle_a - joint.reference_angle
     if joint.enable_limit:
         if abs(joint.upper - joint.lower) < 2.0 * cfg.angular_slop:
             state = jnp.full_like(prev_state, EQUAL)
@@ -129,7 +129,7 @@ def solve_position(joint, m, lc_a, lc_b, state, ca, aa, cb, ab, cfg):
     angular_error = jnp.zeros((), jnp.float32)
     if joint.enable_limit:
         motor_mass = 1.0 / (ia + ib) if ia + ib > 0 else 0.0
-        angle = ab - aa
+        angle = ab - aa - joint.reference_angle
         c_eq = jnp.clip(angle - joint.lower, -cfg.max_angular_correction, cfg.max_angular_correction)
         c_lo = jnp.clip(angle - joint.lower + cfg.angular_slop, -cfg.max_angular_correction, 0.0)
         c_up = jnp.clip(angle - joint.upper - cfg.angular_slop, 0.0, cfg.max_angular_correction)

@@ -41,7 +41,7 @@ class Polygon:
 class RevoluteJoint:
     """A pin between ``body_a`` and ``body_b`` with an optional motor and angle limits (Box2D 2.3).
 
-    Joint angle = angle_b - angle_a (reference angle 0). The motor drives the relative angular
+    Joint angle = angle_b - angle_a - reference_angle. The motor drives the relative angular
     velocity to ``motor_speed`` with at most ``max_motor_torque``.
     """
 
@@ -49,6 +49,7 @@ class RevoluteJoint:
     body_b: int
     local_anchor_a: tuple
     local_anchor_b: tuple
+    reference_angle: float = 0.0
     lower: float = 0.0
     upper: float = 0.0
     enable_limit: bool = False
@@ -77,6 +78,8 @@ class SolverConfig:
     angular_sleep_tolerance: float = 2.0 / 180.0 * np.pi
     time_to_sleep: float = 0.5
     warm_start: bool = True
+    continuous: bool = True  # Box2D-style time of impact for solid slots hitting the ground
+    toi_iterations: int = 4  # velocity passes of the per-body time-of-impact solve
     unroll: int = 1  # unroll factor of the solver-iteration loops (speed knob, no effect on results)
 
     def __post_init__(self):

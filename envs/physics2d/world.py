@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 
 from envs.physics2d import joint as jnt
-from envs.physics2d.collision import polyline_points_in_polygon, vertex_vs_polyline
+from envs.physics2d.collision import polyline_points_in_polygon, vertex_segment_touching, vertex_vs_polyline
 from envs.physics2d.model import BodyState, Model, WorldState
 from envs.physics2d.vec import cross, cross_sv, dot, rotate
 
@@ -69,7 +69,8 @@ def step(model: Model, world: WorldState, ground, gravity, force=None, torque=No
 
     ``ground``: (P, 2) polyline with increasing x. ``gravity``: (2,) or scalar y-gravity.
     ``force`` (B, 2) at the centres of mass and ``torque`` (B,), applied during this step only.
-    info: ``touching`` (V,) slots and ``polygon_touching`` (num_polygons,) at the start pose,
+    info: ``touching`` (V,) slots and ``polygon_touching`` (num_polygons,) at the start pose or
+    by a time of impact during the step, ``pair_touching`` (num_polygons, S) per ground segment,
     ``position_solved`` (), ``asleep`` ().
     """
     cfg = model.config
@@ -192,7 +193,7 @@ def step(model: Model, world: WorldState, ground, gravity, force=None, torque=No
     local_v = jnp.asarray(model.slot_vertex, jnp.float32)
     plane_n = normal
     # plane point: start of the ground segment under the vertex at the start pose (fixed for the step)
-    _, _, plane_q, _ = vertex_vs_polyline(slot_points(model, b)[0], ground)
+    _, _, plane_q, inside = vertex_vs_polyline(slot_points(model, b)[0], ground)
 
     def pos_iter(_, carry):
         com, ang, solved = carry
@@ -230,7 +231,58 @@ def step(model: Model, world: WorldState, ground, gravity, force=None, torque=No
     else:
         solved = solved0
 
-    # 7. sleep
+    # 7. continuous collision (Box2D SolveTOI, simplified): a body whose slot crosses the TOI target
+    #    separation during the step is moved back to the time of impact, its contacts there are
+    #    solved alone (joints are not part of Box2D's TOI islands), and it moves on for the rest of
+    #    the step. A touch found this way also counts as touching for this step (BeginContact fires).
+    start_pts, _ = slot_points(model, b)
+    end_bodies = BodyState(com=jnp.stack(com), angle=jnp.stack(ang), vel=jnp.stack(vel), omega=jnp.stack(omg))
+    end_pts, _ = slot_points(model, end_bodies)
+    target = max(cfg.linear_slop, cfg.contact_radius - 3.0 * cfg.linear_slop)
+    d0 = dot(start_pts - plane_q, plane_n)
+    d1 = dot(end_pts - plane_q, plane_n)
+    _, _, _, inside_end = vertex_vs_polyline(end_pts, ground)
+    crossing = inside & inside_end & (d0 > target) & (d1 < target)
+    toi_touch = crossing
+    if cfg.continuous:
+        alpha_slot = jnp.clip((d0 - target) / jnp.maximum(d0 - d1, 1e-9), 0.0, 1.0)
+        com, ang, vel, omg = list(com), list(ang), list(vel), list(omg)
+        for i in range(nb):
+            ks = [k for k in slots if sb[k] == i]
+            if not ks:
+                continue
+            hit = jnp.any(jnp.stack([crossing[k] for k in ks]))
+            alpha = jnp.min(jnp.stack([jnp.where(crossing[k], alpha_slot[k], 1.0) for k in ks]))
+            c_t = b.com[i] + alpha * (com[i] - b.com[i])
+            a_t = b.angle[i] + alpha * (ang[i] - b.angle[i])
+            v_t, w_t = vel[i], omg[i]
+            arms = [rotate(a_t, local_v[k] - lc[i]) for k in ks]
+            on = [hit & (dot(c_t + r - plane_q[k], plane_n[k]) <= cfg.contact_radius) for r, k in zip(arms, ks)]
+            lnn = [jnp.zeros((), jnp.float32) for _ in ks]
+            ltt = [jnp.zeros((), jnp.float32) for _ in ks]
+            for _ in range(cfg.toi_iterations):
+                for s, (r, k) in enumerate(zip(arms, ks)):
+                    n, t = plane_n[k], jnp.stack([plane_n[k][1], -plane_n[k][0]])
+                    rn_, rt_ = cross(r, n), cross(r, t)
+                    dv = v_t + cross_sv(w_t, r)
+                    new_t = jnp.clip(ltt[s] - dot(dv, t) / (inv_m[i] + inv_i[i] * rt_ * rt_), -mu[k] * lnn[s], mu[k] * lnn[s])
+                    new_t = jnp.where(on[s], new_t, 0.0)
+                    pt = (new_t - ltt[s]) * t
+                    ltt[s] = new_t
+                    v_t, w_t = v_t + inv_m[i] * pt, w_t + inv_i[i] * cross(r, pt)
+                    dv = v_t + cross_sv(w_t, r)
+                    new_n = jnp.maximum(lnn[s] - dot(dv, n) / (inv_m[i] + inv_i[i] * rn_ * rn_), 0.0)
+                    new_n = jnp.where(on[s], new_n, 0.0)
+                    pn = (new_n - lnn[s]) * n
+                    lnn[s] = new_n
+                    v_t, w_t = v_t + inv_m[i] * pn, w_t + inv_i[i] * cross(r, pn)
+            rest = (1.0 - alpha) * dt
+            com[i] = jnp.where(hit, c_t + rest * v_t, com[i])
+            ang[i] = jnp.where(hit, a_t + rest * w_t, ang[i])
+            vel[i] = jnp.where(hit, v_t, vel[i])
+            omg[i] = jnp.where(hit, w_t, omg[i])
+
+    # 8. sleep
     vel_a = jnp.stack(vel)
     omg_a = jnp.stack(omg)
     moving = (omg_a**2 > cfg.angular_sleep_tolerance**2) | (dot(vel_a, vel_a) > cfg.linear_sleep_tolerance**2)
@@ -252,5 +304,16 @@ def step(model: Model, world: WorldState, ground, gravity, force=None, torque=No
         touching=active,
         asleep=asleep,
     )
-    info = dict(touching=touching, polygon_touching=poly_touch, position_solved=solved, asleep=asleep)
+    # per (polygon, ground segment) touching: start pose, plus segments hit by a time of impact
+    seg_sel = (plane_q[:, None, 0] == ground[None, :-1, 0]) & inside[:, None]  # (V, S) segment used
+    pairs_v = vertex_segment_touching(start_pts, ground, cfg.contact_radius) | (seg_sel & toi_touch[:, None])
+    pairs = jnp.stack([jnp.any(jnp.stack([pairs_v[i] for i, p in enumerate(model.slot_polygon) if p == k]), 0)
+                       for k in range(len(model.polygons))])
+    began = []
+    for k, poly in enumerate(model.polygons):
+        idx = [i for i, p in enumerate(model.slot_polygon) if p == k]
+        began.append(jnp.any(jnp.stack([toi_touch[i] for i in idx])))
+    poly_touch = poly_touch | jnp.stack(began)
+    info = dict(touching=touching | toi_touch, polygon_touching=poly_touch, pair_touching=pairs,
+                position_solved=solved, asleep=asleep)
     return new_world, info
