@@ -100,7 +100,10 @@ def _brax_compat():
     if not hasattr(jax, "device_put_replicated"):
         def device_put_replicated(x, devices):
             stacked = jax.tree_util.tree_map(lambda a: jnp.stack([jnp.asarray(a)] * len(devices)), x)
-            return jax.device_put(stacked, devices[0]) if len(devices) == 1 else jax.device_put(stacked, jax.sharding.PositionalSharding(devices))
+            if len(devices) == 1:
+                return jax.device_put(stacked, devices[0])
+            mesh = jax.sharding.Mesh(np.array(devices), ("d",))
+            return jax.device_put(stacked, jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("d")))
         jax.device_put_replicated = device_put_replicated
 
 
@@ -117,7 +120,7 @@ def make_brax_adapter(env, level):
             k_reset, k_next = jax.random.split(rng)
             obs, s = env.reset(k_reset, level)
             zero = jnp.zeros((), jnp.float32)
-            info = {"rng": k_next, "truncation": zero, "episode_done": zero,
+            info = {"rng": k_next, "truncation": zero, "episode_done": zero, "steps": zero,
                     "episode_metrics": {"sum_reward": zero, "length": zero}}
             return State(pipeline_state=s, obs=obs, reward=zero, done=zero, metrics={}, info=info)
 
@@ -127,7 +130,7 @@ def make_brax_adapter(env, level):
             ep_ret = jnp.where(done, info["episode_return"], s.episode_return)
             ep_len = jnp.where(done, info["episode_length"], s.time).astype(jnp.float32)
             new_info = {"rng": k_next, "truncation": info["truncated"].astype(jnp.float32),
-                        "episode_done": done.astype(jnp.float32),
+                        "episode_done": done.astype(jnp.float32), "steps": ep_len,
                         "episode_metrics": {"sum_reward": ep_ret, "length": ep_len}}
             return state.replace(pipeline_state=s, obs=obs, reward=r, done=done.astype(jnp.float32), info=new_info)
 
@@ -213,6 +216,7 @@ def main(argv=None) -> int:
     p.add_argument("--walker-seeds", type=int, default=4)
     p.add_argument("--walker-level", default="BipedalWalker")
     p.add_argument("--brax-seeds", type=int, default=3)
+    p.add_argument("--brax-env", default="lander-continuous", help="a registered env with a Box action space")
     p.add_argument("--chunks", type=int, default=20)
     p.add_argument("--out", default=os.environ.get("OUT", "runs/bench_ppo"))
     args = p.parse_args(argv)
@@ -229,8 +233,7 @@ def main(argv=None) -> int:
             if section == "walker":
                 r = bench_student("walker", args.walker_steps, args.walker_seeds, out, args.walker_level, args.chunks)
             elif section == "brax":
-                r = bench_brax("lander-continuous", args.total_steps, args.brax_seeds,
-                               results["sections"].get("lander-continuous"))
+                r = bench_brax(args.brax_env, args.total_steps, args.brax_seeds, results["sections"].get(args.brax_env))
             else:
                 r = bench_student(section, args.total_steps, args.seeds, out, None, args.chunks)
         except Exception as err:  # record and go on with the other sections

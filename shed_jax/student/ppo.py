@@ -78,6 +78,12 @@ def _leading_dim(tree) -> int:
 
 @dataclasses.dataclass(frozen=True)
 class PPOStudent:
+    """PPO on `env` with static `config`: holds only static things (modules, optimiser, action box).
+
+    Every method is a pure function of its arguments (state, key, levels, traj); jit them at the
+    top with the static ints (num_updates, num_episodes, max_steps, deterministic) marked static.
+    """
+
     env: Environment
     config: PPOConfig
 
