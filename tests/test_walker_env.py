@@ -233,10 +233,9 @@ def test_lidar_and_hull_contact_on_hand_made_terrain():
     hit_x = 10.0 + frac[~floor_hits] * C.LIDAR_RANGE * np.sin(ang[~floor_hits])
     assert np.all((hit_x >= wall_x - grid.dx - 1e-4) & (hit_x <= wall_x + 1e-4))
     # Out of range: a hull high above the floor sees nothing.
-    far = np.asarray(L.lidar(jnp.zeros(grid.n), grid, jnp.array([10.0, 50.0])))
+    far = np.asarray(jax.jit(lambda p, o: L.lidar(p, grid, o))(jnp.zeros(grid.n), jnp.array([10.0, 50.0])))
     np.testing.assert_array_equal(far, 1.0)
-    # Hull-ground test: clear at 1 m, touching when lowered / tilted into the ground.
-    zero = jnp.zeros(grid.n)
-    assert not bool(L.hull_touches_ground(zero, grid, 10.0, 1.0, 0.0))
-    assert bool(L.hull_touches_ground(zero, grid, 10.0, 0.2, 0.0))  # bottom at -8/30
-    assert bool(L.hull_touches_ground(zero, grid, 10.0, 0.6, 0.8))  # nose tilted down... tail
+    # Hull-ground test: clear at 1 m; touching when lowered (bottom at -8/30) or tilted (tail down).
+    touch = jax.jit(jax.vmap(lambda x, z, a: L.hull_touches_ground(jnp.zeros(grid.n), grid, x, z, a)))
+    got = np.asarray(touch(jnp.full(4, 10.0), jnp.array([1.0, 0.2, 0.6, 0.6]), jnp.array([0.0, 0.0, 0.8, 0.1])))
+    np.testing.assert_array_equal(got, [False, True, True, False])

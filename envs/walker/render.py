@@ -53,8 +53,8 @@ def draw(qpos, profile, grid: Grid, width: int = 400, height: int = 267, lidar: 
     sel = (gx >= x_left - grid.dx) & (gx <= x_left + VIEW_W + grid.dx)
     pts = np.stack([gx[sel], prof[sel]], -1)
     if len(pts) > 1:
-        poly = px(pts) + [(pts[-1, 0] - x_left) * sx, height + 10], [(pts[0, 0] - x_left) * sx, height + 10]
-        d.polygon([tuple(p) for p in poly], fill=(102, 153, 76), outline=(76, 230, 76))
+        poly = px(pts) + [((pts[-1, 0] - x_left) * sx, height + 10), ((pts[0, 0] - x_left) * sx, height + 10)]
+        d.polygon(poly, fill=(102, 153, 76), outline=(76, 230, 76))
     if x_left < C.FINISH_X < x_left + VIEW_W:
         f = px([[C.FINISH_X, np.interp(C.FINISH_X, gx, prof)], [C.FINISH_X, np.interp(C.FINISH_X, gx, prof) + 2.0]])
         d.line(f, fill=(230, 50, 50), width=2)
