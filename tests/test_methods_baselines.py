@@ -16,7 +16,7 @@ from flax import struct
 
 import envs
 from envs.core import EnvParams, ParamSpace
-from shed_jax.methods.accel import rank_probabilities
+from shed_jax.methods.accel import dcd_easy_parents, rank_probabilities
 from shed_jax.methods.dr import DR, DRConfig
 from shed_jax.methods.level_sampler import LevelSamplerConfig
 from shed_jax.methods.paired import Adversary, PAIREDConfig, regret, slot_returns
@@ -228,3 +228,11 @@ def test_dr_code_distribution_and_lander_theta():
     np.testing.assert_allclose(np.asarray(params.gravity), v[:, 0])
     with pytest.raises(ValueError, match="lander"):
         DR(types.SimpleNamespace(name="walker", param_space=space), None, DRConfig(distribution="code"))
+
+
+def test_dcd_easy_parents_lowest_return_minus_value_loss():
+    levels = jnp.arange(8.0)[:, None] * jnp.ones((1, 2))
+    ret = jnp.array([5.0, 1.0, 9.0, 3.0, 0.0, 7.0, 2.0, 4.0])
+    vloss = jnp.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 10.0])  # level 7: 4 - 10 = -6, the lowest
+    parents = np.asarray(dcd_easy_parents(levels, ret, vloss))
+    np.testing.assert_array_equal(parents[:, 0], [7, 7, 4, 4, 1, 1, 6, 6])

@@ -4,7 +4,8 @@
 with replay probability 0.9, and after every replay update the replayed levels are edited
 (``num_edits`` = 3 edits each, new terrain seed), the children rolled out with the updated policy
 *without* a gradient update, scored and offered to the buffer. Parents: all replayed levels
-[our choice] (DCD's ``dcd_easy`` lowest-(return - value loss) selection is not implemented).
+[our choice]; switch ``parents="dcd_easy"`` [DCD]: the 4 replayed levels with the *lowest*
+(mean return - value loss), each replicated to fill the slots (DCD: 4 x 4 = 16 slots).
 Children's rollouts are gradient-free steps (``env_steps_eval``).
 
 **ACCEL-NR** (block mode) [our choice; the paper leaves it undefined]: no buffer. Start from n EASY
@@ -28,6 +29,7 @@ from shed_jax.methods.base import StepInfo
 from shed_jax.methods.dr import LevelCodec, mean_metrics, teacher_space
 from shed_jax.methods.level_sampler import LevelBuffer, LevelSamplerConfig
 from shed_jax.methods.mutations import Mutator, new_seeds
+from shed_jax.methods.paired import slot_returns
 from shed_jax.methods.plr import PLR, PLRConfig
 
 
@@ -38,6 +40,7 @@ class ACCELConfig(PLRConfig):
     sampler: LevelSamplerConfig = LevelSamplerConfig(replay_prob=0.9)
     num_edits: int = 3
     new_levels: str = "easy"  # "easy": EASY base levels [DCD]; "uniform": U(Θ)
+    parents: str = "all"  # "all": every replayed level; "dcd_easy": DCD's 4 lowest (return - value loss)
 
     def __post_init__(self):
         super().__post_init__()
@@ -45,6 +48,8 @@ class ACCELConfig(PLRConfig):
             raise ValueError(f"ACCELConfig.num_edits must be a positive int, got {self.num_edits!r}")
         if self.new_levels not in ("easy", "uniform"):
             raise ValueError(f"ACCELConfig.new_levels must be 'easy' or 'uniform', got {self.new_levels!r}")
+        if self.parents not in ("all", "dcd_easy"):
+            raise ValueError(f"ACCELConfig.parents must be 'all' or 'dcd_easy', got {self.parents!r}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -54,6 +59,9 @@ class ACCEL(PLR):
 
     def __post_init__(self):
         super().__post_init__()
+        e = self.student.config.num_envs
+        if self.config.parents == "dcd_easy" and e % DCD_NUM_PARENTS:
+            raise ValueError(f"ACCEL parents='dcd_easy' needs num_envs ({e}) divisible by {DCD_NUM_PARENTS}")
         object.__setattr__(self, "mutator", Mutator.for_env(self.env, self.codec.space, self.config.num_edits))
 
     def new_levels(self, key: jax.Array, n: int):
@@ -62,17 +70,33 @@ class ACCEL(PLR):
         k_v, k_s = jax.random.split(key)
         return self.mutator.sample_easy(k_v, n), new_seeds(k_s, n)
 
-    def after_replay(self, key, buf: LevelBuffer, sstate):
+    def after_replay(self, key, buf: LevelBuffer, sstate, traj):
         """Edit the levels the student just replayed, score the children without gradients, insert."""
         n = self.student.config.num_envs
         k_m, k_s, k_roll = jax.random.split(key, 3)
         parents = self.codec.space.to_vector(sstate.levels)  # [num_envs, d]: one replayed level per slot
+        if self.config.parents == "dcd_easy":
+            mean_return, _ = slot_returns(traj, sstate.env_state.episode_return)
+            _, targets = self.student.advantages(sstate, traj)
+            value_loss = jnp.mean((targets - traj.values) ** 2, axis=0)
+            parents = dcd_easy_parents(parents, mean_return, value_loss)
         children = self.mutator.mutate_batch(k_m, parents)
         seeds = new_seeds(k_s, n)
         sstate, scores, _ = self.score_rollout(k_roll, sstate, children, seeds)
         buf = self.sampler.advance_clock(buf, n)
         buf, _ = self.sampler.insert_batch(buf, children, scores, seeds)
         return buf, sstate, jnp.int32(self.student.env_steps_per_update), jnp.int32(n)
+
+
+DCD_NUM_PARENTS = 4
+
+
+def dcd_easy_parents(levels: jax.Array, mean_return: jax.Array, value_loss: jax.Array) -> jax.Array:
+    """DCD's parent choice: the 4 levels with the lowest (mean return - value loss), in ascending
+    order, each repeated to fill ``len(levels)`` rows (``[l0, l0, ..., l1, l1, ...]``)."""
+    n = levels.shape[0]
+    order = jnp.argsort(mean_return - value_loss, stable=True)[:DCD_NUM_PARENTS]
+    return jnp.repeat(levels[order], n // DCD_NUM_PARENTS, axis=0)
 
 
 # --------------------------------------------------------------------------------------------

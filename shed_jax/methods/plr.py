@@ -82,8 +82,9 @@ class PLR:
         """New levels for exploration: U(Θ) -> (vecs [n, d], seeds [n])."""
         return self.codec.sample_uniform(key, n)
 
-    def after_replay(self, key, buf: LevelBuffer, sstate):
-        """Called after each replay update; returns (buf, sstate, eval_env_steps, num_new_levels)."""
+    def after_replay(self, key, buf: LevelBuffer, sstate, traj):
+        """Called after each replay update with the replay rollout ``traj``; returns
+        (buf, sstate, eval_env_steps, num_new_levels)."""
         return buf, sstate, jnp.int32(0), jnp.int32(0)
 
     # ---------------------------------------------------------------- pieces
@@ -119,7 +120,7 @@ class PLR:
             s, scores, traj = self.score_rollout(k_roll, s, vecs, seeds)
             s, metrics = student.update(s, k_u, traj)
             buf = self.sampler.update_scores(buf, idx, scores)
-            buf, s, eval_steps, num_new = self.after_replay(k_after, buf, s)
+            buf, s, eval_steps, num_new = self.after_replay(k_after, buf, s, traj)
             rec = dict(
                 levels=vecs, trained=jnp.bool_(True), ppo=metrics, score=scores.mean(),
                 env_steps_train=jnp.int32(per_rollout), env_steps_eval=eval_steps, num_new=num_new,
