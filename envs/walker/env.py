@@ -84,7 +84,9 @@ class BipedalWalker(Environment):
     # ------------------------------------------------------------------ terrain
     def terrain(self, key: jax.Array, params: P.WalkerParams) -> T.Terrain:
         """The level's terrain: from ``terrain_seed`` if ``fixed_terrain``, else from ``key``."""
-        seeded = jax.random.PRNGKey(jnp.asarray(params.terrain_seed, jnp.int32))
+        seed = jnp.asarray(params.terrain_seed, jnp.int32)
+        typed = jnp.issubdtype(jnp.asarray(key).dtype, jax.dtypes.prng_key)
+        seeded = jax.random.key(seed) if typed else jax.random.PRNGKey(seed)
         k = jnp.where(jnp.asarray(params.fixed_terrain), seeded, key)
         return T.generate(k, params, self.options.max_boxes)
 
