@@ -1,0 +1,107 @@
+"""SHED / h-MDP method: one jitted scan of budget steps on a tiny CartPole student (cheap to
+compile; the lander/walker evaluation sets are tested in test_eval_sets.py), checking the official
+schedule (buffer growth, diffusion/synthesis threshold, DDPG branch), rewards and accounting."""
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import envs
+from shed_jax.methods.registry import make_method
+from shed_jax.methods.shed import SHED, SHEDConfig
+from shed_jax.student import make_student
+from shed_jax.student.config import PPOConfig
+from shed_jax.teacher.reward import RewardConfig, teacher_reward
+
+TINY = dict(
+    updates_per_step=1, num_eval_episodes=1, eval_max_steps=8, budget_steps=2, ddpg_batch=4, real_capacity=16,
+    syn_capacity=16, diffusion_threshold=1, diffusion_steps=2, num_syn=2, syn_threshold=2, ddpg_threshold=1,
+)
+
+
+def _cartpole():
+    env = envs.make("cartpole")
+    student = make_student(env, PPOConfig.for_env("cartpole", num_envs=5, num_steps=4, num_minibatches=1, update_epochs=1))
+    eval_levels = env.param_space.sample(jax.random.PRNGKey(42), (10,))
+    return env, student, eval_levels
+
+
+def _run(name, steps=4):
+    env, student, eval_levels = _cartpole()
+    method = SHED(env, student, SHEDConfig(**TINY), use_diffusion=name == "shed", name=name, eval_levels=eval_levels)
+
+    @jax.jit
+    def run(key):
+        k_m, k_s, k_b, k_run = jax.random.split(key, 4)
+        m = method.init(k_m)
+        s = student.init(k_s)
+        m, s = method.begin_episode(k_b, m, s)
+        s0 = m.s
+
+        def body(carry, k):
+            m, s = carry
+            m, s, info = method.step(k, m, s)
+            return (m, s), info
+
+        (m, s), infos = jax.lax.scan(body, (m, s), jax.random.split(k_run, steps))
+        return m, s0, infos
+
+    return method, run(jax.random.PRNGKey(0))
+
+
+def test_shed_schedule_rewards_and_accounting():
+    method, (m, s0, info) = _run("shed")
+    ext = info.extras
+    np.testing.assert_array_equal(ext["real_size"], [1, 2, 3, 4])
+    # D trains and synthesises 2 once |B_real| > 1: after steps 2, 3, 4
+    np.testing.assert_array_equal(ext["syn_size"], [0, 2, 4, 6])
+    assert np.isnan(ext["diffusion_loss"][0]) and np.all(np.isfinite(ext["diffusion_loss"][1:]))
+    # DDPG: none (|B_real| = 1), real-only (|B_syn| = 2 not > 2), then mixed twice
+    np.testing.assert_array_equal(ext["ddpg_branch"], [0, 1, 2, 2])
+    assert int(m.ddpg.num_updates) == 0 + 3 + 2 + 2
+    # levels: n = 5 per step, inside the lander box Θ
+    lv = np.asarray(info.levels)
+    assert lv.shape == (4, 5, 3)
+    space = method.codec.space
+    assert np.all(lv >= space.low - 1e-5) and np.all(lv <= space.high + 1e-5)
+    # the stored transitions chain s_0 -> s_1 -> ... and the reward is the paper's R on them
+    states = np.concatenate([np.asarray(s0)[None], np.asarray(ext["teacher_state"])])
+    np.testing.assert_allclose(m.real.data.s[:4], states[:-1], rtol=1e-6)
+    np.testing.assert_allclose(m.real.data.s_next[:4], states[1:], rtol=1e-6)
+    expect = teacher_reward(RewardConfig(), states[:-1], None, states[1:])
+    np.testing.assert_allclose(info.teacher_reward, expect, rtol=1e-5)
+    np.testing.assert_allclose(m.real.data.r[:4], expect, rtol=1e-5)
+    np.testing.assert_array_equal(m.real.data.done[:4], [0, 1, 0, 0])  # T = 2
+    # stored actions are u in [-1, 1] and map to the levels
+    u = np.asarray(m.real.data.u[:4]).reshape(4, 5, 3)
+    assert np.all(np.abs(u) <= 1.0)
+    np.testing.assert_allclose(method.codec.space.from_unit(u), lv, rtol=1e-5, atol=1e-5)
+    # accounting: 5 envs x 4 steps per PPO update; eval 10 levels x 1 episode x 8 steps (+ s_0's on step 1)
+    np.testing.assert_array_equal(info.env_steps_train, [20] * 4)
+    np.testing.assert_array_equal(info.env_steps_eval, [160, 80, 80, 80])
+    np.testing.assert_array_equal(info.num_new_levels, [5] * 4)
+
+
+def test_hmdp_has_no_diffusion_and_two_real_updates():
+    method, (m, s0, info) = _run("hmdp")
+    assert m.diffusion is None and m.syn is None
+    np.testing.assert_array_equal(info.extras["ddpg_branch"], [0, 1, 1, 1])
+    assert int(m.ddpg.num_updates) == 6
+    assert method.capacity == 16
+
+
+def test_config_errors():
+    env, student, eval_levels = _cartpole()
+    with pytest.raises(ValueError, match="evaluation levels"):
+        SHED(env, student, SHEDConfig(**TINY, num_eval_levels=5), eval_levels=eval_levels)
+    with pytest.raises(ValueError, match="no evaluation set"):
+        make_method("shed", env, student, TINY)
+    env = envs.make("lander")
+    student = make_student(env, PPOConfig.for_env("lander", num_envs=5, num_steps=4, num_minibatches=1, update_epochs=1))
+    assert make_method("hmdp", env, student).capacity == 10000 and make_method("shed", env, student).capacity == 2048
+    with pytest.raises(ValueError, match="unknown config field"):
+        make_method("shed", env, student, {"bogus": 1})
+    with pytest.raises(ValueError, match="eval_set"):
+        make_method("shed", env, student, {"eval_set": "random"})
+    with pytest.raises(ValueError, match="multiple of num_levels"):
+        make_method("shed", env, student, {"num_levels": 3})
