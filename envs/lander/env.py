@@ -85,6 +85,14 @@ def shaping(obs):
             - 100.0 * jnp.abs(obs[4]) + 10.0 * obs[6] + 10.0 * obs[7])
 
 
+def assign_reward(shaped, crashed, asleep):
+    """Gymnasium's terminal rules: -100 on a crash, then +100 if asleep (checked second, so it wins);
+    terminal rewards replace the shaped reward. Returns (reward, terminated)."""
+    reward = jnp.where(crashed, -100.0, shaped)
+    reward = jnp.where(asleep, 100.0, reward)
+    return reward, crashed | asleep
+
+
 class LunarLander(Environment):
     """Gymnasium LunarLander-v3 as a pure-JAX, level-parametric environment (see module docstring)."""
 
@@ -226,9 +234,7 @@ class LunarLander(Environment):
         shape = shaping(obs)
         reward = shape - state.prev_shaping - 0.30 * p_m - 0.03 * p_s
         crashed = game_over | (jnp.abs(obs[0]) >= 1.0)
-        reward = jnp.where(crashed, -100.0, reward)
-        reward = jnp.where(asleep, 100.0, reward)  # checked second in Gymnasium: sleep wins
-        terminated = crashed | asleep
+        reward, terminated = assign_reward(reward, crashed, asleep)
         new_state = new_state.replace(prev_shaping=shape)
         info = {"crashed": crashed, "landed": asleep}
         return obs, new_state, reward, terminated, info

@@ -41,8 +41,8 @@ RESET_POSITION_ITERATIONS = 10
 
 # Solver iterations. Box2D is called with 180 / 60 in Gymnasium; with warm starting and the 3x3
 # joint block these counts reach statistical parity (docs/lander.md) at a fraction of the cost.
-VELOCITY_ITERATIONS = 8
-POSITION_ITERATIONS = 3
+VELOCITY_ITERATIONS = 60
+POSITION_ITERATIONS = 20
 
 
 @functools.lru_cache(maxsize=None)

@@ -1,0 +1,116 @@
+"""Lander throughput: env steps/s of jit(vmap(step)) inside lax.scan (random actions, auto-reset
+included) for several batch sizes on whatever device JAX sees, plus Gymnasium LunarLander-v3 on one
+CPU core as the anchor.
+
+    python -m experiments.bench_lander --batches 1024,16384,131072,1048576 --out $OUT
+Writes bench_lander.json into --out (or $OUT); prints a table.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+
+def jax_throughput(batch: int, steps: int, continuous: bool, repeats: int = 3) -> dict:
+    import envs
+
+    env = envs.make("lander-continuous" if continuous else "lander")
+    params = env.default_params
+    levels = env.param_space.sample(jax.random.PRNGKey(1), (batch,))
+    levels = levels.replace(enable_wind=jnp.arange(batch) % 2 == 0)
+    space = env.action_space()
+
+    @jax.jit
+    def run(key, obs, state):
+        def body(c, k):
+            obs, state = c
+            ka, ks = jax.random.split(k)
+            a = jax.vmap(space.sample)(jax.random.split(ka, batch))
+            obs, state, r, d, _ = jax.vmap(env.step)(jax.random.split(ks, batch), state, a, levels)
+            return (obs, state), r.sum()
+
+        (obs, state), r = jax.lax.scan(body, (obs, state), jax.random.split(key, steps))
+        return obs, state, r.sum()
+
+    obs, state = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.PRNGKey(0), batch), levels)
+    t = time.perf_counter()
+    out = run(jax.random.PRNGKey(2), obs, state)
+    jax.block_until_ready(out)
+    compile_s = time.perf_counter() - t
+    times = []
+    for i in range(repeats):
+        t = time.perf_counter()
+        out = run(jax.random.PRNGKey(3 + i), out[0], out[1])
+        jax.block_until_ready(out)
+        times.append(time.perf_counter() - t)
+    best = min(times)
+    del params
+    return dict(batch=batch, steps=steps, seconds=best, steps_per_s=batch * steps / best, compile_s=compile_s)
+
+
+def gym_throughput(seconds: float = 5.0, wind: bool = False) -> float:
+    import gymnasium as gym
+
+    env = gym.make("LunarLander-v3", enable_wind=wind)
+    env.reset(seed=0)
+    rng = np.random.default_rng(0)
+    n, t0 = 0, time.perf_counter()
+    while time.perf_counter() - t0 < seconds:
+        for a in rng.integers(0, 4, 1000):
+            _, _, term, trunc, _ = env.step(int(a))
+            n += 1
+            if term or trunc:
+                env.reset()
+    return n / (time.perf_counter() - t0)
+
+
+def peak_memory() -> dict:
+    out = {}
+    for d in jax.devices():
+        try:
+            stats = d.memory_stats() or {}
+        except Exception:  # CPU backends may not implement it
+            stats = {}
+        if stats:
+            out[str(d)] = {k: int(v) for k, v in stats.items() if k in ("peak_bytes_in_use", "bytes_limit")}
+    return out
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description="lander env steps/s")
+    p.add_argument("--batches", default="1024,16384,131072,1048576", help="comma-separated batch sizes")
+    p.add_argument("--steps", type=int, default=100, help="scanned steps per timed call")
+    p.add_argument("--continuous", action="store_true")
+    p.add_argument("--gym-seconds", type=float, default=5.0)
+    p.add_argument("--out", default=os.environ.get("OUT"))
+    args = p.parse_args(argv)
+    batches = [int(b) for b in args.batches.split(",") if b]
+    if not batches or min(batches) < 1:
+        raise SystemExit(f"--batches needs positive integers, got {args.batches!r}")
+    gym_sps = gym_throughput(args.gym_seconds) if args.gym_seconds > 0 else float("nan")
+    rows = []
+    print(f"device: {jax.devices()[0].device_kind} ({jax.default_backend()}); gymnasium 1 core: {gym_sps:,.0f} steps/s")
+    print(f"{'batch':>9} {'steps/s':>14} {'x gym':>9} {'compile s':>10}")
+    for b in batches:
+        r = jax_throughput(b, args.steps, args.continuous)
+        r["speedup_vs_gym_core"] = r["steps_per_s"] / gym_sps if gym_sps == gym_sps else None
+        rows.append(r)
+        print(f"{b:9d} {r['steps_per_s']:14,.0f} {r['speedup_vs_gym_core'] or float('nan'):9.1f} {r['compile_s']:10.1f}",
+              flush=True)
+    result = dict(device=str(jax.devices()[0]), backend=jax.default_backend(), gym_steps_per_s=gym_sps,
+                  continuous=args.continuous, rows=rows, memory=peak_memory())
+    if args.out:
+        os.makedirs(args.out, exist_ok=True)
+        with open(os.path.join(args.out, "bench_lander.json"), "w") as f:
+            json.dump(result, f, indent=1)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

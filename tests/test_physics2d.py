@@ -1,0 +1,140 @@
+"""envs.physics2d: mass properties, free fall, resting contact and sleep, friction, joints, locked solve."""
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from envs import physics2d
+from envs.lander import model as LM
+
+DT = 1.0 / 50.0
+BOX = ((-0.5, -0.25), (0.5, -0.25), (0.5, 0.25), (-0.5, 0.25))
+FLAT = jnp.asarray([[0.0, 1.0], [10.0, 1.0], [20.0, 1.0]], jnp.float32)
+
+
+def box_model(friction=0.4, vi=8, pi=3):
+    cfg = physics2d.SolverConfig(dt=DT, velocity_iterations=vi, position_iterations=pi)
+    return physics2d.make_model(1, [physics2d.Polygon(0, BOX, density=2.0, friction=friction)], (), cfg)
+
+
+def run(model, world, n, gravity=-10.0, ground=FLAT):
+    def body(w, _):
+        w, info = physics2d.step(model, w, ground, gravity)
+        return w, (w.bodies.com, w.bodies.vel, info["touching"], w.asleep)
+
+    return jax.lax.scan(body, world, None, length=n)
+
+
+def test_lander_mass_properties_match_box2d():
+    m = LM.lander_model()
+    # Box2D (measured): hull mass 4.8167, GetInertia() = I about the body origin 0.83331, COM (0, 0.10131)
+    np.testing.assert_allclose(m.mass, [4.8166667, 0.0711111, 0.0711111], rtol=1e-5)
+    np.testing.assert_allclose(m.local_com[0], [0.0, 0.1013072], atol=1e-6)
+    i_origin = m.inertia + m.mass * np.sum(m.local_com**2, 1)
+    np.testing.assert_allclose(i_origin, [0.83331, 0.0017909, 0.0017909], rtol=1e-4)
+
+
+def test_bad_models_raise():
+    with pytest.raises(ValueError, match="counter-clockwise"):
+        physics2d.polygon_mass(np.asarray(BOX[::-1]), 1.0)
+    with pytest.raises(ValueError, match="body index"):
+        physics2d.make_model(1, [physics2d.Polygon(1, BOX, 1.0, 0.1)])
+    with pytest.raises(ValueError, match="velocity_iterations"):
+        physics2d.SolverConfig(velocity_iterations=0)
+
+
+def test_free_fall_is_semi_implicit_euler_exactly():
+    m = box_model()
+    w = physics2d.init_world(m, physics2d.bodies_from_origin(m, [[5.0, 10.0]], [0.0]))
+    n = 20
+    w, (com, vel, touching, _) = run(m, w, n, gravity=-7.0)
+    k = np.arange(1, n + 1)
+    np.testing.assert_allclose(vel[:, 0, 1], -7.0 * DT * k, rtol=1e-5)
+    np.testing.assert_allclose(com[:, 0, 1], 10.0 - 7.0 * DT**2 * k * (k + 1) / 2, rtol=1e-5)
+    assert not np.any(touching)
+
+
+def test_box_comes_to_rest_on_ground_and_sleeps():
+    m = box_model()
+    w = physics2d.init_world(m, physics2d.bodies_from_origin(m, [[5.0, 1.5]], [0.0]))
+    w, (com, vel, touching, asleep) = run(m, w, 120)
+    # resting separation: Box2D keeps radius - slop = 0.015 between the core shapes
+    bottom = float(com[-1, 0, 1]) - 0.25
+    assert abs(bottom - 1.0 - 0.015) < 0.004
+    assert np.all(touching[-1, :2]) and not np.any(touching[-1, 2:])
+    # warm-started normal impulses carry the weight: sum = m g dt
+    np.testing.assert_allclose(float(jnp.sum(w.normal_impulse)), 2.0 * 0.5 * 10.0 * DT, rtol=1e-3)
+    first = int(np.argmax(asleep))
+    assert asleep[first] and 25 <= first < 80  # 0.5 s below the sleep tolerances after settling
+
+
+def test_friction_decelerates_a_sliding_box_at_mu_g():
+    m = box_model(friction=0.4)
+    mu = np.sqrt(0.4 * 0.1)  # Box2D mixing with the ground's friction 0.1
+    b = physics2d.bodies_from_origin(m, [[3.0, 1.0 + 0.25 + 0.015]], [0.0], vel=[[2.0, 0.0]])
+    w = physics2d.init_world(m, b)
+    w, (com, vel, _, _) = run(m, w, 30)
+    dv = np.diff(np.asarray(vel[5:25, 0, 0]))
+    np.testing.assert_allclose(dv, -mu * 10.0 * DT, rtol=0.02)
+
+
+def pendulum_model(**joint):
+    cfg = physics2d.SolverConfig(dt=DT, velocity_iterations=20, position_iterations=5)
+    polys = [physics2d.Polygon(0, BOX, 1.0, 0.1, sensor=True), physics2d.Polygon(1, BOX, 1.0, 0.1, sensor=True)]
+    j = physics2d.RevoluteJoint(0, 1, (0.5, 0.0), (-0.5, 0.0), **joint)
+    return physics2d.make_model(2, polys, (j,), cfg)
+
+
+def test_revolute_joint_keeps_anchors_together_and_conserves_momentum():
+    m = pendulum_model()
+    b = physics2d.bodies_from_origin(m, [[5.0, 5.0], [6.0, 5.0]], [0.0, 0.0], vel=[[0.0, 1.0], [0.0, -1.0]])
+    w = physics2d.init_world(m, b)
+    for _ in range(30):
+        w, _ = physics2d.step(m, w, FLAT, 0.0)
+        bb = w.bodies
+        a = bb.com[0] + physics2d.world.rotate(bb.angle[0], jnp.asarray([0.5, 0.0]))
+        c = bb.com[1] + physics2d.world.rotate(bb.angle[1], jnp.asarray([-0.5, 0.0]))
+        assert float(jnp.linalg.norm(a - c)) < 2e-3
+    np.testing.assert_allclose(np.sum(np.asarray(w.bodies.vel), 0), [0.0, 0.0], atol=1e-4)  # equal masses
+    assert float(jnp.abs(w.bodies.omega[0])) > 0.1  # the pair spins
+
+
+def test_motor_reaches_target_speed_and_limit_stops_it():
+    m = pendulum_model(enable_motor=True, motor_speed=1.0, max_motor_torque=50.0)
+    w = physics2d.init_world(m, physics2d.bodies_from_origin(m, [[5.0, 5.0], [6.0, 5.0]], [0.0, 0.0]))
+    for _ in range(5):
+        w, _ = physics2d.step(m, w, FLAT, 0.0)
+    np.testing.assert_allclose(float(w.bodies.omega[1] - w.bodies.omega[0]), 1.0, rtol=1e-3)
+    m = pendulum_model(enable_motor=True, motor_speed=1.0, max_motor_torque=50.0, enable_limit=True,
+                       lower=-0.2, upper=0.3)
+    w = physics2d.init_world(m, physics2d.bodies_from_origin(m, [[5.0, 5.0], [6.0, 5.0]], [0.0, 0.0]))
+    for _ in range(40):
+        w, _ = physics2d.step(m, w, FLAT, 0.0)
+    rel = float(w.bodies.angle[1] - w.bodies.angle[0])
+    assert 0.3 - 1e-3 < rel < 0.3 + 2.0 / 180 * np.pi + 1e-3  # held at the upper limit (within slop)
+    assert abs(float(w.bodies.omega[1] - w.bodies.omega[0])) < 1e-3
+
+
+def test_locked_projector_is_a_momentum_preserving_projection():
+    m = LM.lander_model()
+    pos, ang = LM.initial_pose()
+    b = physics2d.bodies_from_origin(m, pos, ang)
+    p = physics2d.locked_velocity_projector(m, np.asarray(b.com), np.asarray(b.angle))
+    np.testing.assert_allclose(p @ p, p, atol=1e-9)  # a projection
+    v = np.random.default_rng(0).normal(size=9)
+    u = p @ v
+    mass = np.repeat(m.mass, 2)
+    lin = lambda x: np.stack([np.sum(m.mass * x[0::3]), np.sum(m.mass * x[1::3])])
+    np.testing.assert_allclose(lin(u), lin(v), rtol=1e-9, atol=1e-9)
+    assert mass.shape == (6,)
+    np.testing.assert_allclose(u[2::3], u[2], atol=1e-9)  # all bodies spin together
+
+
+def test_step_vmaps_over_worlds_and_gravity():
+    m = box_model()
+    b = physics2d.bodies_from_origin(m, [[5.0, 10.0]], [0.0])
+    w = physics2d.init_world(m, b)
+    ws = jax.tree_util.tree_map(lambda x: jnp.stack([x] * 3), w)
+    g = jnp.asarray([-1.0, -5.0, -11.0])
+    out, _ = jax.vmap(lambda w, g: physics2d.step(m, w, FLAT, g))(ws, g)
+    np.testing.assert_allclose(out.bodies.vel[:, 0, 1], g * DT, rtol=1e-6)
