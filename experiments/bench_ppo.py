@@ -17,7 +17,9 @@ Sections (each is independent; a failure is recorded in results.json and the nex
                               another; reports env steps/s and the final evaluation return, and
                               their ratios to ours at equal env steps. Brax's PPO has only
                               continuous (tanh-Gaussian) policies, hence lander-continuous.
-Any registered env works for the first kind of section (e.g. --sections cartpole).
+Any registered env works for the first kind of section (e.g. --sections cartpole). One device
+command may run at most 10 minutes, so run the sections as separate commands, e.g.
+    python -m experiments.bench_ppo --sections lander --out $OUT/lander
 Writes OUT/results.json and OUT/<section>_curve.png.
 """
 from __future__ import annotations
@@ -216,7 +218,7 @@ def main(argv=None) -> int:
     p.add_argument("--sections", nargs="+", default=["lander", "lander-continuous", "walker", "brax"])
     p.add_argument("--total-steps", type=int, default=3_000_000)
     p.add_argument("--seeds", type=int, default=8)
-    p.add_argument("--walker-steps", type=int, default=20_000_000)
+    p.add_argument("--walker-steps", type=int, default=1_000_000, help="per seed; keep a run under the 10-minute device limit")
     p.add_argument("--walker-seeds", type=int, default=4)
     p.add_argument("--walker-level", default="BipedalWalker")
     p.add_argument("--brax-seeds", type=int, default=3)
