@@ -12,6 +12,8 @@ import pathlib
 import numpy as np
 
 DEFAULT_LEVELS = ("BipedalWalker", "Stump", "PitGap", "Stairs")
+#: Levels shown when the shared CLI asks for a number of levels (``--levels N``).
+DEMO_ORDER = ("BipedalWalker", "Stump", "PitGap", "Stairs", "Roughness", "Hardcore", "High-Stump", "Wide-PitGap", "Insane")
 
 
 def parser() -> argparse.ArgumentParser:
@@ -36,14 +38,14 @@ def scripted_action(t, qpos):
     return jnp.stack([jnp.sin(ph), -0.6 + 0.4 * jnp.cos(ph), -jnp.sin(ph), -0.6 - 0.4 * jnp.cos(ph)]).astype(jnp.float32)
 
 
-def rollout(env, params, key, steps: int, policy: str):
-    """One level: jitted scan of ``steps`` env steps. Returns numpy qpos/reward/done/x and the
-    first state's terrain profile."""
+def make_rollout(env, steps: int, policy: str):
+    """A jitted ``(params, key) -> (profile, per-step outputs)``: one scan of ``steps`` env steps;
+    compiled once and reused for every level (levels share shapes)."""
     import jax
     import jax.numpy as jnp
 
     @jax.jit
-    def run(key):
+    def run(params, key):
         k0, k1 = jax.random.split(key)
         obs, s = env.reset(k0, params)
         profile = s.profile
@@ -59,8 +61,11 @@ def rollout(env, params, key, steps: int, policy: str):
         _, out = jax.lax.scan(body, s, (jnp.arange(steps), jax.random.split(k1, steps)))
         return profile, out
 
-    profile, (qpos, _, r, d, x, term) = jax.tree_util.tree_map(np.asarray, run(key))
-    return profile, qpos, r, d, x, term
+    def rollout(params, key):
+        profile, (qpos, _, r, d, x, term) = jax.tree_util.tree_map(np.asarray, run(params, key))
+        return profile, qpos, r, d, x, term
+
+    return rollout
 
 
 def run_demo(args=None) -> int:
@@ -75,7 +80,13 @@ def run_demo(args=None) -> int:
         args = parser().parse_args(args)
     defaults = vars(parser().parse_args([]))
     get = lambda name: getattr(args, name, None) if getattr(args, name, None) is not None else defaults[name]  # noqa: E731
-    names = [n for n in str(get("levels")).split(",") if n]
+    levels = get("levels")
+    if isinstance(levels, int):  # the shared CLI passes a number of levels
+        if levels < 1:
+            raise ValueError(f"--levels must be >= 1, got {levels}")
+        names = list(DEMO_ORDER[: min(levels, len(DEMO_ORDER))])
+    else:
+        names = [n for n in str(levels).split(",") if n]
     unknown = [n for n in names if n not in LEVELS]
     if unknown:
         raise ValueError(f"unknown walker level(s) {unknown}; known: {sorted(LEVELS)}")
@@ -83,9 +94,10 @@ def run_demo(args=None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     env = envs.make("walker")
     rows = []
+    rollout = make_rollout(env, get("steps"), get("policy"))
     for i, name in enumerate(names):
         params = LEVELS[name](terrain_seed=get("seed") + i, fixed_terrain=True)
-        profile, qpos, r, d, x, term = rollout(env, params, jax.random.PRNGKey(get("seed") + i), get("steps"), get("policy"))
+        profile, qpos, r, d, x, term = rollout(params, jax.random.PRNGKey(get("seed") + i))
         n = int(np.argmax(d)) + 1 if d.any() else len(d)
         outcome = "crash" if d.any() and term[n - 1] and r[n - 1] == -100 else ("finish" if d.any() and term[n - 1] else ("time limit" if d.any() else "running"))
         rows.append((name, float(r[:n].sum()), n, outcome, float(x[n - 1] - qpos[0, 0])))
