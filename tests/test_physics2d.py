@@ -137,3 +137,14 @@ def test_step_vmaps_over_worlds_and_gravity():
     g = jnp.asarray([-1.0, -5.0, -11.0])
     out, _ = jax.vmap(lambda w, g: physics2d.step(m, w, FLAT, g))(ws, g)
     np.testing.assert_allclose(out.bodies.vel[:, 0, 1], g * DT, rtol=1e-6)
+
+
+def test_vertex_segment_touching_ignores_far_points_below_steep_segment_lines():
+    from envs.physics2d.collision import vertex_segment_touching
+
+    ground = jnp.asarray([[0.0, 0.0], [2.0, 0.0], [4.0, 5.0]], jnp.float32)  # flat, then steep
+    pts = jnp.asarray([[1.0, 0.01], [1.0, 0.5], [10.0, 3.0], [3.0, 2.0]], jnp.float32)
+    t = np.asarray(vertex_segment_touching(pts, ground, 0.02))
+    # near the flat one; clear of both; far right (below the steep line's extension, not touching);
+    # under the steep segment itself (penetrating)
+    np.testing.assert_array_equal(t, [[True, False], [False, False], [False, False], [False, True]])

@@ -62,9 +62,12 @@ def vertex_segment_touching(points, ground, radius):
     p0, normal, _, _ = segment_frames(ground)
     d = ground[1:] - ground[:-1]  # (S, 2)
     rel = points[:, None, :] - p0[None]  # (V, S, 2)
-    t = jnp.clip(jnp.sum(rel * d[None], -1) / jnp.sum(d * d, -1)[None], 0.0, 1.0)
+    t_raw = jnp.sum(rel * d[None], -1) / jnp.sum(d * d, -1)[None]
+    t = jnp.clip(t_raw, 0.0, 1.0)
     closest = p0[None] + t[..., None] * d[None]
     diff = points[:, None, :] - closest
     dist = jnp.sqrt(jnp.sum(diff * diff, -1))
-    above = jnp.sum(rel * normal[None], -1) >= 0.0
-    return jnp.where(above, dist, -dist) <= radius
+    # below the segment itself (not merely below its infinite line, which steep far-away segments
+    # would report for any point in the sky) means penetrating
+    below = (jnp.sum(rel * normal[None], -1) < 0.0) & (t_raw > 0.0) & (t_raw < 1.0)
+    return below | (dist <= radius)
