@@ -10,10 +10,14 @@ One *budget step* of the scan:
    record it with the method's ``StepInfo``.
 
 ``make_run`` returns ``(init, run)``: ``init(key) -> RunState`` and
-``run(state, num_steps) -> (state, metrics)`` where ``metrics`` is stacked over the ``num_steps``
-budget steps. ``run`` is jitted with ``num_steps`` static, so calling it on consecutive chunks (for
-progress bars and checkpoints) compiles once and gives exactly the same result as one long call.
-Seeds are batched with ``jax.vmap`` over ``init``'s key and ``run``'s state.
+``run(state, num_steps, start_step) -> (state, metrics)`` where ``metrics`` is stacked over the
+``num_steps`` budget steps starting at global step ``start_step``. Jit ``run`` with ``num_steps``
+static: calling it on consecutive chunks (for progress bars and checkpoints) compiles once and gives
+exactly the same result as one long call. Seeds are batched with ``jax.vmap`` over ``init``'s key and
+``run``'s state, with ``start_step`` *not* mapped (``in_axes=(0, None, None)``): all seeds share the
+schedule, so the episode-start and test-set ``lax.cond``s keep an unbatched predicate and stay real
+branches under ``vmap`` (a batched predicate would turn them into selects that re-initialise the
+student and run the test set at every step).
 """
 from __future__ import annotations
 
@@ -71,10 +75,11 @@ def make_run(student, method, test_levels, spec: LoopSpec) -> tuple[Callable, Ca
             step=jnp.zeros((), jnp.int32),
         )
 
-    def budget_step(state: RunState, _):
+    def budget_step(state: RunState, t):
+        # t: the global budget step, unbatched across vmapped seeds (state.step is its batched copy)
         key, k_init, k_begin, k_step, k_test = jax.random.split(state.key, 5)
-        t_in_episode = state.step % spec.steps_per_episode
-        episode = state.step // spec.steps_per_episode
+        t_in_episode = t % spec.steps_per_episode
+        episode = t // spec.steps_per_episode
 
         def start_episode(operand):
             mstate, sstate = operand
@@ -89,7 +94,7 @@ def make_run(student, method, test_levels, spec: LoopSpec) -> tuple[Callable, Ca
         def run_test(s):
             return student.evaluate(s, k_test, test_levels, spec.test_episodes, spec.test_max_steps)
 
-        do_test = (state.step + 1) % spec.test_every == 0
+        do_test = (t + 1) % spec.test_every == 0
         test_returns = jax.lax.cond(
             do_test,
             run_test,
@@ -97,7 +102,7 @@ def make_run(student, method, test_levels, spec: LoopSpec) -> tuple[Callable, Ca
             sstate,
         )
         metrics = {
-            "step": state.step,
+            "step": t,
             "episode": episode,
             "step_in_episode": t_in_episode,
             "test_return_per_level": jnp.mean(test_returns, axis=-1),
@@ -106,7 +111,8 @@ def make_run(student, method, test_levels, spec: LoopSpec) -> tuple[Callable, Ca
         }
         return RunState(student=sstate, method=mstate, key=key, step=state.step + 1), metrics
 
-    def run(state: RunState, num_steps: int):
-        return jax.lax.scan(budget_step, state, None, length=num_steps)
+    def run(state: RunState, num_steps: int, start_step=0):
+        steps = jnp.asarray(start_step, jnp.int32) + jnp.arange(num_steps, dtype=jnp.int32)
+        return jax.lax.scan(budget_step, state, steps)
 
     return init, run

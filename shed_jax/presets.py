@@ -1,0 +1,99 @@
+"""Named experiment presets: everything a run needs besides the seed, as one frozen value.
+
+* ``quick``: CPU-sized (a few minutes on 2 cores), for smoke runs and the test suite.
+* ``paper``: SPEC 6.3 budgets. Lander: C = 10 PPO updates of 40 x 128 = 51,200 env steps per budget
+  step, T = 20 budget steps (1.02e6 student steps, the paper's 1e6), n = 5 levels, m = 10 eval
+  envs with 8 episodes each, the official 10 test landers (10 episodes, 500 steps). SHED and h-MDP
+  run N_ep = 50 teacher episodes (the student is re-initialised each episode); the baselines train
+  one student over the same T budget steps. Walker: C = 25 updates of 256 x 32 = 204,800 steps,
+  T = 50 (1e7 student steps), n = 4, N_ep = 20, test set B (10 ladder levels, 2000 steps).
+
+``build_experiment(env, method, preset, **overrides)`` returns an :class:`Experiment`; the CLI and
+the sweep tools are the only places that read presets, so a library user can ignore this module and
+build the parts directly.
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+from shed_jax.loop import LoopSpec
+from shed_jax.student import PPOConfig
+
+PRESETS = ("quick", "paper")
+EPISODIC_METHODS = ("shed", "hmdp")
+
+
+@dataclasses.dataclass(frozen=True)
+class Experiment:
+    env: str
+    method: str
+    preset: str
+    ppo: PPOConfig
+    method_config: dict  # field overrides for the method's own config (see methods.registry)
+    loop: LoopSpec
+    test_set: str  # a name in shed_jax.cli.run.TEST_SETS
+
+    def to_dict(self) -> dict:
+        out = dataclasses.asdict(self)
+        out["ppo"]["hparams"] = dataclasses.asdict(self.ppo.hparams) if dataclasses.is_dataclass(self.ppo.hparams) else {
+            f: getattr(self.ppo.hparams, f) for f in self.ppo.hparams.__dataclass_fields__
+        }
+        return out
+
+    @property
+    def env_steps_per_budget_step(self) -> int:
+        return self.ppo.batch_size * int(self.method_config.get("updates_per_step", 1))
+
+
+def _base_env(env: str) -> str:
+    return "lander" if env.startswith("lander") else env
+
+
+def build_experiment(env: str, method: str, preset: str, *, episodes: int | None = None,
+                     steps_per_episode: int | None = None, method_overrides: dict | None = None) -> Experiment:
+    """The named preset for (env, method); ``episodes``/``steps_per_episode`` override N_ep/T."""
+    if preset not in PRESETS:
+        raise ValueError(f"unknown preset {preset!r}; known: {', '.join(PRESETS)}")
+    kind = _base_env(env)
+    if kind not in ("lander", "walker"):
+        raise ValueError(f"no UED presets for environment {env!r}; use lander, lander-continuous or walker")
+    episodic = method in EPISODIC_METHODS
+    if preset == "paper":
+        if kind == "lander":
+            ppo = PPOConfig.for_env(env)
+            mcfg: dict[str, Any] = {"updates_per_step": 10}
+            T, n_ep = 20, (50 if episodic else 1)
+            test = dict(test_episodes=10, test_max_steps=500)
+            test_set = "lander-test"
+            if method in ("shed", "hmdp", "accel-norevisit"):
+                mcfg["num_levels"] = 5
+        else:
+            ppo = PPOConfig.for_env("walker")
+            mcfg = {"updates_per_step": 25}
+            T, n_ep = 50, (20 if episodic else 1)
+            test = dict(test_episodes=10, test_max_steps=2000)
+            test_set = "walker-test-b"
+            if method in ("shed", "hmdp", "accel-norevisit"):
+                mcfg["num_levels"] = 4
+    else:  # quick
+        if kind == "lander":
+            ppo = PPOConfig.for_env(env, num_envs=16, num_steps=64, update_epochs=2, num_minibatches=4)
+            test = dict(test_episodes=2, test_max_steps=200)
+            test_set = "lander-test"
+        else:
+            ppo = PPOConfig.for_env("walker", num_envs=16, num_steps=16, update_epochs=1, num_minibatches=2)
+            test = dict(test_episodes=1, test_max_steps=100)
+            test_set = "walker-test-b"
+        mcfg = {"updates_per_step": 2}
+        T, n_ep = 4, (2 if episodic else 1)
+        if method in ("shed", "hmdp", "accel-norevisit"):
+            mcfg["num_levels"] = 4
+    if method_overrides:
+        mcfg.update(method_overrides)
+    loop = LoopSpec(
+        steps_per_episode=steps_per_episode or T,
+        num_episodes=episodes or n_ep,
+        **test,
+    )
+    return Experiment(env=env, method=method, preset=preset, ppo=ppo, method_config=mcfg, loop=loop, test_set=test_set)
