@@ -89,10 +89,15 @@ def build_experiment(env: str, method: str, preset: str, *, episodes: int | None
         T, n_ep = 4, (2 if episodic else 1)
         if method in ("shed", "hmdp", "accel-norevisit"):
             mcfg["num_levels"] = 4
+        if episodic:  # a cheap teacher state: one short evaluation episode per eval level
+            mcfg.update(num_eval_episodes=1, eval_max_steps=test["test_max_steps"])
+    T = steps_per_episode or T
+    if episodic:
+        mcfg["budget_steps"] = T  # the teacher's done flag marks the T-th transition
     if method_overrides:
         mcfg.update(method_overrides)
     loop = LoopSpec(
-        steps_per_episode=steps_per_episode or T,
+        steps_per_episode=T,
         num_episodes=episodes or n_ep,
         **test,
     )
