@@ -17,10 +17,10 @@ import jax.numpy as jnp
 import numpy as np
 
 
-def jax_throughput(batch: int, steps: int, continuous: bool, repeats: int = 3) -> dict:
+def jax_throughput(batch: int, steps: int, continuous: bool, repeats: int = 3, unroll: int = 1) -> dict:
     import envs
 
-    env = envs.make("lander-continuous" if continuous else "lander")
+    env = envs.make("lander-continuous" if continuous else "lander", unroll=unroll)
     params = env.default_params
     levels = env.param_space.sample(jax.random.PRNGKey(1), (batch,))
     levels = levels.replace(enable_wind=jnp.arange(batch) % 2 == 0)
@@ -51,7 +51,7 @@ def jax_throughput(batch: int, steps: int, continuous: bool, repeats: int = 3) -
         times.append(time.perf_counter() - t)
     best = min(times)
     del params
-    return dict(batch=batch, steps=steps, seconds=best, steps_per_s=batch * steps / best, compile_s=compile_s)
+    return dict(batch=batch, steps=steps, unroll=unroll, seconds=best, steps_per_s=batch * steps / best, compile_s=compile_s)
 
 
 def gym_throughput(seconds: float = 5.0, wind: bool = False) -> float:
@@ -88,21 +88,28 @@ def main(argv=None) -> int:
     p.add_argument("--steps", type=int, default=100, help="scanned steps per timed call")
     p.add_argument("--continuous", action="store_true")
     p.add_argument("--gym-seconds", type=float, default=5.0)
+    p.add_argument("--unroll", default="1", help="comma-separated solver-loop unroll factors to compare")
     p.add_argument("--out", default=os.environ.get("OUT"))
     args = p.parse_args(argv)
+    unrolls = [int(u) for u in args.unroll.split(",") if u]
     batches = [int(b) for b in args.batches.split(",") if b]
     if not batches or min(batches) < 1:
         raise SystemExit(f"--batches needs positive integers, got {args.batches!r}")
-    gym_sps = gym_throughput(args.gym_seconds) if args.gym_seconds > 0 else float("nan")
+    try:
+        gym_sps = gym_throughput(args.gym_seconds) if args.gym_seconds > 0 else float("nan")
+    except Exception as err:  # e.g. gymnasium's box2d package without pygame on the GPU image
+        print(f"gymnasium anchor unavailable: {type(err).__name__}: {err}")
+        gym_sps = float("nan")
     rows = []
     print(f"device: {jax.devices()[0].device_kind} ({jax.default_backend()}); gymnasium 1 core: {gym_sps:,.0f} steps/s")
-    print(f"{'batch':>9} {'steps/s':>14} {'x gym':>9} {'compile s':>10}")
-    for b in batches:
-        r = jax_throughput(b, args.steps, args.continuous)
-        r["speedup_vs_gym_core"] = r["steps_per_s"] / gym_sps if gym_sps == gym_sps else None
-        rows.append(r)
-        print(f"{b:9d} {r['steps_per_s']:14,.0f} {r['speedup_vs_gym_core'] or float('nan'):9.1f} {r['compile_s']:10.1f}",
-              flush=True)
+    print(f"{'batch':>9} {'unroll':>6} {'steps/s':>14} {'x gym':>9} {'compile s':>10}")
+    for u in unrolls:
+        for b in batches:
+            r = jax_throughput(b, args.steps, args.continuous, unroll=u)
+            r["speedup_vs_gym_core"] = r["steps_per_s"] / gym_sps if gym_sps == gym_sps else None
+            rows.append(r)
+            print(f"{b:9d} {u:6d} {r['steps_per_s']:14,.0f} {r['speedup_vs_gym_core'] or float('nan'):9.1f} "
+                  f"{r['compile_s']:10.1f}", flush=True)
     result = dict(device=str(jax.devices()[0]), backend=jax.default_backend(), gym_steps_per_s=gym_sps,
                   continuous=args.continuous, rows=rows, memory=peak_memory())
     if args.out:
