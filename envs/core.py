@@ -147,7 +147,14 @@ class ParamSpace:
         vec = jnp.clip(vec, self.low, self.high)
         base = self.base if base is None else base
         batch = vec.shape[:-1]
-        base = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(jnp.asarray(x), batch + jnp.shape(x)), base)
+        def _broadcast(x):
+            # a base that is already batched like ``vec`` keeps its per-level values
+            x = jnp.asarray(x)
+            if batch and x.shape[: len(batch)] == batch:
+                return x
+            return jnp.broadcast_to(x, batch + x.shape)
+
+        base = jax.tree_util.tree_map(_broadcast, base)
         fields = {}
         for i, n in enumerate(self.names):
             ref = getattr(base, n)

@@ -65,6 +65,16 @@ def test_param_space_vector_roundtrip_and_clipping():
     np.testing.assert_allclose(ps.to_vector(p), [[2.0, 0.5], [5.0, 0.0]])
 
 
+def test_from_vector_keeps_an_already_batched_base():
+    ps = Counter().param_space
+    base = ps.from_vector(jnp.asarray([[2.0, 0.5], [3.0, 1.5]]))
+    base = base.replace(max_steps=jnp.asarray([7, 9], jnp.int32))
+    p = ps.from_vector(jnp.asarray([[4.0, 1.0], [1.5, 0.25]]), base)
+    assert p.max_steps.shape == (2,)  # not broadcast to (2, 2)
+    np.testing.assert_array_equal(p.max_steps, [7, 9])  # per-level non-box fields kept
+    np.testing.assert_allclose(ps.to_vector(p), [[4.0, 1.0], [1.5, 0.25]])
+
+
 def test_param_space_unit_maps():
     ps = Counter().param_space
     np.testing.assert_allclose(ps.to_unit(jnp.asarray([1.0, 0.0])), [-1.0, -1.0])
