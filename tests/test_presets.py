@@ -1,0 +1,44 @@
+"""Presets: the SPEC 6.3 budgets, T kept in sync with the teacher's done flag, and every method
+constructible from every preset through the registry (construction only; no compile)."""
+import pytest
+
+import envs
+from shed_jax.methods.registry import METHODS, make_method
+from shed_jax.presets import build_experiment
+from shed_jax.student import make_student
+
+
+def test_paper_lander_budget_matches_spec():
+    e = build_experiment("lander", "shed", "paper")
+    # C = 10 updates x 40 envs x 128 steps = 51,200; T = 20 -> 1.024e6 student steps per episode
+    assert e.env_steps_per_budget_step == 51_200
+    assert (e.loop.steps_per_episode, e.loop.num_episodes) == (20, 50)
+    assert e.method_config["budget_steps"] == 20 and e.method_config["num_levels"] == 5
+    assert (e.loop.test_episodes, e.loop.test_max_steps, e.test_set) == (10, 500, "lander-test")
+    dr = build_experiment("lander", "dr", "paper")
+    assert dr.loop.num_episodes == 1 and dr.loop.total_steps * dr.env_steps_per_budget_step == 1_024_000
+
+
+def test_walker_paper_budget_is_1e7_steps():
+    e = build_experiment("walker", "accel", "paper")
+    assert e.env_steps_per_budget_step * e.loop.steps_per_episode == 256 * 32 * 25 * 50  # 1.02e7
+
+
+def test_steps_per_episode_override_reaches_the_teacher():
+    e = build_experiment("lander", "hmdp", "quick", steps_per_episode=7, episodes=3)
+    assert e.loop.steps_per_episode == 7 and e.loop.num_episodes == 3 and e.method_config["budget_steps"] == 7
+
+
+def test_bad_preset_and_env_are_named():
+    with pytest.raises(ValueError, match="unknown preset"):
+        build_experiment("lander", "shed", "fast")
+    with pytest.raises(ValueError, match="cartpole"):
+        build_experiment("cartpole", "shed", "quick")
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_every_method_builds_from_the_quick_preset(method):
+    e = build_experiment("lander", method, "quick")
+    env = envs.make(e.env)
+    m = make_method(method, env, make_student(env, e.ppo), dict(e.method_config))
+    assert m.name == method
