@@ -1,0 +1,106 @@
+"""Latency of the lander inside the UED loop: the loop is latency-bound, not throughput-bound.
+
+One SHED budget step (paper preset) runs about 2,300 *sequential* lander steps (10 PPO rollouts of
+128 steps, a 500-step evaluation and a 500-step test) on small batches (40 training envs, 80-100
+evaluation episodes), so what matters there is the time of one step at a small batch, not steps/s at
+a huge batch. This script measures, for one solver-loop unroll factor (the knob that trades compile
+time for fewer device-loop iterations):
+
+* ``env``: seconds per sequential step of ``jit(vmap(step))`` in a ``lax.scan``, at a few batches;
+* ``ppo``: seconds per PPO update (40 x 128 rollout + 4 epochs) with the paper lander config;
+* ``eval``: seconds for ``student.evaluate`` on 10 levels x 8 episodes x 500 steps.
+
+    python -m experiments.bench_latency --unroll 1 --out $OUT
+
+Run it once per unroll value (and per XLA_FLAGS setting) in separate processes; writes
+latency_u<unroll>[_<tag>].json.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+
+import jax
+import jax.numpy as jnp
+
+
+def _timed(fn, *args, repeats=3):
+    t = time.perf_counter()
+    jax.block_until_ready(fn(*args))
+    compile_s = time.perf_counter() - t
+    best = float("inf")
+    for _ in range(repeats):
+        t = time.perf_counter()
+        jax.block_until_ready(fn(*args))
+        best = min(best, time.perf_counter() - t)
+    return compile_s, best
+
+
+def env_latency(env, batch: int, steps: int) -> dict:
+    levels = env.param_space.sample(jax.random.PRNGKey(1), (batch,))
+    space = env.action_space()
+
+    @jax.jit
+    def run(key):
+        obs, state = jax.vmap(env.reset)(jax.random.split(key, batch), levels)
+
+        def body(c, k):
+            obs, state = c
+            ka, ks = jax.random.split(k)
+            a = jax.vmap(space.sample)(jax.random.split(ka, batch))
+            obs, state, r, d, _ = jax.vmap(env.step)(jax.random.split(ks, batch), state, a, levels)
+            return (obs, state), r.sum()
+
+        _, r = jax.lax.scan(body, (obs, state), jax.random.split(key, steps))
+        return r.sum()
+
+    compile_s, best = _timed(run, jax.random.PRNGKey(0))
+    return dict(batch=batch, steps=steps, compile_s=compile_s, s_per_step=best / steps)
+
+
+def student_latency(env, env_name: str) -> dict:
+    from shed_jax.student import PPOConfig, make_student
+
+    student = make_student(env, PPOConfig.for_env(env_name))
+    levels = env.param_space.sample(jax.random.PRNGKey(1), (5,))
+    eval_levels = env.param_space.sample(jax.random.PRNGKey(2), (10,))
+    s0 = jax.jit(student.init)(jax.random.PRNGKey(0))
+    train = jax.jit(lambda s, k: student.train(s, k, levels, 1)[0])
+    evaluate = jax.jit(lambda s, k: student.evaluate(s, k, eval_levels, 8, 500))
+    c_train, t_train = _timed(train, s0, jax.random.PRNGKey(3))
+    c_eval, t_eval = _timed(evaluate, s0, jax.random.PRNGKey(4))
+    return dict(ppo_update_s=t_train, ppo_compile_s=c_train, eval_10x8x500_s=t_eval, eval_compile_s=c_eval)
+
+
+def main(argv=None) -> int:
+    import envs
+
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--unroll", type=int, default=1)
+    p.add_argument("--env", default="lander")
+    p.add_argument("--batches", default="40,400,4096")
+    p.add_argument("--steps", type=int, default=256)
+    p.add_argument("--tag", default="")
+    p.add_argument("--skip-student", action="store_true")
+    p.add_argument("--out", default=os.environ.get("OUT", "."))
+    args = p.parse_args(argv)
+    env = envs.make(args.env, unroll=args.unroll)
+    res = dict(device=str(jax.devices()[0]), unroll=args.unroll, env=args.env, tag=args.tag,
+               xla_flags=os.environ.get("XLA_FLAGS", ""), env_rows=[])
+    for b in (int(x) for x in args.batches.split(",")):
+        row = env_latency(env, b, args.steps)
+        res["env_rows"].append(row)
+        print(json.dumps(row), flush=True)
+    if not args.skip_student:
+        res.update(student_latency(env, args.env))
+        print(json.dumps({k: v for k, v in res.items() if k != "env_rows"}), flush=True)
+    name = f"latency_u{args.unroll}{'_' + args.tag if args.tag else ''}.json"
+    with open(os.path.join(args.out, name), "w") as f:
+        json.dump(res, f, indent=1)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
