@@ -16,15 +16,23 @@ Buffers hold raw performance vectors (returns); the DDPG networks see them divid
 computed on raw returns; DDPG z-scores them per batch. The teacher's networks, the diffusion model
 and both buffers persist across teacher episodes; ``begin_episode`` only evaluates the fresh student
 to get s_0 and resets the step counter.
+
+Static settings (shapes, thresholds, switches) live in the frozen :class:`SHEDConfig`; the teacher's
+hyperparameters one may sweep (eta, psi, the DDPG learning rates, the exploration noise) live in a
+:class:`SHEDHyperparams` pytree inside the method state, so a sweep over them is one ``vmap`` and one
+compile (as ``PPOHyperparams`` for the student). ``method.init(key, hparams=None)`` takes overrides;
+``method.with_hparams(mstate, hparams)`` swaps them into an existing state.
 """
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import Any
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 from flax import struct
 
 from shed_jax import eval_sets
@@ -39,11 +47,10 @@ from shed_jax.teacher.buffers import (
     buffer_init,
     buffer_sample,
     make_transition,
-    sample_mixed,
 )
-from shed_jax.teacher.ddpg import DDPGConfig, DDPGState, make_ddpg
+from shed_jax.teacher.ddpg import Actor, Critic, DDPGConfig, DDPGState, make_ddpg
 from shed_jax.teacher.diffusion import DiffusionConfig, DiffusionState, make_diffusion
-from shed_jax.teacher.reward import RewardConfig, make_reward_fn
+from shed_jax.teacher.reward import RewardConfig, coefficient_of_variation, make_reward_fn
 
 
 @dataclasses.dataclass(frozen=True)
@@ -59,7 +66,9 @@ class SHEDConfig:
     eval_max_steps: int | None = None  # override the evaluation episode cap (default: the set's max_steps)
     state_scale: float = 100.0  # the DDPG networks see s / state_scale
     reward: RewardConfig = RewardConfig()
-    explore_sigma: float = 0.1
+    explore_sigma: float = 0.1  # default of SHEDHyperparams.explore_sigma
+    actor_lr: float = 1e-3  # default of SHEDHyperparams.actor_lr (Adam) [official code]
+    critic_lr: float = 1e-3  # default of SHEDHyperparams.critic_lr (Adam) [official code]
     ddpg_batch: int = 32
     real_capacity: int | None = None  # default 2048 (shed) / 10000 (hmdp)
     syn_capacity: int = 900
@@ -87,14 +96,111 @@ class SHEDConfig:
             raise ValueError(f"SHEDConfig.eval_set must be 'official' or 'paper', got {self.eval_set!r}")
         if not 0.0 <= self.psi <= 1.0:
             raise ValueError(f"SHEDConfig.psi must lie in [0, 1], got {self.psi}")
+        for name in ("actor_lr", "critic_lr"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise ValueError(f"SHEDConfig.{name} must be a finite number > 0, got {v!r}")
+        if not (isinstance(self.explore_sigma, (int, float)) and math.isfinite(self.explore_sigma) and self.explore_sigma >= 0):
+            raise ValueError(f"SHEDConfig.explore_sigma must be a finite number >= 0, got {self.explore_sigma!r}")
         if not self.state_scale > 0:
             raise ValueError(f"SHEDConfig.state_scale must be > 0, got {self.state_scale}")
         if self.real_capacity is not None and self.real_capacity < self.ddpg_batch:
             raise ValueError(f"SHEDConfig.real_capacity must be >= ddpg_batch, got {self.real_capacity}")
 
 
+_HPARAM_RANGES = {
+    # name: (low, high, low_inclusive, high_inclusive)
+    "eta": (0.0, math.inf, True, False),
+    "psi": (0.0, 1.0, True, True),
+    "actor_lr": (0.0, math.inf, False, False),
+    "critic_lr": (0.0, math.inf, False, False),
+    "explore_sigma": (0.0, math.inf, True, False),
+}
+
+
+@struct.dataclass
+class SHEDHyperparams:
+    """Dynamic teacher hyperparameters: float scalars (or batches of them, for ``vmap``).
+
+    eta:           weight of the coefficient of variation in the paper's reward forms
+                   (R = gain - eta * cv). Ignored by ``RewardConfig(form='code_mean')``, which has no
+                   eta. Used for real rewards and for recomputed synthetic rewards alike.
+    psi:           real-data ratio of a mixed DDPG batch (SHED only; h-MDP never mixes). Implemented
+                   as a *fixed split with a dynamic ratio*: each mixed update draws ``ddpg_batch``
+                   candidates from each buffer and keeps the first floor(psi * ddpg_batch) real ones
+                   and synthetic ones after them (a mask over a static batch), z-scoring the rewards
+                   of both parts separately. This is the official code's layout (24 real + 8
+                   synthetic for psi = 0.75, batch 32) for every psi, with no extra noise in the part
+                   sizes; a per-sample Bernoulli(psi) mask would make the part sizes binomial (and
+                   occasionally empty) and so change what the per-part reward z-scoring does.
+    actor_lr, critic_lr: Adam learning rates of the DDPG actor and critic, held in
+                   ``optax.inject_hyperparams`` optimiser states (written from here before every
+                   update, so this pytree is the one source of truth).
+    explore_sigma: std of the Gaussian exploration noise added to the actor's u in [-1, 1]^{n d}.
+
+    Defaults come from a :class:`SHEDConfig` (``from_config``); ``as_arrays`` validates and gives
+    float32 leaves, ``stack`` a batch with a leading axis.
+    """
+
+    eta: Any = 0.05
+    psi: Any = 0.75
+    actor_lr: Any = 1e-3
+    critic_lr: Any = 1e-3
+    explore_sigma: Any = 0.1
+
+    @staticmethod
+    def from_config(config: "SHEDConfig") -> "SHEDHyperparams":
+        return SHEDHyperparams(eta=float(config.reward.eta), psi=float(config.psi), actor_lr=float(config.actor_lr),
+                               critic_lr=float(config.critic_lr), explore_sigma=float(config.explore_sigma))
+
+    def validate(self) -> "SHEDHyperparams":
+        """Raise ValueError naming the field for concrete values outside their valid range."""
+        for name, (lo, hi, lo_inc, hi_inc) in _HPARAM_RANGES.items():
+            value = getattr(self, name)
+            try:
+                v = np.asarray(value, dtype=np.float64)
+            except Exception:  # a tracer: nothing to check at trace time
+                continue
+            ok = (v >= lo if lo_inc else v > lo) & (v <= hi if hi_inc else v < hi) & np.isfinite(v)
+            if not np.all(ok):
+                interval = f"{'[' if lo_inc else '('}{lo}, {hi}{']' if hi_inc else ')'}"
+                raise ValueError(f"SHEDHyperparams.{name} must be a finite value in {interval}, got {value}")
+        return self
+
+    def as_arrays(self) -> "SHEDHyperparams":
+        return self.validate().replace(**{f: jnp.asarray(getattr(self, f), jnp.float32) for f in _HPARAM_RANGES})
+
+    @staticmethod
+    def stack(items: list["SHEDHyperparams"]) -> "SHEDHyperparams":
+        """A batch (leading axis) of hyperparameter sets, ready for ``jax.vmap``."""
+        items = [h.validate() for h in items]
+        return SHEDHyperparams(**{f: jnp.asarray([getattr(h, f) for h in items], jnp.float32) for f in _HPARAM_RANGES})
+
+
+HPARAM_NAMES = tuple(_HPARAM_RANGES)
+
+
+def _masked_zscore(r, mask, eps: float = 1e-6):
+    """``reward.zscore`` over the entries where ``mask`` holds, written back there (others: 0)."""
+    w = mask.astype(jnp.float32)
+    n = jnp.maximum(jnp.sum(w), 1.0)
+    mean = jnp.sum(w * r) / n
+    std = jnp.sqrt(jnp.sum(w * (r - mean) ** 2) / n)
+    return jnp.where(mask, (r - mean) / (std + eps), 0.0)
+
+
+def zscore_split(r, real_mask, eps: float = 1e-6):
+    """Z-score the real (``real_mask``) and synthetic entries of a mixed batch separately.
+
+    The dynamic-ratio form of ``reward.zscore_mixed``: the same numbers when ``real_mask`` is a prefix.
+    """
+    r = jnp.asarray(r, jnp.float32)
+    return _masked_zscore(r, real_mask, eps) + _masked_zscore(r, ~real_mask, eps)
+
+
 @struct.dataclass
 class SHEDState:
+    hparams: SHEDHyperparams
     ddpg: DDPGState
     diffusion: Any  # DiffusionState (shed) or None (hmdp)
     real: RingBuffer
@@ -149,13 +255,64 @@ class SHED:
                 raise ValueError(f"{self.name}: {m} evaluation levels given but num_eval_levels={cfg.num_eval_levels}")
         m, da = cfg.num_eval_levels, n * codec.dim
         cap = cfg.real_capacity or (2048 if self.use_diffusion else 10000)
-        ddpg = make_ddpg(DDPGConfig(m, da, explore_sigma=cfg.explore_sigma))
+        ddpg = make_ddpg(DDPGConfig(m, da, actor_lr=cfg.actor_lr, critic_lr=cfg.critic_lr, explore_sigma=cfg.explore_sigma))
         diff = make_diffusion(
             DiffusionConfig(m, da, lr=cfg.diffusion_lr, sampler=cfg.sampler, train_bc=cfg.syn_action == "bc", ema_decay=cfg.diffusion_ema)
         )
+        # Adam with its learning rate held in the optimiser state (set from SHEDHyperparams).
+        tx = optax.inject_hyperparams(optax.adam)(learning_rate=1e-3)
         for k, v in dict(codec=codec, eval_params=eval_params, eval_max=eval_max, ddpg=ddpg, diff=diff, capacity=cap,
-                         reward_fn=make_reward_fn(cfg.reward), state_dim=m, action_dim=da).items():
+                         reward_fn=make_reward_fn(cfg.reward), state_dim=m, action_dim=da, tx=tx,
+                         actor_net=Actor(da, ddpg.config.hidden), critic_net=Critic(ddpg.config.hidden)).items():
             object.__setattr__(self, k, v)
+
+    # ---- hyperparameters -------------------------------------------------------------------
+
+    @property
+    def hparam_names(self) -> tuple[str, ...]:
+        """The dynamic hyperparameters that change what this method does (h-MDP has no psi)."""
+        return HPARAM_NAMES if self.use_diffusion else tuple(n for n in HPARAM_NAMES if n != "psi")
+
+    @property
+    def inert_fields(self) -> tuple[str, ...]:
+        """Config fields and hyperparameters this method accepts but never reads (h-MDP: the synthetic side)."""
+        if self.use_diffusion:
+            return ()
+        return ("psi", "syn_capacity", "diffusion_threshold", "diffusion_steps", "num_syn", "syn_threshold",
+                "syn_action", "syn_reward", "sampler", "diffusion_lr", "diffusion_ema")
+
+    @property
+    def default_hparams(self) -> SHEDHyperparams:
+        """The config's values as a hyperparameter pytree of Python floats."""
+        return SHEDHyperparams.from_config(self.config)
+
+    def with_hparams(self, mstate: SHEDState, hparams: SHEDHyperparams) -> SHEDState:
+        """``mstate`` with ``hparams`` in place of its hyperparameters (optimiser states synced).
+
+        ``with_hparams(init(key), h)`` equals ``init(key, h)``: nothing random depends on them.
+        """
+        if not isinstance(hparams, SHEDHyperparams):
+            raise TypeError(f"{self.name}: hparams must be a SHEDHyperparams, got {type(hparams).__name__}")
+        hp = jax.tree_util.tree_map(lambda x: jnp.asarray(x, jnp.float32), hparams.validate())
+        ddpg = mstate.ddpg.replace(actor_opt_state=self._with_lr(mstate.ddpg.actor_opt_state, hp.actor_lr),
+                                   critic_opt_state=self._with_lr(mstate.ddpg.critic_opt_state, hp.critic_lr))
+        return mstate.replace(hparams=hp, ddpg=ddpg)
+
+    @staticmethod
+    def _with_lr(opt_state, lr):
+        return opt_state._replace(hyperparams={**opt_state.hyperparams, "learning_rate": jnp.asarray(lr, jnp.float32)})
+
+    def reward_fn_for(self, eta) -> Any:
+        """``(s, a, s') -> R`` with a dynamic eta (the config's reward form and guards otherwise).
+
+        For the paper forms R = gain - eta * cv; the gain comes from the config's reward with eta = 0,
+        so this gives the same float32 numbers as ``make_reward_fn`` with that eta.
+        """
+        rc = self.config.reward
+        if rc.form == "code_mean":
+            return self.reward_fn
+        gain_fn = make_reward_fn(dataclasses.replace(rc, eta=0.0))
+        return lambda s, a, s_next: gain_fn(s, a, s_next) - eta * coefficient_of_variation(s, s_next, rc.cv_guard, rc.cv_clip)
 
     # ---- pieces --------------------------------------------------------------------------
 
@@ -168,15 +325,72 @@ class SHED:
         k = 1.0 / self.config.state_scale
         return b.replace(s=b.s * k, s_next=b.s_next * k)
 
+    def act(self, mstate: SHEDState, key: jax.Array) -> jax.Array:
+        """u = clip(mu(s / scale) + N(0, explore_sigma^2), -1, 1) with the state's dynamic sigma."""
+        mu = self.ddpg.act(mstate.ddpg, mstate.s / self.config.state_scale)  # deterministic, in [-1, 1]
+        return jnp.clip(mu + mstate.hparams.explore_sigma * jax.random.normal(key, mu.shape), -1.0, 1.0)
+
+    def ddpg_update(self, st: DDPGState, batch: Transition, hp: SHEDHyperparams, real_mask=None) -> DDPGState:
+        """One DDPG update (``teacher.ddpg.ddpg_update``) with dynamic learning rates.
+
+        Same steps as the library function: per-batch reward z-scoring (per part of a mixed batch,
+        given by ``real_mask``), critic step, actor step on the updated critic, soft target updates.
+        The learning rates come from ``hp`` through the injected optimiser states.
+        """
+        c = self.ddpg.config
+        actor, critic = self.actor_net, self.critic_net
+        r = batch.r.astype(jnp.float32)
+        if c.reward_norm:
+            r = zscore_split(r, jnp.ones(r.shape, bool) if real_mask is None else real_mask)
+        next_u = actor.apply(st.target_actor_params, batch.s_next)
+        q_next = critic.apply(st.target_critic_params, batch.s_next, next_u)
+        y = jax.lax.stop_gradient(r + c.gamma * (1.0 - batch.done) * q_next)
+
+        def critic_loss(p):
+            return jnp.mean((critic.apply(p, batch.s, batch.u) - y) ** 2)
+
+        c_grads = jax.grad(critic_loss)(st.critic_params)
+        c_updates, critic_opt = self.tx.update(c_grads, self._with_lr(st.critic_opt_state, hp.critic_lr), st.critic_params)
+        critic_params = optax.apply_updates(st.critic_params, c_updates)
+
+        def actor_loss(p):
+            return -jnp.mean(critic.apply(critic_params, batch.s, actor.apply(p, batch.s)))
+
+        a_grads = jax.grad(actor_loss)(st.actor_params)
+        a_updates, actor_opt = self.tx.update(a_grads, self._with_lr(st.actor_opt_state, hp.actor_lr), st.actor_params)
+        actor_params = optax.apply_updates(st.actor_params, a_updates)
+        return DDPGState(
+            actor_params=actor_params,
+            critic_params=critic_params,
+            target_actor_params=optax.incremental_update(actor_params, st.target_actor_params, c.tau),
+            target_critic_params=optax.incremental_update(critic_params, st.target_critic_params, c.tau),
+            actor_opt_state=actor_opt,
+            critic_opt_state=critic_opt,
+            num_updates=st.num_updates + 1,
+        )
+
+    def sample_mixed(self, real: RingBuffer, syn: RingBuffer, key: jax.Array, psi) -> tuple[Transition, jax.Array]:
+        """A mixed batch with a dynamic ratio: floor(psi * B) real items first, synthetic after.
+
+        Returns ``(batch, real_mask)``; see :class:`SHEDHyperparams` for why a fixed split.
+        """
+        b = self.config.ddpg_batch
+        k_real, k_syn = jax.random.split(key)
+        n_real = jnp.floor(jnp.asarray(psi, jnp.float32) * b + 1e-4)  # 1e-4: 0.75 * 32 is 24 in any rounding
+        mask = jnp.arange(b) < n_real
+        b_real, b_syn = buffer_sample(real, k_real, b), buffer_sample(syn, k_syn, b)
+        batch = jax.tree_util.tree_map(lambda x, y: jnp.where(mask.reshape((b,) + (1,) * (x.ndim - 1)), x, y), b_real, b_syn)
+        return batch, mask
+
     def _ddpg_updates(self, key, mstate: SHEDState) -> tuple[DDPGState, jax.Array]:
-        cfg = self.config
+        cfg, hp = self.config, mstate.hparams
         real, syn = mstate.real, mstate.syn
 
         def real_updates(count):
             def run(st):
                 def one(st, k):
                     b = buffer_sample(real, k, cfg.ddpg_batch)
-                    return self.ddpg.update(st, self._scaled(b))[0], None
+                    return self.ddpg_update(st, self._scaled(b), hp), None
 
                 return jax.lax.scan(one, st, jax.random.split(key, count))[0]
 
@@ -184,8 +398,8 @@ class SHED:
 
         def mixed_updates(st):
             def one(st, k):
-                b, n_real = sample_mixed(real, syn, k, cfg.ddpg_batch, cfg.psi)
-                return self.ddpg.update(st, self._scaled(b), n_real)[0], None
+                b, mask = self.sample_mixed(real, syn, k, hp.psi)
+                return self.ddpg_update(st, self._scaled(b), hp, mask), None
 
             return jax.lax.scan(one, st, jax.random.split(key, 2))[0]
 
@@ -199,14 +413,14 @@ class SHED:
             branches = [lambda st: st, real_updates(3), mixed_updates]
         return jax.lax.switch(branch, branches, mstate.ddpg), branch
 
-    def _diffusion_block(self, key, diff_state: DiffusionState, real: RingBuffer, syn: RingBuffer):
+    def _diffusion_block(self, key, diff_state: DiffusionState, real: RingBuffer, syn: RingBuffer, reward_fn):
         cfg = self.config
         k_train, k_syn = jax.random.split(key)
 
         def run(args):
             d, sb = args
             d, losses = self.diff.train_steps(d, k_train, real, cfg.diffusion_steps)
-            new = self.diff.synthesize(d, k_syn, real, cfg.num_syn, self.reward_fn, cfg.syn_action, cfg.syn_reward)
+            new = self.diff.synthesize(d, k_syn, real, cfg.num_syn, reward_fn, cfg.syn_action, cfg.syn_reward)
             return (d, buffer_add_many(sb, new)), jnp.mean(losses)
 
         def skip(args):
@@ -216,11 +430,15 @@ class SHED:
 
     # ---- interface -------------------------------------------------------------------------
 
-    def init(self, key: jax.Array) -> SHEDState:
+    def init(self, key: jax.Array, hparams: SHEDHyperparams | None = None) -> SHEDState:
+        """Fresh teacher state; ``hparams`` overrides the config's hyperparameters (``default_hparams``)."""
         k_ddpg, k_diff = jax.random.split(key)
         example = make_transition(self.state_dim, self.action_dim)
-        return SHEDState(
-            ddpg=self.ddpg.init(k_ddpg),
+        ddpg = self.ddpg.init(k_ddpg)
+        ddpg = ddpg.replace(actor_opt_state=self.tx.init(ddpg.actor_params), critic_opt_state=self.tx.init(ddpg.critic_params))
+        state = SHEDState(
+            hparams=self.default_hparams,
+            ddpg=ddpg,
             diffusion=self.diff.init(k_diff) if self.use_diffusion else None,
             real=buffer_init(example, self.capacity),
             syn=buffer_init(example, self.config.syn_capacity) if self.use_diffusion else None,
@@ -228,6 +446,7 @@ class SHED:
             t=jnp.int32(0),
             pending_eval_steps=jnp.int32(0),
         )
+        return self.with_hparams(state, self.default_hparams if hparams is None else hparams)
 
     def begin_episode(self, key: jax.Array, mstate: SHEDState, sstate):
         s0, steps = self.performance(key, sstate)
@@ -236,18 +455,19 @@ class SHED:
     def step(self, key: jax.Array, mstate: SHEDState, sstate):
         cfg, student = self.config, self.student
         n, d = cfg.num_levels, self.codec.dim
+        reward_fn = self.reward_fn_for(mstate.hparams.eta)
         k_act, k_seed, k_train, k_eval, k_diff, k_ddpg = jax.random.split(key, 6)
-        u = self.ddpg.act(mstate.ddpg, mstate.s / cfg.state_scale, k_act)  # [n * d]
+        u = self.act(mstate, k_act)  # [n * d]
         vecs = self.codec.space.from_unit(u.reshape(n, d))
         sstate, ppo = student.train(sstate, k_train, self.codec.to_params(vecs, new_seeds(k_seed, n)), cfg.updates_per_step)
         s_next, eval_steps = self.performance(k_eval, sstate)
-        r = self.reward_fn(mstate.s, u, s_next)
+        r = reward_fn(mstate.s, u, s_next)
         done = (mstate.t == cfg.budget_steps - 1).astype(jnp.float32)
         real = buffer_add(mstate.real, Transition(s=mstate.s, u=u, r=r, s_next=s_next, done=done))
         mstate = mstate.replace(real=real)
         diff_loss = jnp.float32(jnp.nan)
         if self.use_diffusion:
-            (diffusion, syn), diff_loss = self._diffusion_block(k_diff, mstate.diffusion, real, mstate.syn)
+            (diffusion, syn), diff_loss = self._diffusion_block(k_diff, mstate.diffusion, real, mstate.syn, reward_fn)
             mstate = mstate.replace(diffusion=diffusion, syn=syn)
         ddpg_state, branch = self._ddpg_updates(k_ddpg, mstate)
         info = StepInfo(
