@@ -1,0 +1,306 @@
+"""Compare finished runs of ``python -m shed_jax run``: one markdown table and plots for docs/results.md.
+
+    python -m experiments.compare runs/lander-shed-paper-* runs/lander-dr-paper-* --out docs/results/lander --paper lander
+
+Each RUN_DIR holds what ``shed_jax/cli/run.py`` writes: ``config.json`` (the experiment, seeds,
+backend), ``metrics.jsonl`` (one record per budget step and seed) and ``summary.json`` (final
+numbers; missing if the run did not finish, in which case the table uses the last step in
+``metrics.jsonl`` and marks the row "partial").
+
+Writes to OUT:
+
+* ``results.md``: the table (method, env, preset, seeds, final mean test return ± SE over seeds,
+  student env steps of the reported student and of the whole run, wall time per seed and, with
+  ``--paper``, the paper's digitised final number from SPEC 3.4), followed by links to the plots;
+* ``curves_<env>.png``: mean test return ± SE vs student env steps, all methods of that env on one
+  axis; for episodic methods (shed, hmdp: several teacher episodes) the last teacher episode, as
+  ``make_plots`` in cli/run.py does. With ``--paper`` the paper's digitised curves are drawn dashed,
+  with x = update x env steps per paper update (see ``PAPER_STEPS_PER_UPDATE``);
+* ``per_level_<env>_<label>.png``: one panel per test level (the reported student, as the curves);
+* ``params_<env>_<label>.png``: the parameters each method's teacher generated, per budget step;
+* ``eval_vector_<env>_<label>.png``: SHED/h-MDP's performance vector (teacher state) per budget step.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import pathlib
+import re
+import sys
+
+import numpy as np
+
+# The paper's digitised mean test-return curves, SPEC 3.4 ("Reported numbers", digitised from the
+# paper's figures: mean line only, about ±10-20; x = student update 0-1000; y = mean return over the
+# 10 test levels). A (low, high) pair is a range read off the figure. Keys are our method names:
+# SPEC's lander "ACCEL" is the official code's linear-ramp ACCEL (SPEC 2.7); the lander PAIRED row is
+# from the paper's v1. Methods absent here (plr, accel-norevisit) have no number in the paper.
+PAPER_UPDATES = (0, 200, 400, 600, 800, 1000)
+PAPER = {
+    "lander": {
+        "shed": (-415, -259, -168, -120, -113, -100),
+        "hmdp": (-491, -244, -214, -237, -185, -143),
+        "accel": (-580, -249, -194, -442, -554, -254),
+        "dr": (-632, -656, -639, -811, -661, -257),
+        "paired": (-608, -435, -448, -723, -831, -377),
+    },
+    "walker": {
+        "shed": (-110, 22, 51, 60, 51, (62, 65)),
+        "accel": (-107, (9, 11), 41, (50, 56), 31, (54, 57)),
+        "hmdp": (-108, 4, 29, 23, 17, 33),
+        "dr": (-110, -4, (3, 7), (6, 9), -5, 18),
+        "paired": (-112, -21, -11, -19, -22, -10),
+    },
+}
+# Student env steps per plotted paper update, to overlay the paper's curves on our x axis: lander,
+# the paper's 1e6 steps over 1000 updates (SPEC 6.3); walker, 1e7 env steps over 1000 (SPEC 3.4,
+# "one plotted step ≈ 1e4 env steps (inferred)").
+PAPER_STEPS_PER_UPDATE = {"lander": 1e3, "walker": 1e4}
+EPISODIC_METHODS = ("shed", "hmdp")
+
+
+def paper_env(env: str) -> str:
+    """'lander-continuous' -> 'lander'; the paper's figures are per base environment."""
+    return "lander" if env.startswith("lander") else env
+
+
+def _point(v) -> float:
+    return float(np.mean(v)) if isinstance(v, tuple) else float(v)
+
+
+def format_paper(v) -> str:
+    """A digitised value as printed in SPEC 3.4: ``≈ -100`` or ``≈ 62–65``."""
+    if isinstance(v, tuple):
+        return f"≈ {v[0]:g}–{v[1]:g}"
+    return f"≈ {v:g}"
+
+
+@dataclasses.dataclass
+class Run:
+    """One run directory, loaded."""
+
+    path: pathlib.Path
+    config: dict
+    summary: dict | None
+    hist: dict  # {key: [seeds, steps, ...]} from metrics.jsonl
+    label: str = ""
+
+    @property
+    def experiment(self) -> dict:
+        return self.config["experiment"]
+
+    @property
+    def env(self) -> str:
+        return self.experiment["env"]
+
+    @property
+    def method(self) -> str:
+        return self.experiment["method"]
+
+    @property
+    def preset(self) -> str:
+        return self.experiment.get("preset", "?")
+
+    @property
+    def seeds(self) -> int:
+        return int(self.hist["test_return"].shape[0])
+
+    @property
+    def num_episodes(self) -> int:
+        return int(np.asarray(self.hist["episode"])[0, -1]) + 1
+
+    @property
+    def partial(self) -> bool:
+        return self.summary is None
+
+
+def load_run(path) -> Run:
+    """Read config.json, metrics.jsonl and (if present) summary.json of one run directory."""
+    from shed_jax import reporting
+
+    path = pathlib.Path(path)
+    if not path.is_dir():
+        raise FileNotFoundError(f"{path} is not a directory")
+    for name in ("config.json", "metrics.jsonl"):
+        if not (path / name).exists():
+            raise FileNotFoundError(f"{path} has no {name}: is it a run directory of `python -m shed_jax run`?")
+    config = json.loads((path / "config.json").read_text())
+    if "experiment" not in config or not {"env", "method"} <= set(config["experiment"]):
+        raise ValueError(f"{path / 'config.json'} has no experiment env/method")
+    summary = json.loads((path / "summary.json").read_text()) if (path / "summary.json").exists() else None
+    records = reporting.read_jsonl(path / "metrics.jsonl")
+    if not records:
+        raise ValueError(f"{path / 'metrics.jsonl'} is empty")
+    hist = reporting.records_to_arrays(records)
+    missing = {"test_return", "episode", "info/env_steps_train"} - set(hist)
+    if missing:
+        raise ValueError(f"{path / 'metrics.jsonl'} lacks {sorted(missing)}")
+    return Run(path, config, summary, hist)
+
+
+def assign_labels(runs: list[Run]) -> None:
+    """Label = method; where two runs share (env, method), add the preset, then the directory name."""
+    for r in runs:
+        r.label = r.method
+    for extra in (lambda r: f"{r.method} ({r.preset})", lambda r: f"{r.method} ({r.path.name})"):
+        seen: dict[tuple, int] = {}
+        for r in runs:
+            seen[(r.env, r.label)] = seen.get((r.env, r.label), 0) + 1
+        for r in runs:
+            if seen[(r.env, r.label)] > 1:
+                r.label = extra(r)
+
+
+def final_return(run: Run) -> tuple[float, float]:
+    """Final mean test return ± SE over seeds: summary.json's, else the last evaluated step's."""
+    from shed_jax import reporting
+
+    if run.summary is not None:
+        return float(run.summary["final_test_return_mean"]), float(run.summary["final_test_return_se"])
+    m, se, _ = reporting.final_value(run.hist["test_return"])
+    return m, se
+
+
+def env_steps(run: Run) -> tuple[float, float]:
+    """Student env steps (mean over seeds) of the reported student (its teacher episode) and of the run."""
+    train = np.asarray(run.hist["info/env_steps_train"], np.float64)
+    episode = np.asarray(run.hist["episode"])[0]
+    last = episode == episode[-1]
+    return float(train[:, last].sum(axis=1).mean()), float(train.sum(axis=1).mean())
+
+
+def table(runs: list[Run], paper: str | None = None) -> str:
+    """The markdown comparison table, one row per run (sorted by env, then final return, best first)."""
+    from shed_jax import reporting
+
+    headers = ["method", "env", "preset", "seeds", "final test return (mean ± SE)", "student env steps",
+               "all teacher episodes", "wall time / seed"]
+    align = "lllrrrrr"
+    if paper is not None:
+        headers.append(f"paper, update 1000 (SPEC 3.4, {paper})")
+        align += "r"
+    rows = []
+    order = sorted(runs, key=lambda r: (r.env, -np.nan_to_num(final_return(r)[0], nan=-np.inf)))
+    for r in order:
+        m, se = final_return(r)
+        last, total = env_steps(r)
+        wall = r.summary.get("wall_time_per_seed_s") if r.summary else None
+        ret = reporting.format_mean_se(m, se) + (" (partial)" if r.partial else "")
+        all_eps = reporting.format_count(total) + (f" ({r.num_episodes} ep.)" if r.num_episodes > 1 else "")
+        row = [r.label, r.env, r.preset, r.seeds, ret, reporting.format_count(last), all_eps,
+               reporting.format_duration(wall) if wall is not None else "n/a"]
+        if paper is not None:
+            ref = PAPER[paper].get(r.method) if paper_env(r.env) == paper else None
+            row.append(format_paper(ref[-1]) if ref is not None else "—")
+        rows.append(row)
+    return reporting.markdown_table(headers, rows, align)
+
+
+def curve(run: Run) -> tuple[np.ndarray, np.ndarray]:
+    """(x student env steps [n], y test return [seeds, n]) of the reported student."""
+    from shed_jax import reporting
+
+    return reporting.last_episode_curve(run.hist, "test_return")
+
+
+def _safe(label: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_.-]+", "_", label).strip("_")
+
+
+def param_space(env_name: str, dim: int):
+    """The env's ParamSpace (names, low, high) if it matches ``dim`` parameters, else None."""
+    import envs
+
+    space = envs.make(env_name).param_space
+    return space if space.dim == dim else None
+
+
+def write_plots(runs: list[Run], out: pathlib.Path, paper: str | None = None) -> list[pathlib.Path]:
+    """curves_<env>.png and per run per_level_/params_/eval_vector_<env>_<label>.png; returns the paths."""
+    from shed_jax import reporting
+
+    written = []
+    for env in sorted({r.env for r in runs}):
+        group = [r for r in runs if r.env == env]
+        curves = {}
+        for r in group:
+            label = f"{r.label} (last teacher episode)" if r.method in EPISODIC_METHODS and r.num_episodes > 1 else r.label
+            curves[label] = curve(r)
+        refs = {}
+        if paper is not None and paper_env(env) == paper:
+            scale = PAPER_STEPS_PER_UPDATE[paper]
+            labels = {r.method: lab for r, lab in zip(group, curves)}
+            for method, values in PAPER[paper].items():
+                if method in labels:
+                    refs[f"paper {method} (SPEC 3.4)"] = (np.asarray(PAPER_UPDATES, np.float64) * scale,
+                                                          np.asarray([_point(v) for v in values]), labels[method])
+        path = out / f"curves_{_safe(env)}.png"
+        reporting.plot_curves(curves, path, xlabel="student env steps", ylabel="mean test return",
+                              title=f"{env}: test return (mean ± SE over seeds)", reference_curves=refs)
+        written.append(path)
+    for r in runs:
+        episode = np.asarray(r.hist["episode"])[0]
+        starts = np.where(np.diff(episode) != 0)[0] + 0.5  # between the last and first step of two episodes
+        per_level = r.hist.get("test_return_per_level")
+        if per_level is not None and per_level.ndim == 3:
+            x, y = reporting.last_episode_curve(r.hist, "test_return_per_level")
+            path = out / f"per_level_{_safe(r.env)}_{_safe(r.label)}.png"
+            reporting.plot_per_level(x, y, path, title=f"{r.label} on {r.env}: return per test level "
+                                     f"(mean ± SE over seeds; panel title: final mean)")
+            written.append(path)
+        levels = r.hist.get("info/levels")
+        if levels is not None and levels.ndim == 4:
+            space = param_space(r.env, levels.shape[-1])
+            names = space.names if space is not None else tuple(f"p{j}" for j in range(levels.shape[-1]))
+            path = out / f"params_{_safe(r.env)}_{_safe(r.label)}.png"
+            reporting.plot_parameters(np.arange(levels.shape[1]), levels, names, path,
+                                      f"{r.label} on {r.env}: generated level parameters per budget step",
+                                      low=space.low if space is not None else None,
+                                      high=space.high if space is not None else None, episode_starts=starts)
+            written.append(path)
+        vec = r.hist.get("info/extras/teacher_state")
+        if vec is not None and vec.ndim == 3:
+            path = out / f"eval_vector_{_safe(r.env)}_{_safe(r.label)}.png"
+            reporting.plot_eval_vector(np.arange(vec.shape[1]), vec, path, episode_starts=starts,
+                                       title=f"{r.label} on {r.env}: performance vector (teacher state)")
+            written.append(path)
+    return written
+
+
+def markdown(runs: list[Run], plots: list[pathlib.Path], out: pathlib.Path, paper: str | None) -> str:
+    lines = [table(runs, paper), ""]
+    lines.append("Final test return: mean over the test levels of the per-level mean return at the last budget "
+                 "step, mean ± SE over seeds (SE = sd/√n, ddof 1). Student env steps: those of the reported "
+                 "student (for SHED/h-MDP its last teacher episode); \"all teacher episodes\" counts every "
+                 "student the teacher trained.")
+    if paper is not None:
+        lines.append("Paper: the mean line digitised from the paper's figure at update ≈ 1000 (SPEC 3.4), "
+                     "±10–20 from digitising, over an unknown number of seeds.")
+    lines.append("")
+    for p in plots:
+        lines.append(f"![{p.stem}]({p.relative_to(out).as_posix()})")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="python -m experiments.compare", description=__doc__.splitlines()[0])
+    p.add_argument("runs", nargs="+", metavar="RUN_DIR", help="run directories written by `python -m shed_jax run`")
+    p.add_argument("--out", required=True, help="output directory (results.md and PNGs)")
+    p.add_argument("--paper", choices=sorted(PAPER), default=None,
+                   help="add the paper's digitised numbers (SPEC 3.4) for this environment")
+    args = p.parse_args(argv)
+    runs = [load_run(d) for d in args.runs]
+    assign_labels(runs)
+    out = pathlib.Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    plots = write_plots(runs, out, args.paper)
+    text = markdown(runs, plots, out, args.paper)
+    (out / "results.md").write_text(text)
+    print(text)
+    print(f"[compare] wrote {out / 'results.md'} and {len(plots)} plot(s)", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,206 @@
+"""Reporting and the results-comparison tool: statistics, records, table text and plots on
+hand-computed synthetic runs written the way ``shed_jax/cli/run.py`` writes them."""
+import json
+import math
+import pathlib
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from experiments import compare
+from shed_jax import reporting
+from shed_jax.cli import run as run_cli
+from shed_jax.methods.base import StepInfo
+from shed_jax.presets import build_experiment
+
+# --------------------------------------------------------------------------------------------
+# statistics and records
+# --------------------------------------------------------------------------------------------
+
+
+def test_mean_se_hand_computed():
+    m, se = reporting.mean_se(np.array([[1.0, 2.0], [3.0, 6.0]]))
+    np.testing.assert_allclose(m, [2.0, 4.0])
+    np.testing.assert_allclose(se, [1.0, 2.0])  # sd([1,3]) = sqrt 2, sd([2,6]) = 2 sqrt 2; / sqrt 2
+    m, se = reporting.mean_se(np.array([1.0, np.nan, 3.0]))
+    assert (float(m), float(se)) == (2.0, 1.0)  # NaN ignored: n = 2
+    m, se = reporting.mean_se(np.array([[5.0, 7.0]]))
+    np.testing.assert_array_equal(se, [0.0, 0.0])  # one seed: SE 0, not NaN
+    m, se = reporting.mean_se(np.array([-100.0, -110.0, -120.0]))
+    assert float(m) == -110.0 and math.isclose(float(se), 10 / math.sqrt(3))
+
+
+def test_final_value_uses_last_evaluated_step():
+    y = np.array([[1.0, 2.0, np.nan], [3.0, 4.0, np.nan]])  # last step not evaluated (test_every > 1)
+    m, se, t = reporting.final_value(y)
+    assert (m, se, t) == (3.0, 1.0, 1)
+    assert math.isnan(reporting.final_value(np.full((2, 3), np.nan))[0])
+
+
+def test_records_round_trip_with_nan_and_nested_arrays():
+    metrics = {
+        "step": np.array([[0, 1], [0, 1]], np.int32),
+        "test_return": np.array([[1.5, np.nan], [2.5, 3.0]], np.float32),
+        "info/levels": np.arange(2 * 2 * 3 * 2, dtype=np.float32).reshape(2, 2, 3, 2),
+    }
+    records = reporting.step_records(metrics, [0, 1])
+    assert records[1] == {"seed": 1, "step": 0, "test_return": 2.5, "info/levels": [[12.0, 13.0], [14.0, 15.0], [16.0, 17.0]]}
+    assert records[2]["test_return"] is None  # NaN -> null in JSON
+    back = reporting.records_to_arrays(json.loads(json.dumps(records)))
+    np.testing.assert_array_equal(back["step"], metrics["step"])
+    np.testing.assert_array_equal(back["test_return"], metrics["test_return"])  # NaN compares equal here
+    np.testing.assert_array_equal(back["info/levels"], metrics["info/levels"])
+    np.testing.assert_array_equal(back["seed"], [[0, 0], [1, 1]])
+    with pytest.raises(ValueError, match="different numbers of records"):
+        reporting.records_to_arrays(records[:-1])
+
+
+def test_text_formatting():
+    assert reporting.format_mean_se(-110.0, 10 / math.sqrt(3)) == "-110.0 ± 5.8"
+    assert reporting.format_mean_se(float("nan"), 1.0) == "n/a"
+    assert reporting.format_mean_se(2.0, 0.25, digits=2) == "2.00 ± 0.25"
+    assert [reporting.format_count(n) for n in (950, 12_800, 1_024_000, 2.048e9)] == ["950", "12.8k", "1.02M", "2.05G"]
+    assert [reporting.format_duration(s) for s in (40, 3600, 11_520)] == ["40 s", "60.0 min", "3.20 h"]
+    text = reporting.markdown_table(["a", "b|c"], [[1, "x|y"], ["-2.0 ± 1.0", 3]], align="lr")
+    assert text == "| a | b\\|c |\n|---|---:|\n| 1 | x\\|y |\n| -2.0 ± 1.0 | 3 |\n"
+    with pytest.raises(ValueError, match="row 0 has 1 cells"):
+        reporting.markdown_table(["a", "b"], [[1]])
+
+
+# --------------------------------------------------------------------------------------------
+# synthetic run directories, written with cli/run.py's own writers
+# --------------------------------------------------------------------------------------------
+
+LANDER_LOW = np.array([-11.99, 0.0, 0.0])
+LANDER_HIGH = np.array([-0.01, 20.0, 2.0])
+
+
+def _write_run(out: pathlib.Path, method: str, final: list[float], *, episodes: int, T: int, wall: float,
+               m_eval: int = 10, chunk: int = 2, with_summary: bool = True) -> None:
+    """A fake lander run: test return rises linearly from -600 to ``final`` (per seed) in every
+    teacher episode; 1000 student env steps per budget step; levels drift inside the box."""
+    exp = build_experiment("lander", method, "quick", episodes=episodes, steps_per_episode=T)
+    S, total, L, n_test = len(final), episodes * T, 4, 10
+    rng = np.random.default_rng(0)
+    t = np.arange(total)
+    frac = ((t % T) + 1) / T  # [total]
+    test_return = -600 + frac[None, :] * (np.asarray(final)[:, None] + 600)  # [S, total]
+    per_level = test_return[..., None] + np.linspace(-50, 50, n_test)  # [S, total, n_test]; mean = test_return
+    levels = LANDER_LOW + (LANDER_HIGH - LANDER_LOW) * rng.uniform(0.2, 0.8, (S, total, L, 3)) * frac[None, :, None, None]
+    extras = {"teacher_state": per_level[..., :m_eval] + 5.0} if method in ("shed", "hmdp") else {}
+    info = StepInfo(
+        levels=levels.astype(np.float32),
+        env_steps_train=np.full((S, total), 1000, np.int32),
+        env_steps_eval=np.full((S, total), 50, np.int32),
+        teacher_reward=np.full((S, total), np.nan if method == "dr" else 0.5, np.float32),
+        num_new_levels=np.full((S, total), L, np.int32),
+        extras=extras,
+    )
+    metrics = {"step": np.broadcast_to(t, (S, total)).astype(np.int32), "episode": np.broadcast_to(t // T, (S, total)),
+               "step_in_episode": np.broadcast_to(t % T, (S, total)), "test_return_per_level": per_level.astype(np.float32),
+               "test_return": test_return.astype(np.float32), "info": info}
+    out.mkdir(parents=True)
+    config = {"experiment": exp.to_dict(), "seeds": S, "root_seed": 0, "backend": "cpu", "devices": ["cpu"],
+              "chunk": chunk, "jax": "test"}
+    (out / "config.json").write_text(json.dumps(config, indent=2, default=str))
+    history = {}
+    for start in range(0, total, chunk):  # as main(): one flatten/append per compiled chunk
+        part = {k: (v[:, start:start + chunk] if k != "info" else None) for k, v in metrics.items()}
+        part["info"] = StepInfo(**{f: (getattr(info, f)[:, start:start + chunk] if f != "extras" else
+                                      {k: v[:, start:start + chunk] for k, v in info.extras.items()})
+                                   for f in info.__dataclass_fields__})
+        flat = reporting.flatten_tree(part)
+        for k, v in flat.items():
+            history.setdefault(k, []).append(v)
+        reporting.append_jsonl(out / "metrics.jsonl", reporting.step_records(flat, range(S)))
+    hist = {k: np.concatenate(v, axis=1) for k, v in history.items()}
+    if with_summary:
+        (out / "summary.json").write_text(json.dumps(run_cli.summarize(exp, hist, wall, S), indent=2))
+
+
+@pytest.fixture()
+def runs(tmp_path):
+    _write_run(tmp_path / "shed", "shed", [-100.0, -110.0, -120.0], episodes=2, T=3, wall=120.0)
+    _write_run(tmp_path / "dr", "dr", [-200.0, -260.0], episodes=1, T=4, wall=7200.0)
+    return tmp_path
+
+
+def _png(path: pathlib.Path, min_bytes: int = 8000) -> tuple[int, int]:
+    assert path.exists(), path
+    assert path.stat().st_size > min_bytes, (path, path.stat().st_size)
+    with Image.open(path) as im:
+        return im.size
+
+
+def test_load_run_reads_what_run_writes(runs):
+    r = compare.load_run(runs / "shed")
+    assert (r.env, r.method, r.preset, r.seeds, r.num_episodes) == ("lander", "shed", "quick", 3, 2)
+    assert r.hist["test_return"].shape == (3, 6)
+    assert r.hist["info/levels"].shape == (3, 6, 4, 3)
+    assert r.hist["info/extras/teacher_state"].shape == (3, 6, 10)
+    assert np.all(np.isnan(compare.load_run(runs / "dr").hist["info/teacher_reward"]))
+    x, y = compare.curve(r)  # last teacher episode only
+    np.testing.assert_array_equal(x, [1000, 2000, 3000])
+    np.testing.assert_allclose(y[:, -1], [-100, -110, -120], atol=1e-4)
+    assert compare.env_steps(r) == (3000.0, 6000.0)
+    assert compare.final_return(r) == pytest.approx((-110.0, 10 / math.sqrt(3)))
+
+
+def test_compare_table_rows_and_plots(runs, capsys):
+    out = runs / "report"
+    assert compare.main([str(runs / "dr"), str(runs / "shed"), "--out", str(out), "--paper", "lander"]) == 0
+    md = (out / "results.md").read_text()
+    lines = md.splitlines()
+    assert lines[0] == ("| method | env | preset | seeds | final test return (mean ± SE) | student env steps | "
+                        "all teacher episodes | wall time / seed | paper, update 1000 (SPEC 3.4, lander) |")
+    # sorted best first; SE(shed) = 10/sqrt(3), SE(dr) = sd(-200,-260)/sqrt(2) = 30
+    assert lines[2] == "| shed | lander | quick | 3 | -110.0 ± 5.8 | 3k | 6k (2 ep.) | 40 s | ≈ -100 |"
+    assert lines[3] == "| dr | lander | quick | 2 | -230.0 ± 30.0 | 4k | 4k | 60.0 min | ≈ -257 |"
+    for name in ("curves_lander.png", "params_lander_shed.png", "params_lander_dr.png", "eval_vector_lander_shed.png",
+                 "per_level_lander_shed.png", "per_level_lander_dr.png"):
+        _png(out / name)
+        assert f"]({name})" in md
+    assert not (out / "eval_vector_lander_dr.png").exists()  # DR has no performance vector
+    w, h = _png(out / "params_lander_shed.png")
+    assert w > h  # three parameter panels side by side
+    assert "| shed | lander |" in capsys.readouterr().out
+
+
+def test_compare_partial_run_and_duplicate_methods(runs):
+    _write_run(runs / "shed-b", "shed", [-50.0, -70.0], episodes=1, T=3, wall=10.0, with_summary=False)
+    out = runs / "report2"
+    assert compare.main([str(runs / "shed"), str(runs / "shed-b"), "--out", str(out)]) == 0
+    lines = (out / "results.md").read_text().splitlines()
+    # no summary.json: the last step of metrics.jsonl, marked partial; labels disambiguated by directory
+    assert lines[2] == "| shed (shed-b) | lander | quick | 2 | -60.0 ± 10.0 (partial) | 3k | 3k | n/a |"
+    assert lines[3] == "| shed (shed) | lander | quick | 3 | -110.0 ± 5.8 | 3k | 6k (2 ep.) | 40 s |"
+    _png(out / "params_lander_shed_shed-b.png")
+
+
+def test_compare_rejects_a_directory_that_is_not_a_run(tmp_path):
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(FileNotFoundError, match="no config.json"):
+        compare.main([str(tmp_path / "empty"), "--out", str(tmp_path / "o")])
+
+
+def test_paper_numbers_match_spec_section_3_4():
+    assert compare.PAPER["lander"]["shed"][-1] == -100 and compare.PAPER["lander"]["paired"][-1] == -377
+    assert compare.format_paper(compare.PAPER["walker"]["shed"][-1]) == "≈ 62–65"
+    assert compare.format_paper(compare.PAPER["walker"]["paired"][-1]) == "≈ -10"
+
+
+def test_plots_direct(tmp_path):
+    rng = np.random.default_rng(1)
+    x = np.arange(1, 21) * 5000.0
+    y = np.cumsum(rng.normal(5, 3, (3, 20)), axis=1)
+    y[:, 1::2] = np.nan  # test set every other step: the lines must still be drawn
+    reporting.plot_curves({"a": (x, y), "b": (x, y - 20)}, tmp_path / "c.png", xlabel="steps", ylabel="R", title="t",
+                          reference_curves={"paper a": (x[::5], np.array([0.0, 10.0, 20.0, 30.0]), "a")})
+    reporting.plot_per_level(x, y[..., None] + np.arange(10), tmp_path / "pl.png", title="per level")
+    reporting.plot_eval_vector(np.arange(20), rng.normal(-100, 50, (2, 20, 10)), tmp_path / "ev.png", title="ev",
+                               episode_starts=[10])
+    for name in ("c.png", "pl.png", "ev.png"):
+        _png(tmp_path / name)
+    with pytest.raises(ValueError, match="curve has 5 x values"):
+        reporting.plot_curves({"a": (x[:5], y)}, tmp_path / "bad.png", xlabel="", ylabel="", title="")
