@@ -1,0 +1,476 @@
+"""Checkpoints of a whole UED run (orbax), and the non-finite guard that decides what may be saved.
+
+A run directory holds ``checkpoints/<step>/`` (``step`` = budget steps done), written by an orbax
+``CheckpointManager`` (each save goes to a temporary directory that is renamed when complete, so a
+kill during a save leaves the previous checkpoint intact; the last ``keep`` are kept). Each
+checkpoint has three items:
+
+* ``state``: the full vmapped :class:`shed_jax.loop.RunState` (student params, optimiser and
+  normaliser states, env states, method state with its networks, optimisers and buffers, RNG keys,
+  the step counter);
+* ``history``: the per-step metrics so far (flattened keys ``info/levels``..., leaves
+  ``[seeds, steps, ...]``), so summaries and plots of a resumed run equal those of a straight one;
+* ``meta`` (JSON): the step, the run configuration (``config.json``'s dict: experiment, seeds, root
+  seed, ...), SHA-256 digests of ``state`` and ``history`` and caller extras (e.g. wall time).
+
+Restoring needs a *target*: the state a fresh ``init`` would build (``jax.eval_shape`` of it is
+enough). The checkpoint's tree paths, shapes and dtypes are checked against it before anything is
+read, and the digests after, so a restore is either bitwise exact or a :class:`CheckpointError`
+that says what is wrong, never a silent restart:
+
+* :class:`CheckpointNotFoundError`: no run directory / no complete checkpoint in it;
+* :class:`CheckpointCorruptError`: unreadable files, wrong digest, a state of another structure, an
+  unfinished newer step directory;
+* :class:`ConfigMismatchError`: the checkpoint belongs to another configuration (names the keys).
+
+``find_nonfinite`` is the guard the run CLI applies after every chunk, before saving.
+"""
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import pathlib
+from typing import Any, Iterable
+
+import jax
+import numpy as np
+
+CHECKPOINT_SUBDIR = "checkpoints"
+FORMAT = 1  # bump when the layout of a checkpoint changes
+#: configuration keys a resumed run must share with its checkpoint
+COMPARED_KEYS = ("experiment", "seeds", "root_seed")
+
+
+class CheckpointError(RuntimeError):
+    """A checkpoint cannot be used (missing, damaged or from another configuration)."""
+
+
+class CheckpointNotFoundError(CheckpointError):
+    """No run directory, or no complete checkpoint in it."""
+
+
+class CheckpointCorruptError(CheckpointError):
+    """A checkpoint exists but cannot be read back exactly."""
+
+
+class ConfigMismatchError(CheckpointError):
+    """The checkpoint was written by a run with another configuration.
+
+    ``differences`` lists ``(dotted key, saved value, current value)``.
+    """
+
+    def __init__(self, message: str, differences: list[tuple[str, Any, Any]]):
+        super().__init__(message)
+        self.differences = differences
+
+    @property
+    def keys(self) -> list[str]:
+        return [k for k, _, _ in self.differences]
+
+
+# --------------------------------------------------------------------------------------------
+# configuration comparison
+# --------------------------------------------------------------------------------------------
+
+
+def jsonable(obj: Any) -> Any:
+    """``obj`` as it reads back from JSON (tuples become lists, unknown objects strings)."""
+    return json.loads(json.dumps(obj, default=str))
+
+
+def _flat_items(obj: Any, prefix: str = "") -> dict[str, Any]:
+    if isinstance(obj, dict):
+        out: dict[str, Any] = {}
+        if not obj and prefix:
+            out[prefix] = {}
+        for k, v in obj.items():
+            out.update(_flat_items(v, f"{prefix}.{k}" if prefix else str(k)))
+        return out
+    return {prefix: obj}
+
+
+def config_differences(saved: dict, current: dict, keys: Iterable[str] = COMPARED_KEYS) -> list[tuple[str, Any, Any]]:
+    """``(dotted key, saved, current)`` for every leaf that differs under ``keys`` (after a JSON round trip).
+
+    A key missing on one side shows as ``<missing>``.
+    """
+    missing = "<missing>"
+    diffs = []
+    for top in keys:
+        a = _flat_items(jsonable(saved.get(top, missing)), top)
+        b = _flat_items(jsonable(current.get(top, missing)), top)
+        for k in sorted(set(a) | set(b)):
+            va, vb = a.get(k, missing), b.get(k, missing)
+            if va != vb:
+                diffs.append((k, va, vb))
+    return diffs
+
+
+def check_config(saved: dict, current: dict, keys: Iterable[str] = COMPARED_KEYS, where: str = "checkpoint") -> None:
+    """Raise :class:`ConfigMismatchError` naming every differing key."""
+    diffs = config_differences(saved, current, keys)
+    if diffs:
+        lines = "\n".join(f"  {k}: saved {a!r}, now {b!r}" for k, a, b in diffs[:20])
+        more = f"\n  ... and {len(diffs) - 20} more" if len(diffs) > 20 else ""
+        raise ConfigMismatchError(
+            f"the {where} was written with another configuration; differing key(s): "
+            f"{', '.join(k for k, _, _ in diffs)}\n{lines}{more}",
+            diffs,
+        )
+
+
+# --------------------------------------------------------------------------------------------
+# tree helpers
+# --------------------------------------------------------------------------------------------
+
+
+def _key_name(k) -> str:
+    for attr in ("name", "key", "idx"):
+        if hasattr(k, attr):
+            return str(getattr(k, attr))
+    return str(k)
+
+
+def path_name(path) -> str:
+    """A pytree key path as a dotted name (``student.params.actor.MLP_0.Dense_0.kernel``), as orbax names leaves."""
+    return ".".join(_key_name(k) for k in path)
+
+
+def _is_key_array(x) -> bool:
+    dtype = getattr(x, "dtype", None)
+    return dtype is not None and jax.dtypes.issubdtype(dtype, jax.dtypes.prng_key)
+
+
+def _storable(tree):
+    """Typed PRNG key arrays -> their uint32 key data (orbax stores plain arrays)."""
+    return jax.tree_util.tree_map(lambda x: jax.random.key_data(x) if _is_key_array(x) else x, tree)
+
+
+def _storable_target(tree):
+    def conv(x):
+        if _is_key_array(x):
+            return jax.eval_shape(jax.random.key_data, x)
+        return jax.ShapeDtypeStruct(np.shape(x), x.dtype)
+
+    return jax.tree_util.tree_map(conv, tree)
+
+
+def _unstorable(restored, target):
+    return jax.tree_util.tree_map(
+        lambda r, t: jax.random.wrap_key_data(r, impl=jax.random.key_impl(t)) if _is_key_array(t) else r, restored, target
+    )
+
+
+def tree_digest(tree) -> str:
+    """SHA-256 over every leaf's path, dtype, shape and bytes (host copies)."""
+    h = hashlib.sha256()
+    for path, leaf in jax.tree_util.tree_flatten_with_path(_storable(tree))[0]:
+        x = np.ascontiguousarray(np.asarray(leaf))
+        h.update(f"{path_name(path)}|{x.dtype.str}|{x.shape}\n".encode())
+        h.update(x.tobytes())
+    return h.hexdigest()
+
+
+def nest(flat: dict[str, Any]) -> dict:
+    """``{'a/b': x}`` -> ``{'a': {'b': x}}`` (orbax stores nested dicts; keys with '/' are paths)."""
+    out: dict = {}
+    for key, value in flat.items():
+        parts = key.split("/")
+        node = out
+        for p in parts[:-1]:
+            node = node.setdefault(p, {})
+            if not isinstance(node, dict):
+                raise ValueError(f"metric key {key!r} collides with a leaf at {p!r}")
+        node[parts[-1]] = value
+    return out
+
+
+def unnest(tree: dict, prefix: str = "") -> dict[str, np.ndarray]:
+    out: dict[str, np.ndarray] = {}
+    for k, v in tree.items():
+        if isinstance(v, dict):
+            out.update(unnest(v, f"{prefix}{k}/"))
+        else:
+            out[f"{prefix}{k}"] = np.asarray(v)
+    return out
+
+
+def _metadata_leaves(tree) -> dict[str, Any]:
+    """orbax's TreeMetadata (or its ``.tree``) -> {dotted name: ArrayMetadata-like}."""
+    tree = getattr(tree, "tree", tree)
+    out = {}
+    for path, leaf in jax.tree_util.tree_flatten_with_path(tree, is_leaf=lambda x: hasattr(x, "shape") and hasattr(x, "dtype"))[0]:
+        if leaf is None:
+            continue
+        out[path_name(path)] = leaf
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# the checkpointer
+# --------------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass
+class Restored:
+    step: int  # budget steps done
+    state: Any  # the RunState, in the target's structure
+    history: dict[str, np.ndarray] | None  # flattened metrics [seeds, step, ...]
+    config: dict  # the run configuration saved with it
+    extra: dict  # caller extras saved with it (e.g. wall time)
+
+
+class RunCheckpointer:
+    """Save and restore checkpoints of one run directory (``DIR/checkpoints``).
+
+    ``keep``: how many of the most recent checkpoints to keep. ``create=False`` opens an existing
+    run read-only (raises :class:`CheckpointNotFoundError` if there is none).
+    """
+
+    def __init__(self, run_dir, keep: int = 3, create: bool = True, async_save: bool = True):
+        import orbax.checkpoint as ocp
+
+        if not isinstance(keep, int) or keep < 1:
+            raise ValueError(f"keep must be a positive int, got {keep!r}")
+        self.run_dir = pathlib.Path(run_dir)
+        self.directory = self.run_dir / CHECKPOINT_SUBDIR
+        if not create:
+            if not self.run_dir.is_dir():
+                raise CheckpointNotFoundError(f"no run directory {self.run_dir}")
+            if not self.directory.is_dir():
+                raise CheckpointNotFoundError(f"{self.run_dir} has no {CHECKPOINT_SUBDIR}/ directory (was it run with --no-checkpoint?)")
+        self._ocp = ocp
+        options = ocp.CheckpointManagerOptions(max_to_keep=keep, create=create, enable_async_checkpointing=async_save)
+        handlers = {
+            "state": ocp.StandardCheckpointHandler(),
+            "history": ocp.StandardCheckpointHandler(),
+            "meta": ocp.JsonCheckpointHandler(),
+        }
+        self.manager = ocp.CheckpointManager(self.directory.absolute(), options=options, item_handlers=handlers)
+
+    # ---------------------------------------------------------------- queries
+    def steps(self) -> list[int]:
+        return sorted(int(s) for s in self.manager.all_steps())
+
+    def latest_step(self) -> int | None:
+        steps = self.steps()
+        return steps[-1] if steps else None
+
+    def _resolve_step(self, step: int | None) -> int:
+        steps = self.steps()
+        # a digits-only directory orbax does not list is a finished rename whose contents are damaged
+        # (interrupted saves live in '<step>.orbax-checkpoint-tmp-*' and are ignored)
+        on_disk = sorted(int(p.name) for p in self.directory.iterdir() if p.is_dir() and p.name.isdigit())
+        unlisted = [s for s in on_disk if s not in steps]
+        if not steps:
+            if unlisted:
+                raise CheckpointCorruptError(
+                    f"{self.directory}: step director{'y' if len(unlisted) == 1 else 'ies'} {unlisted} "
+                    f"{'is' if len(unlisted) == 1 else 'are'} not a complete checkpoint"
+                )
+            raise CheckpointNotFoundError(f"no complete checkpoint in {self.directory}")
+        if step is None:
+            newer = [s for s in unlisted if s > steps[-1]]
+            if newer:
+                raise CheckpointCorruptError(
+                    f"{self.directory}: the newest step directory {newer[-1]} is not a complete checkpoint "
+                    f"(the last complete one is step {steps[-1]}); move {self.directory / str(newer[-1])} away to use it"
+                )
+            return steps[-1]
+        if step not in steps:
+            raise CheckpointNotFoundError(f"no checkpoint for step {step} in {self.directory}; available: {steps}")
+        return step
+
+    def read_meta(self, step: int | None = None) -> dict:
+        """The JSON item of a checkpoint (step, config, digests, extras) without reading any array."""
+        step = self._resolve_step(step)
+        try:
+            meta = self.manager.restore(step, args=self._ocp.args.Composite(meta=self._ocp.args.JsonRestore())).meta
+        except Exception as err:  # noqa: BLE001 - any failure to read is a damaged checkpoint
+            raise CheckpointCorruptError(f"cannot read the metadata of checkpoint {self.directory / str(step)}: {err}") from err
+        if not isinstance(meta, dict) or meta.get("format") != FORMAT or meta.get("step") != step:
+            raise CheckpointCorruptError(
+                f"checkpoint {self.directory / str(step)} has unexpected metadata (format {FORMAT} and step {step} expected): "
+                f"{str(meta)[:200]}"
+            )
+        return meta
+
+    def read_config(self, step: int | None = None) -> dict:
+        return self.read_meta(step)["config"]
+
+    # ---------------------------------------------------------------- save
+    def save(self, step: int, state, history: dict[str, np.ndarray], config: dict, extra: dict | None = None) -> None:
+        """Save ``state`` (device arrays, not copied), ``history`` (flat ``[seeds, step, ...]``) and
+        ``config`` as checkpoint ``step``. Older checkpoints beyond ``keep`` are deleted once it is
+        complete. Waits for a previous asynchronous save first."""
+        ocp = self._ocp
+        if not isinstance(step, int) or step < 1:
+            raise ValueError(f"checkpoint step must be a positive int, got {step!r}")
+        storable = _storable(state)
+        history = {k: np.asarray(v) for k, v in history.items()}
+        meta = {
+            "format": FORMAT,
+            "step": step,
+            "config": jsonable(config),
+            "state_sha256": tree_digest(jax.device_get(storable)),
+            "history_sha256": tree_digest(dict(sorted(history.items()))),
+            "extra": jsonable(extra or {}),
+        }
+        self.manager.save(
+            step,
+            args=ocp.args.Composite(
+                state=ocp.args.StandardSave(storable),
+                history=ocp.args.StandardSave(nest(history)),
+                meta=ocp.args.JsonSave(meta),
+            ),
+            force=True,
+        )
+
+    def wait(self) -> None:
+        self.manager.wait_until_finished()
+
+    def close(self) -> None:
+        self.manager.wait_until_finished()
+        self.manager.close()
+
+    def __enter__(self) -> "RunCheckpointer":
+        return self
+
+    def __exit__(self, *exc) -> bool:
+        self.close()
+        return False
+
+    # ---------------------------------------------------------------- restore
+    def restore(self, target, step: int | None = None, config: dict | None = None, keys: Iterable[str] = COMPARED_KEYS,
+                with_history: bool = True) -> Restored:
+        """Restore checkpoint ``step`` (default: the latest) into the structure of ``target``.
+
+        ``target``: a freshly built state (concrete or from ``jax.eval_shape``); its key paths,
+        shapes and dtypes must equal the saved ones. ``config``: if given, the saved configuration
+        must agree with it on ``keys`` (else :class:`ConfigMismatchError`).
+        """
+        ocp = self._ocp
+        step = self._resolve_step(step)
+        meta = self.read_meta(step)
+        if config is not None:
+            check_config(meta["config"], config, keys)
+        where = self.directory / str(step)
+        storable_target = _storable_target(target)
+        try:
+            saved_meta = self.manager.item_metadata(step)
+            saved_leaves = _metadata_leaves(saved_meta["state"])
+        except Exception as err:  # noqa: BLE001
+            raise CheckpointCorruptError(f"cannot read the array metadata of checkpoint {where}: {err}") from err
+        target_leaves = {path_name(p): x for p, x in jax.tree_util.tree_flatten_with_path(storable_target)[0]}
+        problems = []
+        for name in sorted(set(saved_leaves) | set(target_leaves)):
+            if name not in saved_leaves:
+                problems.append(f"{name}: missing in the checkpoint")
+            elif name not in target_leaves:
+                problems.append(f"{name}: in the checkpoint but not in the current state")
+            else:
+                s, t = saved_leaves[name], target_leaves[name]
+                if tuple(s.shape) != tuple(t.shape) or np.dtype(s.dtype) != np.dtype(t.dtype):
+                    problems.append(f"{name}: saved {np.dtype(s.dtype).name}{list(s.shape)}, expected {np.dtype(t.dtype).name}{list(t.shape)}")
+        if problems:
+            raise CheckpointCorruptError(
+                f"checkpoint {where} does not match the run state this configuration builds "
+                f"({len(problems)} leaf/leaves):\n  " + "\n  ".join(problems[:20])
+            )
+        items = {"state": ocp.args.StandardRestore(storable_target)}
+        if with_history:
+            items["history"] = ocp.args.StandardRestore()
+        try:
+            out = self.manager.restore(step, args=ocp.args.Composite(**items))
+        except Exception as err:  # noqa: BLE001
+            raise CheckpointCorruptError(f"cannot read checkpoint {where}: {type(err).__name__}: {err}") from err
+        # back through the host: orbax's arrays are committed to a device, and a jitted call on
+        # committed arguments is a different executable (and persistent-cache entry) than on fresh ones
+        host_state = jax.device_get(out.state)
+        state = jax.tree_util.tree_map(jax.numpy.asarray, host_state)
+        if tree_digest(host_state) != meta["state_sha256"]:
+            raise CheckpointCorruptError(f"checkpoint {where}: the run state read back differs from what was saved (digest mismatch)")
+        history = None
+        if with_history:
+            history = unnest(out.history)
+            if tree_digest(dict(sorted(history.items()))) != meta["history_sha256"]:
+                raise CheckpointCorruptError(f"checkpoint {where}: the metrics history read back differs from what was saved (digest mismatch)")
+        state = _unstorable(state, target)
+        if jax.tree_util.tree_structure(state) != jax.tree_util.tree_structure(target):
+            raise CheckpointCorruptError(f"checkpoint {where}: restored tree structure differs from the target")
+        return Restored(step=step, state=state, history=history, config=meta["config"], extra=meta.get("extra", {}))
+
+
+# --------------------------------------------------------------------------------------------
+# the non-finite guard
+# --------------------------------------------------------------------------------------------
+
+#: metrics the loop fills on every test step (NaN only between tests, with test_every > 1)
+TEST_METRICS = ("test_return", "test_return_per_level")
+
+
+def is_param_path(path) -> bool:
+    """A leaf under a field/key named ``params`` or ``*_params`` (student, antagonist, adversary,
+    DDPG actor/critic and targets, diffusion and its EMA); not ``hparams``."""
+    names = [_key_name(k) for k in path]
+    return any(n == "params" or n.endswith("_params") for n in names)
+
+
+def _seeds_and_count(bad: np.ndarray) -> tuple[list[int], int]:
+    seeds = np.nonzero(bad.reshape(bad.shape[0], -1).any(axis=1))[0].tolist() if bad.ndim else [0]
+    return seeds, int(bad.sum())
+
+
+def find_nonfinite(metrics: dict[str, np.ndarray], state=None, start_step: int = 0, test_every: int = 1) -> list[str]:
+    """Problems that must stop a run, one line each naming the component; empty if healthy.
+
+    ``metrics``: one chunk's flattened metrics, leaves ``[seeds, steps, ...]`` for global budget
+    steps ``start_step, start_step + 1, ...``. ``state``: the vmapped state after the chunk.
+
+    * every floating leaf of the parameters (``is_param_path``) must be finite (NaN or Inf);
+    * floating metrics must not hold +-Inf;
+    * NaN in metrics marks "no value" by design (a PPO phase skipped in a PLR explore step, no
+      finished training episode, no teacher reward, the test set not run at this step), so it is
+      an error only in the test returns on test steps (where the loop always evaluates).
+    """
+    problems = []
+    if state is not None:
+        leaves = [(p, x) for p, x in jax.tree_util.tree_flatten_with_path(_storable(state))[0]
+                  if is_param_path(p) and np.issubdtype(np.dtype(x.dtype), np.floating)]
+        for (path, _), x in zip(leaves, jax.device_get([x for _, x in leaves])):
+            x = np.asarray(x)
+            bad = ~np.isfinite(x)
+            if bad.any():
+                seeds, count = _seeds_and_count(bad)
+                kinds = "/".join(k for k, m in (("NaN", np.isnan(x)), ("Inf", np.isinf(x))) if m.any())
+                problems.append(
+                    f"{path_name(path)}: {kinds} in {count} of {x.size} values (seed(s) {seeds}) "
+                    f"after budget step {start_step + _num_steps(metrics) - 1}"
+                )
+    for key, value in metrics.items():
+        x = np.asarray(value)
+        if not np.issubdtype(x.dtype, np.floating) or x.ndim < 2:
+            continue
+        bad = np.isinf(x)
+        what = "Inf"
+        if key in TEST_METRICS:
+            steps = start_step + np.arange(x.shape[1])
+            tested = ((steps + 1) % test_every == 0).reshape((1, -1) + (1,) * (x.ndim - 2))
+            bad = bad | (np.isnan(x) & tested)
+            what = "NaN/Inf"
+        if bad.any():
+            per_step = bad.reshape(bad.shape[0], bad.shape[1], -1).any(axis=(0, 2))
+            first = start_step + int(np.argmax(per_step))
+            seeds, count = _seeds_and_count(bad)
+            problems.append(f"metric {key}: {what} in {count} value(s) (seed(s) {seeds}), first at budget step {first}")
+    return problems
+
+
+def _num_steps(metrics: dict) -> int:
+    for v in metrics.values():
+        v = np.asarray(v)
+        if v.ndim >= 2:
+            return v.shape[1]
+    return 1
+

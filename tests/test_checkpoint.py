@@ -1,0 +1,321 @@
+"""Checkpoints of a whole run: resume is bitwise exact, mismatched or damaged checkpoints raise,
+signals stop at a chunk boundary, the non-finite guard names the component and keeps the last
+good checkpoint.
+
+The run CLI is driven in-process (``main(args)``) on a tiny CartPole PLR experiment (PLR keeps a
+level buffer in the method state, so buffers, optimiser states, RNG keys and the step counter all
+go through the checkpoint). Every run compiles the same program, so after the first one the
+persistent compilation cache (tests/conftest.py) serves it.
+"""
+import argparse
+import gc
+import json
+import pathlib
+import shutil
+import signal
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import envs
+from shed_jax import checkpoint as ck
+from shed_jax.cli import run as run_cli
+from shed_jax.loop import LoopSpec, RunState, make_run
+from shed_jax.methods.level_sampler import LevelSamplerConfig
+from shed_jax.presets import Experiment
+from shed_jax.student import PPOConfig
+
+SEEDS = 2
+
+
+def tiny_experiment(**ppo_overrides) -> Experiment:
+    sizes = dict(num_envs=4, num_steps=8, update_epochs=1, num_minibatches=1, actor_hidden=(8,), critic_hidden=(8,))
+    ppo = PPOConfig.for_env("cartpole", **{**sizes, **ppo_overrides})
+    return Experiment(
+        env="cartpole", method="plr", preset="tiny", ppo=ppo,
+        method_config={"updates_per_step": 1, "sampler": LevelSamplerConfig(capacity=4, min_fill=0.5, replay_prob=0.9)},
+        loop=LoopSpec(steps_per_episode=4, num_episodes=1, test_episodes=1, test_max_steps=20),
+        test_set="cartpole-test",
+    )
+
+
+def cartpole_test_levels(env):
+    from envs.cartpole import LEVELS
+
+    return jax.tree_util.tree_map(lambda *x: jnp.stack(x), LEVELS["default"](), LEVELS["moon"]())
+
+
+def parse(argv):
+    p = argparse.ArgumentParser()
+    run_cli.add_arguments(p)
+    return p.parse_args(argv)
+
+
+@pytest.fixture(scope="module")
+def patched():
+    """The run CLI on the tiny experiment (presets only know lander/walker) and its test set."""
+    original = run_cli.test_levels
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(run_cli, "experiment_from_args", lambda args, backend: tiny_experiment())
+        mp.setattr(run_cli, "test_levels", lambda name, env: cartpole_test_levels(env) if name == "cartpole-test" else original(name, env))
+        yield mp
+
+
+def target_for(exp, seeds=SEEDS, root_seed=0):
+    _, student, method, tests = run_cli.build(exp)
+    init, _ = make_run(student, method, tests, exp.loop)
+    return jax.eval_shape(jax.vmap(init), run_cli.seed_keys(root_seed, seeds))
+
+
+def restore(run_dir, target, **kw):
+    with ck.RunCheckpointer(run_dir, create=False) as reader:
+        return reader.restore(target, **kw)
+
+
+def steps_of(run_dir):
+    with ck.RunCheckpointer(run_dir, create=False) as reader:
+        return reader.steps()
+
+
+def leaves_equal(a, b):
+    la, lb = jax.tree_util.tree_leaves_with_path(a), jax.tree_util.tree_leaves(b)
+    assert len(la) == len(lb)
+    for (path, x), y in zip(la, lb):
+        assert np.asarray(x).dtype == np.asarray(y).dtype, ck.path_name(path)
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y), err_msg=ck.path_name(path))
+
+
+@pytest.fixture(scope="module")
+def run_a(patched, tmp_path_factory):
+    """A: the tiny run, 4 chunks of one budget step, straight through (the compile happens here)."""
+    a = tmp_path_factory.mktemp("runs") / "A"
+    assert run_cli.main(parse(["--out", str(a), "--seeds", str(SEEDS), "--chunk", "1", "--no-gif"])) == 0
+    return a
+
+
+@pytest.fixture(scope="module")
+def runs(run_a):
+    """A, and B: the same run stopped after 2 chunks (resumed by the test)."""
+    b = run_a.parent / "B"
+    rc_stop = run_cli.main(parse(["--out", str(b), "--seeds", str(SEEDS), "--chunk", "1", "--no-gif", "--stop-after", "2", "--keep", "2"]))
+    return run_a, b, rc_stop, (b / "metrics.jsonl").read_text()
+
+
+def test_straight_run_writes_run_dir(run_a):
+    a = run_a
+    for name in ("config.json", "metrics.jsonl", "summary.json", "test_return.png", "test_return_per_level.png", "generated_levels.png"):
+        assert (a / name).exists(), name
+    config = json.loads((a / "config.json").read_text())
+    assert config["seeds"] == SEEDS and config["root_seed"] == 0 and config["chunk"] == 1
+    assert config["experiment"]["method_config"]["sampler"]["capacity"] == 4
+    records = [json.loads(line) for line in (a / "metrics.jsonl").read_text().splitlines()]
+    assert [(r["step"], r["seed"]) for r in records] == [(t, s) for t in range(4) for s in range(SEEDS)]
+    with ck.RunCheckpointer(a, create=False) as reader:
+        assert reader.steps() == [2, 3, 4]  # default --keep 3
+        meta = reader.read_meta()
+    assert meta["step"] == 4 and meta["config"] == config and meta["extra"]["wall_time_s"] > 0
+
+
+def test_resume_is_bitwise_exact(runs, capsys):
+    a, b, rc_stop, stopped_jsonl = runs
+    assert rc_stop == run_cli.EXIT_STOPPED
+    assert len(stopped_jsonl.splitlines()) == 2 * SEEDS  # steps 0 and 1
+    # a crash after the jsonl append of step 2 but before its checkpoint, and a line cut by the kill
+    lines = (a / "metrics.jsonl").read_text().splitlines(keepends=True)
+    with open(b / "metrics.jsonl", "a") as f:
+        f.writelines(lines[2 * SEEDS: 3 * SEEDS])
+        f.write('{"seed": 0, "step": 3, "test_ret')
+    capsys.readouterr()
+    assert run_cli.main(parse(["--resume", str(b), "--no-gif", "--keep", "2"])) == 0
+    out = capsys.readouterr().out
+    assert "resuming" in out and "from budget step 2/4" in out
+    # the same records, nothing duplicated, earlier lines untouched
+    assert (b / "metrics.jsonl").read_text() == (a / "metrics.jsonl").read_text()
+    assert (b / "metrics.jsonl").read_text().startswith(stopped_jsonl)
+    # the same final state (every leaf, bitwise) and the same history
+    exp = tiny_experiment()
+    target = target_for(exp)
+    ra = restore(a, target)
+    rb = restore(b, target)
+    assert ra.step == rb.step == 4
+    leaves_equal(ra.state, rb.state)
+    assert sorted(ra.history) == sorted(rb.history)
+    for k in ra.history:
+        np.testing.assert_array_equal(ra.history[k], rb.history[k], err_msg=k)
+    assert ra.history["step"].shape == (SEEDS, 4)
+    # the student learned something (so equality is not trivially about untouched params)
+    init = jax.jit(jax.vmap(make_run(*run_cli.build(exp)[1:], exp.loop)[0]))(run_cli.seed_keys(0, SEEDS))
+    assert not np.array_equal(np.asarray(init.student.params["actor"]["MLP_0"]["Dense_0"]["kernel"]),
+                              np.asarray(ra.state.student.params["actor"]["MLP_0"]["Dense_0"]["kernel"]))
+    assert int(np.asarray(ra.state.step)[0]) == 4
+    # summaries agree except for the wall time; --keep 2 kept the last two checkpoints
+    sa, sb = (json.loads((d / "summary.json").read_text()) for d in (a, b))
+    for k in sa:
+        if not k.startswith("wall_time"):
+            assert sa[k] == sb[k], k
+    assert steps_of(b) == [3, 4]
+    for name in ("test_return.png", "test_return_per_level.png", "generated_levels.png"):
+        assert (b / name).exists()
+
+
+def test_config_mismatch_names_the_keys(runs, patched, capsys):
+    a = runs[0]
+    with ck.RunCheckpointer(a, create=False) as reader:
+        saved = reader.read_config()
+    assert saved["seeds"] == SEEDS and saved["root_seed"] == 0 and saved["experiment"]["env"] == "cartpole"
+    other = tiny_experiment(num_steps=16)
+    current = {"experiment": other.to_dict(), "seeds": SEEDS, "root_seed": 0}
+    with pytest.raises(ck.ConfigMismatchError, match=r"experiment\.ppo\.num_steps") as err:
+        restore(a, target_for(tiny_experiment()), config=current)
+    assert err.value.keys == ["experiment.ppo.num_steps"]
+    assert err.value.differences == [("experiment.ppo.num_steps", 8, 16)]
+    # the CLI: a different seed count on --resume is refused with exit 2, naming the key
+    assert run_cli.main(parse(["--resume", str(a), "--seeds", "3", "--no-gif"])) == run_cli.EXIT_CHECKPOINT
+    assert "seeds: saved 2, now 3" in capsys.readouterr().err
+    # a fresh run into an existing run directory is refused
+    with pytest.raises(SystemExit, match="--resume"):
+        run_cli.main(parse(["--out", str(a), "--no-gif"]))
+    # the experiment round-trips through its saved dict (nested sampler config included)
+    exp = run_cli.experiment_from_dict(saved["experiment"])
+    assert ck.config_differences({"experiment": exp.to_dict()}, {"experiment": tiny_experiment().to_dict()}, ["experiment"]) == []
+    assert isinstance(run_cli.method_config(exp.method, exp.method_config)["sampler"], LevelSamplerConfig)
+
+
+def _copy_run(src, dst):
+    shutil.copytree(src, dst)
+    return dst
+
+
+# a failed tensorstore read leaves a callback for orbax's closed event loop; collected below
+@pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")
+def test_damaged_or_missing_checkpoints_raise(runs, patched, tmp_path):
+    a = runs[0]
+    target = target_for(tiny_experiment())
+    with pytest.raises(ck.CheckpointNotFoundError, match="no run directory"):
+        ck.RunCheckpointer(tmp_path / "nothing", create=False)
+    (tmp_path / "empty" / "checkpoints").mkdir(parents=True)
+    with pytest.raises(ck.CheckpointNotFoundError, match="no complete checkpoint"):
+        restore(tmp_path / "empty", target)
+    # truncated array files
+    d = _copy_run(a, tmp_path / "truncated")
+    for f in (d / "checkpoints" / "4" / "state").rglob("d/*"):
+        f.write_bytes(f.read_bytes()[: f.stat().st_size // 2])
+    with pytest.raises(ck.CheckpointCorruptError, match="checkpoints/4"):
+        restore(d, target)
+    # one flipped byte in every array file: unreadable or caught by the digest
+    d = _copy_run(a, tmp_path / "flipped")
+    for f in (d / "checkpoints" / "4" / "state").rglob("d/*"):
+        data = bytearray(f.read_bytes())
+        data[len(data) // 2] ^= 0xFF
+        f.write_bytes(bytes(data))
+    with pytest.raises(ck.CheckpointCorruptError):
+        restore(d, target)
+    # readable arrays that are not the ones saved with this metadata (step 3's state under step 4)
+    d = _copy_run(a, tmp_path / "swapped")
+    shutil.rmtree(d / "checkpoints" / "4" / "state")
+    shutil.copytree(d / "checkpoints" / "3" / "state", d / "checkpoints" / "4" / "state")
+    with pytest.raises(ck.CheckpointCorruptError, match="digest mismatch"):
+        restore(d, target)
+    # the metadata item deleted: the newest step is not a complete checkpoint any more
+    d = _copy_run(a, tmp_path / "nometa")
+    shutil.rmtree(d / "checkpoints" / "4" / "meta")
+    with pytest.raises(ck.CheckpointError):
+        restore(d, target)
+    # a state of another structure (bigger network) is refused before anything is read
+    with pytest.raises(ck.CheckpointCorruptError, match=r"student\.params\.actor\.MLP_0\.Dense_0\.kernel: saved float32\[2, 4, 8\]"):
+        restore(a, target_for(tiny_experiment(actor_hidden=(16,))))
+    # the CLI turns these into exit code 2
+    assert run_cli.main(parse(["--resume", str(tmp_path / "truncated"), "--no-gif"])) == run_cli.EXIT_CHECKPOINT
+    time.sleep(1.0)  # let the failed reads settle
+    gc.collect()
+
+
+def test_signal_stops_at_chunk_boundary_and_resumes(runs, patched, tmp_path, capsys):
+    a = runs[0]
+
+    class SelfSignal(run_cli.StopRequest):
+        def poll(self):
+            if self.signum is None:
+                signal.raise_signal(signal.SIGTERM)  # handled by the run's own handler
+            return super().poll()
+
+    c = tmp_path / "C"
+    before = signal.getsignal(signal.SIGTERM)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(run_cli, "StopRequest", SelfSignal)
+        assert run_cli.main(parse(["--out", str(c), "--seeds", str(SEEDS), "--chunk", "1", "--no-gif"])) == 128 + signal.SIGTERM
+    captured = capsys.readouterr()
+    assert "SIGTERM" in captured.err and f"--resume {c}" in captured.out
+    assert steps_of(c) == [1]
+    assert signal.getsignal(signal.SIGTERM) == before  # handlers restored
+    assert run_cli.main(parse(["--resume", str(c), "--no-gif"])) == 0
+    assert (c / "metrics.jsonl").read_text() == (a / "metrics.jsonl").read_text()
+
+
+def test_nonfinite_guard_stops_and_keeps_last_good_checkpoint(runs, patched, tmp_path, capsys):
+    """A run whose step-2 checkpoint holds a NaN in one student bias (written through the library,
+    so its digest is valid): the resumed chunk is caught, named, and not saved."""
+    a = runs[0]
+    d = tmp_path / "D"
+    d.mkdir()
+    exp = tiny_experiment()
+    good = restore(a, target_for(exp), step=2)
+    config = good.config
+    p = good.state.student.params
+    bias = p["actor"]["MLP_0"]["Dense_0"]["bias"]
+    p = {**p, "actor": {"MLP_0": {**p["actor"]["MLP_0"], "Dense_0": {**p["actor"]["MLP_0"]["Dense_0"], "bias": bias.at[0, 3].set(jnp.nan)}}}}
+    with ck.RunCheckpointer(d) as writer:
+        writer.save(2, good.state.replace(student=good.state.student.replace(params=p)), good.history, config)
+    shutil.copy(a / "config.json", d / "config.json")
+    (d / "metrics.jsonl").write_text("".join((a / "metrics.jsonl").read_text().splitlines(keepends=True)[: 2 * SEEDS]))
+    capsys.readouterr()
+    assert run_cli.main(parse(["--resume", str(d), "--no-gif"])) == run_cli.EXIT_NONFINITE
+    err = capsys.readouterr().err
+    assert "non-finite values in budget steps 2-2" in err
+    assert "student.params.actor.MLP_0.Dense_0.bias: NaN in" in err and "after budget step 2" in err
+    assert "last good checkpoint is step 2" in err
+    assert steps_of(d) == [2]  # nothing saved after the bad chunk
+    assert len((d / "metrics.jsonl").read_text().splitlines()) == 2 * SEEDS
+    assert len((d / "nonfinite_chunk.jsonl").read_text().splitlines()) == SEEDS
+
+
+def test_find_nonfinite_names_components():
+    """Unit checks of the guard on hand-made pytrees: which leaves count as parameters, NaN vs Inf in
+    metrics, test returns only on test steps."""
+    state = RunState(
+        student={"params": {"w": np.ones((2, 3), np.float32)}, "hparams": {"lr": np.full((2,), np.nan, np.float32)}},
+        method={"ddpg": {"critic_params": {"k": np.array([[1.0, np.inf], [1.0, 1.0]], np.float32)},
+                         "buffer": np.full((2, 4), np.nan, np.float32)}},
+        key=np.zeros((2, 2), np.uint32), step=np.zeros((2,), np.int32),
+    )
+    metrics = {
+        "test_return": np.array([[np.nan, 1.0, np.nan, 2.0]] * 2, np.float32),  # tests at steps 11 and 13
+        "info/teacher_reward": np.full((2, 4), np.nan, np.float32),  # NaN: no teacher reward
+        "info/extras/ppo/loss": np.array([[0.1, 0.2, -np.inf, 0.3], [0.1, 0.2, 0.3, 0.4]], np.float32),
+        "step": np.array([[10, 11, 12, 13]] * 2, np.int32),
+    }
+    problems = ck.find_nonfinite(metrics, state, start_step=10, test_every=2)
+    assert problems == [
+        "method.ddpg.critic_params.k: Inf in 1 of 4 values (seed(s) [0]) after budget step 13",
+        "metric info/extras/ppo/loss: Inf in 1 value(s) (seed(s) [0]), first at budget step 12",
+    ]
+    # with test_every 1 the NaN test returns at steps 10 and 12 are errors
+    problems = ck.find_nonfinite(metrics, None, start_step=10, test_every=1)
+    assert "metric test_return: NaN/Inf in 4 value(s) (seed(s) [0, 1]), first at budget step 10" in problems
+    assert ck.find_nonfinite({"test_return": np.ones((2, 3), np.float32)}, None) == []
+
+
+def test_config_differences_and_tree_helpers():
+    saved = {"experiment": {"ppo": {"num_envs": 4, "actor_hidden": [8]}, "env": "cartpole"}, "seeds": 2, "root_seed": 0, "backend": "cpu"}
+    current = {"experiment": {"ppo": {"num_envs": 4, "actor_hidden": (8, 8)}, "env": "cartpole"}, "seeds": 2, "root_seed": 1, "backend": "gpu"}
+    assert ck.config_differences(saved, current) == [
+        ("experiment.ppo.actor_hidden", [8], [8, 8]), ("root_seed", 0, 1)]  # backend is not compared
+    assert ck.nest({"a/b": 1, "a/c": 2, "d": 3}) == {"a": {"b": 1, "c": 2}, "d": 3}
+    assert {k: int(v) for k, v in ck.unnest({"a": {"b": 1, "c": 2}, "d": 3}).items()} == {"a/b": 1, "a/c": 2, "d": 3}
+    x = {"a": np.arange(3, dtype=np.int32)}
+    assert ck.tree_digest(x) == ck.tree_digest({"a": np.arange(3, dtype=np.int32)})
+    assert ck.tree_digest(x) != ck.tree_digest({"a": np.arange(3, dtype=np.int64)})
+    assert ck.tree_digest(x) != ck.tree_digest({"b": np.arange(3, dtype=np.int32)})
