@@ -432,6 +432,10 @@ class SHED:
 
     def init(self, key: jax.Array, hparams: SHEDHyperparams | None = None) -> SHEDState:
         """Fresh teacher state; ``hparams`` overrides the config's hyperparameters (``default_hparams``)."""
+        hparams = self.default_hparams if hparams is None else hparams
+        if not isinstance(hparams, SHEDHyperparams):
+            raise TypeError(f"{self.name}: hparams must be a SHEDHyperparams, got {type(hparams).__name__}")
+        hparams.validate()  # before building anything, so a bad value fails fast
         k_ddpg, k_diff = jax.random.split(key)
         example = make_transition(self.state_dim, self.action_dim)
         ddpg = self.ddpg.init(k_ddpg)
@@ -446,7 +450,7 @@ class SHED:
             t=jnp.int32(0),
             pending_eval_steps=jnp.int32(0),
         )
-        return self.with_hparams(state, self.default_hparams if hparams is None else hparams)
+        return self.with_hparams(state, hparams)
 
     def begin_episode(self, key: jax.Array, mstate: SHEDState, sstate):
         s0, steps = self.performance(key, sstate)

@@ -1,0 +1,329 @@
+"""Sweeps: grid parsing and grouping (pure functions on hand cases), SHED's dynamic hyperparameters
+(vmapping over eta equals separate runs; psi's mixed-batch split), and a tiny end-to-end sweep that
+writes the run CLI's files.
+
+The SHED runs here use a stub student (no networks: training pulls a skill vector toward the levels,
+returns measure the distance to the evaluation levels) so that what compiles is the teacher -- the
+part these hyperparameters act on -- and each test stays well under a minute on two shared CPU
+cores. SHED with the real PPO student is tests/test_shed_method.py; the real student under the
+vmapped, sharded loop is tests/test_sharding.py.
+"""
+import dataclasses
+import json
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from flax import struct
+
+import envs
+from shed_jax import sharding
+from shed_jax.cli import run as run_cli
+from shed_jax.cli import sweep
+from shed_jax.loop import LoopSpec
+from shed_jax.methods.shed import SHED, SHEDConfig, SHEDHyperparams
+from shed_jax.presets import Experiment
+from shed_jax.student.config import PPOConfig, PPOHyperparams
+from shed_jax.teacher.buffers import Transition, buffer_add_many, buffer_init, make_transition
+from shed_jax.teacher.reward import coefficient_of_variation
+
+TINY = dict(
+    updates_per_step=1, num_eval_episodes=1, eval_max_steps=8, budget_steps=3, ddpg_batch=4, real_capacity=16,
+    syn_capacity=16, diffusion_threshold=1, diffusion_steps=2, num_syn=2, syn_threshold=2, ddpg_threshold=1,
+)
+SHED_SPACE = sweep.KeySpace(
+    method="shed", method_hparams=("eta", "psi", "actor_lr"), student_hparams=("lr", "ent_coef"),
+    method_config=("num_eval_levels", "psi", "updates_per_step"), student_config=("num_envs",),
+)
+HMDP_SPACE = dataclasses.replace(SHED_SPACE, method="hmdp", method_hparams=("eta", "actor_lr"), inert=("psi",))
+DR_SPACE = sweep.KeySpace(method="dr", student_hparams=("lr",), method_config=("num_levels",), student_config=("num_envs",))
+
+
+# ---- parsing and planning ------------------------------------------------------------------
+
+def test_parse_grid_values_and_errors():
+    grid = sweep.parse_grid(["eta=0,10", "psi=0.25, 0.5", "low=[1,2],[3,4]", "sampler=ddim,ancestral", "ppo.lr=1e-4"])
+    assert grid == {"eta": [0, 10], "psi": [0.25, 0.5], "low": [[1, 2], [3, 4]], "sampler": ["ddim", "ancestral"],
+                    "ppo.lr": [1e-4]}
+    assert list(grid) == ["eta", "psi", "low", "sampler", "ppo.lr"]  # order kept: first key slowest
+    with pytest.raises(ValueError, match="KEY=V1"):
+        sweep.parse_grid(["eta"])
+    with pytest.raises(ValueError, match="given twice"):
+        sweep.parse_grid(["eta=0", "eta=1"])
+    with pytest.raises(ValueError, match="lists 0 twice"):
+        sweep.parse_grid(["eta=0,0"])
+    with pytest.raises(ValueError, match="empty value"):
+        sweep.parse_grid(["eta=0,,1"])
+    assert sweep.split_top_level('0,[1,2],"a,b",{"x":1,"y":2}') == ["0", "[1,2]", '"a,b"', '{"x":1,"y":2}']
+
+
+def test_expand_and_names():
+    pts = sweep.expand_grid({"a": [1, 2], "b": [3, 4]})
+    assert pts == [{"a": 1, "b": 3}, {"a": 1, "b": 4}, {"a": 2, "b": 3}, {"a": 2, "b": 4}]
+    assert sweep.expand_grid({}) == [{}]
+    assert sweep.point_name({"eta": 0, "psi": 0.25}) == "eta=0,psi=0.25"
+    assert sweep.point_name({}) == "default"
+    assert sweep.dir_name('low=[1, 2],s="a/b"') == "low=_1,_2_,s=_a_b_"
+
+
+def test_classify():
+    assert sweep.classify("eta", SHED_SPACE) == ("method_hparam", "eta")
+    assert sweep.classify("psi", SHED_SPACE) == ("method_hparam", "psi")  # dynamic wins over the config field
+    assert sweep.classify("num_eval_levels", SHED_SPACE) == ("method_config", "num_eval_levels")
+    assert sweep.classify("ppo.lr", SHED_SPACE) == ("student_hparam", "lr")
+    assert sweep.classify("ppo.num_envs", SHED_SPACE) == ("student_config", "num_envs")
+    assert sweep.classify("psi", HMDP_SPACE) == ("inert", "psi")
+    with pytest.raises(ValueError, match=r"method 'dr' has no hyperparameter or config field 'eta'.*known keys: num_levels, ppo.lr"):
+        sweep.classify("eta", DR_SPACE)
+    with pytest.raises(ValueError, match=r"write ppo.lr"):
+        sweep.classify("lr", SHED_SPACE)
+    with pytest.raises(ValueError, match="student has no hyperparameter or config field 'bogus'"):
+        sweep.classify("ppo.bogus", SHED_SPACE)
+
+
+def test_plan_groups_dynamic_points_and_splits_static():
+    grid = {"eta": [0, 10], "num_eval_levels": [5, 10], "ppo.lr": [1e-4]}
+    groups, notes = sweep.plan(SHED_SPACE, grid, {"psi": 0.5, "ppo.num_envs": 8})
+    assert notes == []
+    assert len(groups) == 2  # one per static value of num_eval_levels
+    g5, g10 = groups
+    assert g5.method_config == {"num_eval_levels": 5} and g10.method_config == {"num_eval_levels": 10}
+    assert g5.student_config == {"num_envs": 8}  # --set statics reach every group
+    assert [p.name for p in g5.points] == ["eta=0,num_eval_levels=5,ppo.lr=0.0001", "eta=10,num_eval_levels=5,ppo.lr=0.0001"]
+    assert [p.method_hparams for p in g5.points] == [{"psi": 0.5, "eta": 0}, {"psi": 0.5, "eta": 10}]
+    assert [p.student_hparams for p in g10.points] == [{"lr": 1e-4}, {"lr": 1e-4}]
+    assert g5.label == "shed[num_eval_levels=5,ppo.num_envs=8]"
+
+
+def test_plan_drops_inert_keys_and_dedupes():
+    groups, notes = sweep.plan(HMDP_SPACE, {"eta": [0, 10], "psi": [0.25, 0.5]})
+    assert notes == ["hmdp: ignores 'psi' (it has no effect on this method)"]
+    assert len(groups) == 1
+    assert [p.name for p in groups[0].points] == ["eta=0", "eta=10"]
+    assert [p.method_hparams for p in groups[0].points] == [{"eta": 0}, {"eta": 10}]
+    groups, _ = sweep.plan(SHED_SPACE, {"eta": [0, 10], "psi": [0.25, 0.5]})
+    assert len(groups) == 1 and len(groups[0].points) == 4
+    # no grid at all: one default point
+    groups, _ = sweep.plan(DR_SPACE, {})
+    assert [p.name for p in groups[0].points] == ["default"] and groups[0].method_config == {}
+    with pytest.raises(ValueError, match="method 'dr'"):
+        sweep.plan(DR_SPACE, {"ppo.lr": [1e-3]}, {"eta": 1})
+
+
+# ---- SHED's dynamic hyperparameters ----------------------------------------------------------
+
+@struct.dataclass
+class _StubState:
+    skill: jax.Array  # [d] in the box's unit coordinates
+    hparams: Any  # PPOHyperparams (the loop re-initialises students with their hyperparameters)
+
+
+@dataclasses.dataclass(frozen=True)
+class _StubConfig:
+    num_envs: int = 5
+
+
+@dataclasses.dataclass(frozen=True)
+class _StubStudent:
+    """The student interface SHED and the loop use, without networks.
+
+    Each update moves the skill 20 % toward the mean of the trained levels (unit coordinates) plus
+    noise; the return of an episode on a level is 100 - 30 * |skill - level|_1 plus noise.
+    """
+
+    env: Any
+    config: _StubConfig = _StubConfig()
+    env_steps_per_update: int = 20
+
+    def init(self, key, hparams=None):
+        hp = PPOHyperparams().as_arrays() if hparams is None else jax.tree_util.tree_map(lambda x: jnp.asarray(x, jnp.float32), hparams)
+        return _StubState(skill=jax.random.uniform(key, (self.env.param_space.dim,), minval=-1.0, maxval=1.0), hparams=hp)
+
+    def _unit(self, levels):
+        space = self.env.param_space
+        return space.to_unit(space.to_vector(levels))
+
+    def train(self, state, key, levels, num_updates):
+        def one(skill, k):
+            skill = skill + 0.2 * (jnp.mean(self._unit(levels), axis=0) - skill) + 0.05 * jax.random.normal(k, skill.shape)
+            return skill, jnp.sum(skill)
+
+        skill, loss = jax.lax.scan(one, state.skill, jax.random.split(key, num_updates))
+        return state.replace(skill=skill), {"loss": loss}
+
+    def evaluate_with_info(self, state, key, levels, num_episodes, max_steps=None, deterministic=False):
+        dist = jnp.sum(jnp.abs(self._unit(levels) - state.skill), axis=-1)  # [n]
+        rets = 100.0 - 30.0 * dist[:, None] + jax.random.normal(key, (dist.shape[0], num_episodes))
+        return rets, {"env_steps": dist.shape[0] * num_episodes * 8}
+
+    def evaluate(self, state, key, levels, num_episodes, max_steps=None, deterministic=False):
+        return self.evaluate_with_info(state, key, levels, num_episodes, max_steps, deterministic)[0]
+
+
+def _cartpole(num_envs=5):
+    env = envs.make("cartpole")
+    return env, _StubStudent(env, _StubConfig(num_envs)), env.param_space.sample(jax.random.PRNGKey(42), (10,))
+
+
+def test_hparams_defaults_validation_and_init():
+    env, student, ev = _cartpole()
+    cfg = SHEDConfig(**TINY, psi=0.5, explore_sigma=0.2, actor_lr=3e-4)
+    method = SHED(env, student, cfg, eval_levels=ev)
+    assert method.default_hparams == SHEDHyperparams(eta=0.05, psi=0.5, actor_lr=3e-4, critic_lr=1e-3, explore_sigma=0.2)
+    hp = SHEDHyperparams(eta=10.0, psi=0.25, actor_lr=2e-4)
+    m = jax.jit(method.init)(jax.random.PRNGKey(0), hp)
+    assert float(m.hparams.eta) == 10.0 and float(m.hparams.psi) == 0.25
+    assert float(m.ddpg.actor_opt_state.hyperparams["learning_rate"]) == pytest.approx(2e-4)
+    assert float(m.ddpg.critic_opt_state.hyperparams["learning_rate"]) == pytest.approx(1e-3)
+    m2 = jax.jit(lambda k, h: method.with_hparams(method.init(k), h))(jax.random.PRNGKey(0), hp)
+    for a, b in zip(jax.tree_util.tree_leaves(m), jax.tree_util.tree_leaves(m2)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    with pytest.raises(ValueError, match=r"SHEDHyperparams.psi must be a finite value in \[0.0, 1.0\]"):
+        method.init(jax.random.PRNGKey(0), SHEDHyperparams(psi=1.5))
+    with pytest.raises(ValueError, match="actor_lr"):
+        SHEDHyperparams.stack([SHEDHyperparams(actor_lr=0.0)])
+    with pytest.raises(ValueError, match="SHEDConfig.critic_lr"):
+        SHEDConfig(critic_lr=-1.0)
+    assert SHED(env, student, SHEDConfig(**TINY), use_diffusion=False, name="hmdp", eval_levels=ev).hparam_names == (
+        "eta", "actor_lr", "critic_lr", "explore_sigma")
+
+
+def test_mixed_batch_real_part_follows_dynamic_psi():
+    env, student, ev = _cartpole()
+    method = SHED(env, student, SHEDConfig(**{**TINY, "ddpg_batch": 32, "real_capacity": 32}), eval_levels=ev)
+    ex = make_transition(3, 2)
+    items = lambda r: Transition(s=jnp.zeros((4, 3)), u=jnp.zeros((4, 2)), r=jnp.full((4,), r), s_next=jnp.zeros((4, 3)), done=jnp.zeros(4))
+    real = buffer_add_many(buffer_init(ex, 8), items(1.0))
+    syn = buffer_add_many(buffer_init(ex, 8), items(2.0))
+    psis = jnp.asarray([0.0, 0.25, 0.75, 0.3, 1.0])
+    batch, mask = jax.jit(jax.vmap(lambda p: method.sample_mixed(real, syn, jax.random.PRNGKey(0), p)))(psis)
+    expect = [0, 8, 24, 9, 32]  # floor(psi * 32): the official 24 + 8 at psi = 0.75
+    np.testing.assert_array_equal(np.asarray(mask).sum(axis=1), expect)
+    for i, n in enumerate(expect):  # real items first, then synthetic ones
+        np.testing.assert_array_equal(np.asarray(batch.r[i]), [1.0] * n + [2.0] * (32 - n))
+    # per-part z-scoring: each part has mean 0 (a constant part maps to 0)
+    from shed_jax.methods.shed import zscore_split
+
+    r = jnp.asarray([1.0, 2.0, 3.0, 10.0, 30.0])
+    z = np.asarray(zscore_split(r, jnp.asarray([True, True, True, False, False])))
+    np.testing.assert_allclose(z, [-1.2247, 0.0, 1.2247, -1.0, 1.0], atol=1e-4)
+
+
+def _method_run(method, student, steps):
+    def run(key, hp):
+        k_m, k_s, k_b, k_run = jax.random.split(key, 4)
+        m = method.init(k_m, hp)
+        m, s = method.begin_episode(k_b, m, student.init(k_s))
+        s0 = m.s
+
+        def body(carry, k):
+            m, s = carry
+            m, s, info = method.step(k, m, s)
+            return (m, s), info
+
+        (m, s), infos = jax.lax.scan(body, (m, s), jax.random.split(k_run, steps))
+        return m, s0, infos
+
+    return run
+
+
+def test_vmap_over_eta_equals_separate_runs():
+    # h-MDP: the same teacher code path as SHED minus the diffusion model (which compiles slowly on
+    # CPU); SHED's dynamic psi is checked above and SHED runs vmapped in the end-to-end test
+    env, student, ev = _cartpole()
+    method = SHED(env, student, SHEDConfig(**TINY), use_diffusion=False, name="hmdp", eval_levels=ev)
+    run = _method_run(method, student, 3)
+    etas = [0.0, 10.0]
+    key = jax.random.PRNGKey(5)
+    hps = SHEDHyperparams.stack([method.default_hparams.replace(eta=e) for e in etas])
+    m_b, s0_b, info_b = jax.jit(jax.vmap(run, in_axes=(None, 0)))(key, hps)
+    single = jax.jit(run)
+    for i, eta in enumerate(etas):
+        m_i, s0_i, info_i = single(key, method.default_hparams.replace(eta=eta).as_arrays())
+        np.testing.assert_allclose(np.asarray(info_b.teacher_reward[i]), np.asarray(info_i.teacher_reward), rtol=1e-5, atol=1e-5)
+        np.testing.assert_allclose(np.asarray(info_b.levels[i]), np.asarray(info_i.levels), rtol=1e-5, atol=1e-5)
+        for a, b in zip(jax.tree_util.tree_leaves(m_b.ddpg.actor_params), jax.tree_util.tree_leaves(m_i.ddpg.actor_params)):
+            np.testing.assert_allclose(np.asarray(a)[i], np.asarray(b), rtol=1e-5, atol=1e-5)
+        np.testing.assert_array_equal(np.asarray(info_b.extras["ddpg_branch"][i]), [0, 1, 1])  # DDPG updates ran
+    assert single._cache_size() == 1  # both eta values through one compiled program
+    # eta enters as R = gain - eta * cv: the first step (same s, u and s' for both) differs by exactly 10 * cv
+    s1 = np.asarray(info_b.extras["teacher_state"][0, 0])
+    np.testing.assert_allclose(np.asarray(info_b.extras["teacher_state"][1, 0]), s1, rtol=1e-6)
+    cv = float(coefficient_of_variation(np.asarray(s0_b[0]), s1))
+    r0, r10 = np.asarray(info_b.teacher_reward[:, 0])
+    assert cv > 0
+    np.testing.assert_allclose(r0 - r10, 10.0 * cv, rtol=1e-4)
+    np.testing.assert_allclose(r0, np.abs(s1 - np.asarray(s0_b[0])).sum(), rtol=1e-5)
+
+
+# ---- end to end --------------------------------------------------------------------------------
+
+def _tiny_experiment(method, method_overrides, ppo_overrides):
+    ppo = PPOConfig.for_env("cartpole", num_envs=5, num_steps=4, num_minibatches=1, update_epochs=1).replace(**ppo_overrides)
+    return Experiment(env="cartpole", method=method, preset="tiny", ppo=ppo, method_config={**TINY, **method_overrides},
+                      loop=LoopSpec(steps_per_episode=3, num_episodes=1, test_episodes=1, test_max_steps=8),
+                      test_set="cartpole-test")
+
+
+def _tiny_build(exp):
+    env = envs.make("cartpole")
+    student = _StubStudent(env, _StubConfig(exp.ppo.num_envs))
+    method = SHED(env, student, SHEDConfig(**exp.method_config), use_diffusion=exp.method == "shed", name=exp.method,
+                  eval_levels=env.param_space.sample(jax.random.PRNGKey(42), (10,)))
+    return env, student, method, env.param_space.sample(jax.random.PRNGKey(7), (2,))
+
+
+def test_end_to_end_sweep_writes_run_files(tmp_path):
+    exp = _tiny_experiment("shed", {}, {})
+    _, student, method, _ = _tiny_build(exp)
+    space = sweep.key_space("shed", method, exp.ppo)
+    groups, notes = sweep.plan(space, sweep.parse_grid(["eta=0,10"]))
+    assert len(groups) == 1 and not notes
+    rows = sweep.run_sweep(groups, out=tmp_path, make_experiment=_tiny_experiment, build=_tiny_build, num_seeds=1,
+                           root_seed=3, chunk=1, mesh=sharding.batch_mesh(), plots=True, progress=False)
+    assert [r["point"] for r in rows] == ["eta=0", "eta=10"]
+    assert (tmp_path / "sweep.md").read_text().count("| shed |") == 2
+    result = json.loads((tmp_path / "sweep.json").read_text())
+    assert result["rows"] == rows and result["groups"] == ["shed"]
+    recs = {}
+    for r in rows:
+        d = tmp_path / r["dir"]
+        assert d == tmp_path / "shed" / r["point"]
+        for f in ("config.json", "metrics.jsonl", "summary.json", "test_return.png", "test_return_per_level.png"):
+            assert (d / f).exists(), f
+        records = [json.loads(line) for line in (d / "metrics.jsonl").read_text().splitlines()]
+        assert [x["step"] for x in records] == [0, 1, 2] and all(x["seed"] == 0 for x in records)
+        summary = json.loads((d / "summary.json").read_text())
+        # the run CLI's summary fields, plus the point
+        hist = {k: np.asarray([[x[k] for x in records]]) for k in ("test_return", "test_return_per_level", "episode", "step",
+                                                                    "info/env_steps_train", "info/env_steps_eval")}
+        expect = run_cli.summarize(_tiny_experiment("shed", {}, {}), hist, summary["wall_time_s"], 1)
+        assert set(expect) <= set(summary)
+        for k in ("final_test_return_mean", "student_env_steps_total", "eval_env_steps_total", "budget_steps"):
+            assert summary[k] == pytest.approx(expect[k]), k
+        assert summary["values"] == {"eta": json.loads(r["point"].split("=")[1])}
+        assert r["final_test_return_mean"] == pytest.approx(records[-1]["test_return"])
+        config = json.loads((d / "config.json").read_text())
+        assert config["sweep_point"]["method_hparams"] == summary["values"] and config["root_seed"] == 3
+        recs[r["point"]] = records
+    # eta acts on the stored rewards: at step 1 (states s1 -> s2 of each run) R = L1 gain - eta * cv
+    for name, eta in (("eta=0", 0.0), ("eta=10", 10.0)):
+        s1, s2 = (np.asarray(recs[name][t]["info/extras/teacher_state"]) for t in (0, 1))
+        expect = np.abs(s2 - s1).sum() - eta * float(coefficient_of_variation(s1, s2))
+        assert recs[name][1]["info/teacher_reward"] == pytest.approx(expect, rel=1e-4)
+    # same seeds at both points: step 0 trains on the same levels (the teacher has not learned yet)
+    np.testing.assert_allclose(recs["eta=0"][0]["info/levels"], recs["eta=10"][0]["info/levels"], rtol=1e-6)
+    # a second sweep into the same directory refuses to overwrite
+    with pytest.raises(ValueError, match="already holds a run"):
+        sweep.run_sweep(groups, out=tmp_path, make_experiment=_tiny_experiment, build=_tiny_build, num_seeds=1, progress=False)
+
+
+def test_cli_rejects_unknown_keys(capsys):
+    from shed_jax.__main__ import main
+
+    with pytest.raises(SystemExit, match=r"sweep: method 'dr' has no hyperparameter or config field 'eta'"):
+        main(["sweep", "--env", "lander", "--methods", "shed,dr", "--preset", "quick", "--grid", "eta=0,10"])
+    with pytest.raises(SystemExit, match=r"--grid key 'eta' given twice"):
+        main(["sweep", "--env", "lander", "--methods", "shed", "--grid", "eta=0", "--grid", "eta=1"])
