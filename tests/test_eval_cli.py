@@ -1,0 +1,168 @@
+"""``python -m shed_jax eval``: the table math on hand values, and the CLI on a tiny saved run
+(test set, named levels, level files) with clear errors for bad level files.
+
+The run is the same tiny CartPole PLR run as in test_checkpoint.py (same program, so the
+persistent compilation cache serves both), driven in-process through the run CLI's ``main``.
+"""
+import argparse
+import json
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from shed_jax.cli import eval as eval_cli
+from shed_jax.cli import run as run_cli
+from shed_jax.loop import LoopSpec
+from shed_jax.methods.level_sampler import LevelSamplerConfig
+from shed_jax.presets import Experiment
+from shed_jax.student import PPOConfig
+
+SEEDS = 2
+
+
+def tiny_experiment() -> Experiment:
+    ppo = PPOConfig.for_env("cartpole", num_envs=4, num_steps=8, update_epochs=1, num_minibatches=1,
+                            actor_hidden=(8,), critic_hidden=(8,))
+    return Experiment(
+        env="cartpole", method="plr", preset="tiny", ppo=ppo,
+        method_config={"updates_per_step": 1, "sampler": LevelSamplerConfig(capacity=4, min_fill=0.5, replay_prob=0.9)},
+        loop=LoopSpec(steps_per_episode=4, num_episodes=1, test_episodes=1, test_max_steps=20),
+        test_set="cartpole-test",
+    )
+
+
+def cartpole_test_levels(env):
+    from envs.cartpole import LEVELS
+
+    return jax.tree_util.tree_map(lambda *x: jnp.stack(x), LEVELS["default"](), LEVELS["moon"]())
+
+
+def parse(module, argv):
+    p = argparse.ArgumentParser()
+    module.add_arguments(p)
+    return p.parse_args(argv)
+
+
+@pytest.fixture(scope="module")
+def run_dir(tmp_path_factory):
+    original = run_cli.test_levels
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(run_cli, "experiment_from_args", lambda args, backend: tiny_experiment())
+        mp.setattr(run_cli, "test_levels", lambda name, env: cartpole_test_levels(env) if name == "cartpole-test" else original(name, env))
+        d = tmp_path_factory.mktemp("eval") / "run"
+        assert run_cli.main(parse(run_cli, ["--out", str(d), "--seeds", str(SEEDS), "--chunk", "1", "--no-gif"])) == 0
+        yield d
+
+
+def test_table_math_by_hand():
+    # 2 seeds x 2 levels x 5 episodes
+    r = np.array([
+        [[10, 20, 30, 40, 500], [0, 0, 0, 0, 0]],
+        [[30, 40, 50, 60, 70], [-100, 300, 300, 300, 300]],
+    ], np.float64)
+    t = eval_cli.level_table(r, threshold=45.0, alpha=0.1)
+    # seed means: level 0: 120 and 50 -> mean 85, SE = sd(ddof 1) / sqrt(2) = |120 - 50| / 2 = 35;
+    # level 1: 0 and 220 -> mean 110, SE 110
+    np.testing.assert_allclose(t["mean"], [85.0, 110.0])
+    np.testing.assert_allclose(t["se"], [35.0, 110.0])
+    # solved (> 45): level 0: 500, 50, 60, 70 -> 4/10; level 1: four 300s -> 4/10
+    np.testing.assert_allclose(t["solved_rate"], [0.4, 0.4])
+    # CVaR 10 % of 10 returns: the single worst one
+    np.testing.assert_allclose(t["cvar"], [10.0, -100.0])
+    o = t["overall"]
+    # seed overall means: (600 + 0) / 10 = 60 and (250 + 1100) / 10 = 135
+    assert o["mean"] == pytest.approx(97.5) and o["se"] == pytest.approx(37.5)
+    assert o["solved_rate"] == pytest.approx(8 / 20)
+    assert o["cvar"] == pytest.approx(-50.0)  # worst ceil(0.1 * 20) = 2 values: -100 and 0
+    # ceil: 25 % of 10 -> 3 values; 30 % of 10 -> exactly 3 (no float round-up to 4)
+    assert eval_cli.cvar(np.arange(10.0), 0.25) == pytest.approx(1.0)
+    assert eval_cli.cvar(np.arange(10.0), 0.3) == pytest.approx(1.0)
+    assert eval_cli.cvar([5.0], 0.1) == 5.0
+    # no threshold -> NaN solved rates; one seed -> SE 0
+    t1 = eval_cli.level_table(r[:1], threshold=None)
+    assert np.all(np.isnan(t1["solved_rate"])) and math.isnan(t1["overall"]["solved_rate"])
+    np.testing.assert_array_equal(t1["se"], [0.0, 0.0])
+    with pytest.raises(ValueError, match="seeds, levels, episodes"):
+        eval_cli.level_table(r[0], 1.0)
+
+
+def test_eval_test_set_writes_json(run_dir, capsys):
+    rc = eval_cli.main(parse(eval_cli, ["--run", str(run_dir), "--levels", "test", "--episodes", "3", "--max-steps", "30",
+                                        "--solved-threshold", "15"]))
+    assert rc == 0
+    out = capsys.readouterr().out
+    res = json.loads((run_dir / "eval_test.json").read_text())
+    returns = np.asarray(res["returns"])
+    assert returns.shape == (SEEDS, 2, 3)
+    assert res["checkpoint_step"] == 4 and res["seeds"] == SEEDS and res["labels"] == ["test-0", "test-1"]
+    assert res["level_params"]["gravity"] == pytest.approx([9.8, 1.62])
+    # cartpole pays 1 per step, capped at --max-steps 30
+    assert np.all((returns >= 1) & (returns <= 30)) and np.all(returns == np.round(returns))
+    table = eval_cli.level_table(returns, 15.0)
+    for j, row in enumerate(res["per_level"]):
+        assert row["mean"] == pytest.approx(table["mean"][j])
+        assert row["se"] == pytest.approx(table["se"][j])
+        assert row["solved_rate"] == pytest.approx(np.mean(returns[:, j] > 15))
+        assert row["cvar"] == pytest.approx(np.sort(returns[:, j].ravel())[0])  # ceil(0.1 * 6) = 1 episode
+    assert res["overall"]["mean"] == pytest.approx(returns.mean())
+    assert "| test-0 |" in out and "all levels" in out and "eval_test.json" in out
+
+
+def test_eval_named_and_file_levels(run_dir, tmp_path, capsys):
+    # named: the cartpole module's LEVELS
+    assert eval_cli.main(parse(eval_cli, ["--run", str(run_dir), "--levels", "named", "--episodes", "1", "--max-steps", "20",
+                                          "--deterministic"])) == 0
+    res = json.loads((run_dir / "eval_named.json").read_text())
+    from envs.cartpole import LEVELS
+
+    assert res["labels"] == list(LEVELS) and np.asarray(res["returns"]).shape == (SEEDS, len(LEVELS), 1)
+    assert res["solved_threshold"] == 475.0 and res["deterministic"] is True
+    # a file of vectors (gravity, length, force_mag) and one of objects by name
+    vec = tmp_path / "my levels.json"
+    vec.write_text(json.dumps([[9.8, 0.5, 10.0], [3.0, 0.9, 12.0], [15.0, 0.3, 7.0]]))
+    out = tmp_path / "vec_eval.json"
+    assert eval_cli.main(parse(eval_cli, ["--run", str(run_dir), "--levels", str(vec), "--episodes", "2", "--max-steps", "20",
+                                          "--out", str(out)])) == 0
+    res = json.loads(out.read_text())
+    assert res["levels"] == "my_levels" and np.asarray(res["returns"]).shape == (SEEDS, 3, 2)
+    assert res["level_params"]["length"] == pytest.approx([0.5, 0.9, 0.3])
+    objs = tmp_path / "objs.json"
+    objs.write_text(json.dumps({"levels": [{"gravity": 3.0, "label": "low-g"}, {"masspole": 0.5, "max_steps": 15}]}))
+    assert eval_cli.main(parse(eval_cli, ["--run", str(run_dir), "--levels", str(objs), "--episodes", "2"])) == 0
+    res = json.loads((run_dir / "eval_objs.json").read_text())
+    returns = np.asarray(res["returns"])
+    assert res["labels"] == ["low-g", "level-1"] and returns.shape == (SEEDS, 2, 2)
+    assert np.all(returns[:, 1] <= 15)  # the level's own time limit
+    assert res["level_params"]["gravity"] == pytest.approx([3.0, 9.8])  # missing fields: the defaults
+
+
+@pytest.mark.parametrize("content, message", [
+    ("{not json", "not valid JSON"),
+    ("[]", "non-empty JSON list"),
+    ("[[9.8, 0.5]]", "level 0 has 2 values; cartpole levels are vectors of 3 (gravity, length, force_mag)"),
+    ('[[9.8, 0.5, 10.0], {"gravity": 1.0}]', "all vectors (lists) or all objects"),
+    ('[{"gravity": 1.0, "wind": 3}]', "unknown cartpole parameter(s) ['wind']"),
+    ('[{"gravity": "high"}]', "level 0, gravity must be a finite number"),
+    ('[{"max_steps": 10.5}]', "level 0, max_steps must be an integer"),
+    ("[[9.8, -0.5, 10.0]]", "parameter 'length' must lie in"),
+])
+def test_bad_level_files(tmp_path, content, message):
+    import envs
+
+    f = tmp_path / "levels.json"
+    f.write_text(content)
+    with pytest.raises(eval_cli.LevelFileError) as err:
+        eval_cli.load_level_file(f, envs.make("cartpole"))
+    assert message in str(err.value) and str(f) in str(err.value)
+
+
+def test_eval_cli_errors(run_dir, tmp_path, capsys):
+    assert eval_cli.main(parse(eval_cli, ["--run", str(tmp_path / "none")])) == eval_cli.EXIT_BAD_INPUT
+    assert "no run directory" in capsys.readouterr().err
+    assert eval_cli.main(parse(eval_cli, ["--run", str(run_dir), "--levels", "hard"])) == eval_cli.EXIT_BAD_INPUT
+    assert "'test', 'named' or an existing JSON file" in capsys.readouterr().err
+    assert eval_cli.main(parse(eval_cli, ["--run", str(run_dir), "--step", "1"])) == eval_cli.EXIT_BAD_INPUT
+    assert "no checkpoint for step 1" in capsys.readouterr().err
