@@ -166,3 +166,29 @@ def test_eval_cli_errors(run_dir, tmp_path, capsys):
     assert "'test', 'named' or an existing JSON file" in capsys.readouterr().err
     assert eval_cli.main(parse(eval_cli, ["--run", str(run_dir), "--step", "1"])) == eval_cli.EXIT_BAD_INPUT
     assert "no checkpoint for step 1" in capsys.readouterr().err
+
+
+def test_named_and_test_sets_of_lander_and_walker():
+    """The level sets eval builds for the real envs (host side only, nothing compiled)."""
+    import envs
+    from envs.walker.levels import LEVELS
+    from shed_jax import eval_sets
+    from shed_jax.presets import build_experiment
+
+    lander = envs.make("lander")
+    exp = build_experiment("lander", "dr", "quick")
+    tests = run_cli.test_levels(exp.test_set, lander)
+    levels, labels, name = eval_cli.resolve_levels("named", lander, exp, tests)
+    assert name == "named" and labels == [f"eval-{i}" for i in range(10)] + [f"test-{i}" for i in range(10)]
+    np.testing.assert_allclose(np.asarray(levels.gravity)[[0, 9, 10, 19]], [-0.01, -9.457, -2.0, -6.3], rtol=1e-6)
+    np.testing.assert_array_equal(np.asarray(levels.enable_wind)[:3], [False, True, False])
+    assert np.all(np.asarray(levels.max_steps) == eval_sets.LANDER_MAX_STEPS)
+    _, labels, _ = eval_cli.resolve_levels("test", lander, exp, tests)
+    assert labels == [f"test-{i}" for i in range(10)]
+
+    walker = envs.make("walker")
+    wexp = build_experiment("walker", "dr", "quick")
+    levels, labels, _ = eval_cli.resolve_levels("named", walker, wexp, None)
+    assert labels == list(LEVELS) and np.asarray(levels.roughness).shape == (len(LEVELS),)
+    assert np.all(np.asarray(levels.fixed_terrain))
+    np.testing.assert_array_equal(np.asarray(levels.terrain_seed), 1000 + np.arange(len(LEVELS)))

@@ -196,8 +196,8 @@ def resolve_levels(spec: str, env, exp, tests):
     """``--levels`` -> (params with a leading axis, labels, short name for the output file)."""
     from shed_jax import eval_sets
 
-    n_tests = int(np.shape(np.asarray(tests.max_steps))[0])
     if spec == "test":
+        n_tests = int(np.shape(np.asarray(tests.max_steps))[0])
         if exp.test_set == "walker-test-a":
             labels = list(eval_sets.DCD_TEST_LEVELS)
         else:
