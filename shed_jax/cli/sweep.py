@@ -329,10 +329,10 @@ def batch_inputs(built: BuiltGroup, num_seeds: int, root_seed: int):
     """Host arrays (keys [B, 2], student hparams [B], method hparams [B] or None), row = point * S + seed."""
     import jax
 
+    from shed_jax.cli.run import seed_keys
+
     P = len(built.group.points)
-    root = jax.random.PRNGKey(root_seed)
-    seed_keys = np.asarray(jax.vmap(lambda i: jax.random.fold_in(root, i))(np.arange(num_seeds)))
-    keys = np.tile(seed_keys, (P, 1))
+    keys = np.tile(np.asarray(seed_keys(root_seed, num_seeds)), (P, 1))  # the run CLI's keys, at every point
     rep = lambda tree: None if tree is None else jax.tree_util.tree_map(lambda x: np.repeat(np.asarray(x), num_seeds, axis=0), tree)
     return keys, rep(built.student_hparams), rep(built.method_hparams)
 
