@@ -356,7 +356,10 @@ def run_group(built: BuiltGroup, *, out: pathlib.Path, num_seeds: int, root_seed
     total = exp.loop.total_steps
     chunk = chunk or exp.loop.steps_per_episode
     dirs = [out / group.method / dir_name(p.name) for p in group.points]
+    writer = jax.process_index() == 0  # several hosts: every process computes, process 0 writes
     for d, p in zip(dirs, group.points):
+        if not writer:
+            break
         d.mkdir(parents=True, exist_ok=True)
         config = {"experiment": exp.to_dict(), "seeds": num_seeds, "root_seed": root_seed, "backend": jax.default_backend(),
                   "devices": [str(x) for x in mesh.devices.flat], "chunk": chunk, "jax": jax.__version__,
@@ -380,7 +383,7 @@ def run_group(built: BuiltGroup, *, out: pathlib.Path, num_seeds: int, root_seed
             first_chunk_s = time.time() - t0
         for k, v in flat.items():
             history.setdefault(k, []).append(v)
-        for p, d in enumerate(dirs):
+        for p, d in enumerate(dirs if writer else ()):
             reporting.append_jsonl(d / "metrics.jsonl", reporting.step_records(_point_rows(flat, p, num_seeds), range(num_seeds)))
         done += steps
         if bar is not None:
@@ -399,9 +402,10 @@ def run_group(built: BuiltGroup, *, out: pathlib.Path, num_seeds: int, root_seed
         # the group's runs shared the wall time: per run, divide by all of them
         summary.update(wall_time_per_seed_s=wall / (P * num_seeds), runs_in_group=P * num_seeds, group=group.label,
                        first_chunk_s=first_chunk_s, point=point.name, values=point.values)
-        (d / "summary.json").write_text(json.dumps(summary, indent=2))
-        if plots:
-            make_plots(exp, built.env, h, d)
+        if writer:
+            (d / "summary.json").write_text(json.dumps(summary, indent=2))
+            if plots:
+                make_plots(exp, built.env, h, d)
         rows.append({"method": group.method, "group": group.label, "point": point.name, "values": point.values,
                      "final_test_return_mean": summary["final_test_return_mean"],
                      "final_test_return_se": summary["final_test_return_se"], "seeds": num_seeds,
@@ -422,6 +426,7 @@ def run_sweep(groups: list[Group], *, out: pathlib.Path, make_experiment: Callab
               build: Callable, num_seeds: int, root_seed: int = 0, chunk: int | None = None, mesh=None,
               pad: bool = True, plots: bool = True, progress: bool = True) -> list[dict]:
     """Build every group first (all values validated before any compile), run them, write the sweep table."""
+    import jax
     from tqdm import tqdm
 
     from shed_jax import sharding
@@ -452,8 +457,9 @@ def run_sweep(groups: list[Group], *, out: pathlib.Path, make_experiment: Callab
         bar.close()
     result = {"rows": rows, "groups": [b.group.label for b in built], "seeds": num_seeds, "root_seed": root_seed,
               "devices": mesh.size, "wall_time_s": time.time() - t0}
-    (out / "sweep.json").write_text(json.dumps(result, indent=2))
-    (out / "sweep.md").write_text(table(rows) + "\n")
+    if jax.process_index() == 0:
+        (out / "sweep.json").write_text(json.dumps(result, indent=2))
+        (out / "sweep.md").write_text(table(rows) + "\n")
     return rows
 
 
