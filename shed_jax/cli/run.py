@@ -386,6 +386,8 @@ def _main(args) -> int:
                     bad.unlink(missing_ok=True)
                     reporting.append_jsonl(bad, reporting.step_records(flat, range(num_seeds)))
                     bar.close()
+                    if ckpt is not None:
+                        ckpt.wait()  # the previous chunk's save may still be in flight
                     last = ckpt.latest_step() if ckpt is not None else None
                     print(f"[shed_jax] non-finite values in budget steps {done}-{done + n - 1}; stopping without saving this chunk:",
                           file=sys.stderr)
