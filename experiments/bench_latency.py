@@ -79,6 +79,8 @@ def main(argv=None) -> int:
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--unroll", type=int, default=1)
+    p.add_argument("--velocity-iterations", type=int, default=None, help="lander solver override")
+    p.add_argument("--position-iterations", type=int, default=None, help="lander solver override")
     p.add_argument("--env", default="lander")
     p.add_argument("--batches", default="40,400,4096")
     p.add_argument("--steps", type=int, default=256)
@@ -86,8 +88,10 @@ def main(argv=None) -> int:
     p.add_argument("--skip-student", action="store_true")
     p.add_argument("--out", default=os.environ.get("OUT", "."))
     args = p.parse_args(argv)
-    env = envs.make(args.env, unroll=args.unroll)
-    res = dict(device=str(jax.devices()[0]), unroll=args.unroll, env=args.env, tag=args.tag,
+    solver = {k: v for k, v in (("velocity_iterations", args.velocity_iterations),
+                                ("position_iterations", args.position_iterations)) if v is not None}
+    env = envs.make(args.env, unroll=args.unroll, **solver)
+    res = dict(device=str(jax.devices()[0]), unroll=args.unroll, env=args.env, tag=args.tag, **solver,
                xla_flags=os.environ.get("XLA_FLAGS", ""), env_rows=[])
     for b in (int(x) for x in args.batches.split(",")):
         row = env_latency(env, b, args.steps)

@@ -36,7 +36,7 @@ def parse(argv=None):
     ap.add_argument("--iterations", type=_ints, default=[4])
     ap.add_argument("--ls-iterations", type=_ints, default=[5])
     ap.add_argument("--resolution", type=_ints, default=[4])
-    ap.add_argument("--upper-legs", type=_bools, default=[True])
+    ap.add_argument("--upper-legs", type=_bools, default=[False])
     ap.add_argument("--unroll", type=_bools, default=[False])
     ap.add_argument("--no-brax", action="store_true", help="skip the Brax walker2d anchor")
     ap.add_argument("--brax-substeps", type=int, default=4, help="Brax walker2d n_frames (4 = its default)")

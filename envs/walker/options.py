@@ -13,7 +13,9 @@ class WalkerOptions:
     ls_iterations:       line-search iterations per Newton iteration.
     terrain_resolution:  heightfield samples per TERRAIN_STEP (0.4667 m); faces are 1 sample wide.
     kv:                  velocity-servo gain of the motor (N m per rad/s), see docs/walker.md.
-    collide_upper_legs:  also collide the thighs with the ground (Box2D does; costs 2 more pairs).
+    collide_upper_legs:  also collide the thighs with the ground. Box2D does; off by default because the
+                         two extra heightfield pairs cost 39 % of the step at 32k envs on an H200
+                         (docs/benchmarks.md) and a thigh reaches the ground only in a deep kneel.
     max_boxes:           obstacle box slots per level (extra boxes are dropped; 64 covers FULL).
     z_span:              vertical extent of the heightfield above its per-level base (m).
     contact_threshold:   a lower leg touches the ground if a contact's distance is <= this (m).
@@ -25,7 +27,7 @@ class WalkerOptions:
     ls_iterations: int = 5
     terrain_resolution: int = 4
     kv: float = 20.0
-    collide_upper_legs: bool = True
+    collide_upper_legs: bool = False
     max_boxes: int = 64
     z_span: float = 100.0
     contact_threshold: float = 0.01
