@@ -406,7 +406,7 @@ class RunCheckpointer:
 # the non-finite guard
 # --------------------------------------------------------------------------------------------
 
-#: metrics the loop fills on every test step (NaN only between tests, with test_every > 1)
+#: metrics the loop fills on every test step (NaN on the steps LoopSpec.tests_at skips)
 TEST_METRICS = ("test_return", "test_return_per_level")
 
 
@@ -422,11 +422,13 @@ def _seeds_and_count(bad: np.ndarray) -> tuple[list[int], int]:
     return seeds, int(bad.sum())
 
 
-def find_nonfinite(metrics: dict[str, np.ndarray], state=None, start_step: int = 0, test_every: int = 1) -> list[str]:
+def find_nonfinite(metrics: dict[str, np.ndarray], state=None, start_step: int = 0, tests_at=None) -> list[str]:
     """Problems that must stop a run, one line each naming the component; empty if healthy.
 
     ``metrics``: one chunk's flattened metrics, leaves ``[seeds, steps, ...]`` for global budget
     steps ``start_step, start_step + 1, ...``. ``state``: the vmapped state after the chunk.
+    ``tests_at``: maps an array of global steps to whether the loop ran the test set there
+    (``LoopSpec.tests_at``); None means at every step.
 
     * every floating leaf of the parameters (``is_param_path``) must be finite (NaN or Inf);
     * floating metrics must not hold +-Inf;
@@ -456,7 +458,8 @@ def find_nonfinite(metrics: dict[str, np.ndarray], state=None, start_step: int =
         what = "Inf"
         if key in TEST_METRICS:
             steps = start_step + np.arange(x.shape[1])
-            tested = ((steps + 1) % test_every == 0).reshape((1, -1) + (1,) * (x.ndim - 2))
+            tested = np.ones(steps.shape, bool) if tests_at is None else np.asarray(tests_at(steps), bool)
+            tested = tested.reshape((1, -1) + (1,) * (x.ndim - 2))
             bad = bad | (np.isnan(x) & tested)
             what = "NaN/Inf"
         if bad.any():

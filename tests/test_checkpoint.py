@@ -300,13 +300,13 @@ def test_find_nonfinite_names_components():
         "info/extras/ppo/loss": np.array([[0.1, 0.2, -np.inf, 0.3], [0.1, 0.2, 0.3, 0.4]], np.float32),
         "step": np.array([[10, 11, 12, 13]] * 2, np.int32),
     }
-    problems = ck.find_nonfinite(metrics, state, start_step=10, test_every=2)
+    problems = ck.find_nonfinite(metrics, state, start_step=10, tests_at=LoopSpec(5, 4, test_every=2).tests_at)
     assert problems == [
         "method.ddpg.critic_params.k: Inf in 1 of 4 values (seed(s) [0]) after budget step 13",
         "metric info/extras/ppo/loss: Inf in 1 value(s) (seed(s) [0]), first at budget step 12",
     ]
     # with test_every 1 the NaN test returns at steps 10 and 12 are errors
-    problems = ck.find_nonfinite(metrics, None, start_step=10, test_every=1)
+    problems = ck.find_nonfinite(metrics, None, start_step=10, tests_at=LoopSpec(5, 4).tests_at)
     assert "metric test_return: NaN/Inf in 4 value(s) (seed(s) [0, 1]), first at budget step 10" in problems
     assert ck.find_nonfinite({"test_return": np.ones((2, 3), np.float32)}, None) == []
 

@@ -110,3 +110,39 @@ def test_vmapped_seeds_match_single_runs(setup):
 def test_loop_spec_validation():
     with pytest.raises(ValueError, match="steps_per_episode"):
         LoopSpec(steps_per_episode=0, num_episodes=1)
+
+
+def test_tests_at_schedule():
+    """Test steps: every `test_every`-th step, in episodes 0, K, 2K, ... and always the last episode."""
+    steps = np.arange(8)  # 4 episodes of 2 steps
+    np.testing.assert_array_equal(LoopSpec(2, 4).tests_at(steps), [True] * 8)
+    np.testing.assert_array_equal(LoopSpec(2, 4, test_episode_every=3).tests_at(steps),
+                                  [True, True, False, False, False, False, True, True])  # episodes 0 and 3 (last)
+    np.testing.assert_array_equal(LoopSpec(2, 4, test_episode_every=2).tests_at(steps),
+                                  [True, True, False, False, True, True, True, True])  # 0, 2 and 3 (last)
+    np.testing.assert_array_equal(LoopSpec(2, 4, test_every=2, test_episode_every=3).tests_at(steps),
+                                  [False, True, False, False, False, False, False, True])
+    # the same definition on traced values, as the compiled loop uses it
+    traced = jax.jit(jax.vmap(LoopSpec(2, 4, test_episode_every=3).tests_at))(jnp.arange(8))
+    np.testing.assert_array_equal(np.asarray(traced), LoopSpec(2, 4, test_episode_every=3).tests_at(steps))
+    with pytest.raises(ValueError, match="test_episode_every"):
+        LoopSpec(2, 4, test_episode_every=0)
+
+
+def test_skipping_test_episodes_changes_only_the_test_metrics(setup):
+    """Episodes without a test run give NaN test returns and leave training exactly as it was."""
+    env = envs.make("cartpole")
+    student = make_student(env, PPOConfig.for_env("cartpole", num_envs=4, num_steps=8, update_epochs=1, num_minibatches=1))
+    method = _UniformLevels(env, student)
+    test_levels = env.param_space.sample(jax.random.PRNGKey(7), (2,))
+    init_all, run_all = setup
+    spec = LoopSpec(steps_per_episode=2, num_episodes=3, test_episodes=1, test_max_steps=20, test_episode_every=2)
+    init, run = make_run(student, method, test_levels, spec)
+    key = jax.random.PRNGKey(5)
+    s_all, m_all = run_all(init_all(key), 6, 0)  # the fixture's loop tests at every step
+    s_skip, m_skip = jax.jit(run, static_argnums=1)(init(key), 6, 0)
+    ret_all, ret_skip = np.asarray(m_all["test_return"]), np.asarray(m_skip["test_return"])
+    np.testing.assert_array_equal(np.isnan(ret_skip), [False, False, True, True, False, False])
+    np.testing.assert_array_equal(ret_skip[[0, 1, 4, 5]], ret_all[[0, 1, 4, 5]])
+    np.testing.assert_array_equal(np.asarray(m_skip["info"].levels), np.asarray(m_all["info"].levels))
+    _allclose_trees(s_skip.student.params, s_all.student.params)

@@ -17,6 +17,11 @@ def test_paper_lander_budget_matches_spec():
     assert (e.loop.test_episodes, e.loop.test_max_steps, e.test_set) == (10, 500, "lander-test")
     dr = build_experiment("lander", "dr", "paper")
     assert dr.loop.num_episodes == 1 and dr.loop.total_steps * dr.env_steps_per_budget_step == 1_024_000
+    # the test set runs in teacher episodes 0, 10, ..., 40 and the last (49); baselines test always
+    tested = [ep for ep in range(50) if e.loop.tests_at(ep * 20)]
+    assert tested == [0, 10, 20, 30, 40, 49]
+    assert dr.loop.test_episode_every == 1
+    assert build_experiment("lander", "shed", "paper", test_episode_every=1).loop.test_episode_every == 1
 
 
 def test_walker_paper_budget_is_1e7_steps():

@@ -51,6 +51,9 @@ def add_arguments(p) -> None:
                    help=f"root seed (default {DEFAULT_ROOT_SEED}); seed i of the batch uses fold_in(root, i)")
     p.add_argument("--episodes", type=int, default=None, help="override the number of teacher episodes N_ep")
     p.add_argument("--steps-per-episode", type=int, default=None, help="override the budget steps per episode T")
+    p.add_argument("--test-episode-every", type=int, default=None, metavar="K",
+                   help="run the test set only in teacher episodes 0, K, 2K, ... and the last "
+                        "(default: paper preset 10 for shed/hmdp, else 1 = every episode)")
     p.add_argument("--chunk", type=int, default=None,
                    help="budget steps per compiled call, i.e. between checkpoints (default: T)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
@@ -150,7 +153,8 @@ def experiment_from_args(args, backend: str):
         print(f"[shed_jax] backend={backend}: using the '{preset}' preset "
               f"({'GPU budgets from SPEC 6.3' if preset == 'paper' else 'a CPU-sized smoke run; pass --preset paper for the real budget'})")
     return build_experiment(args.env or DEFAULT_ENV, args.method or DEFAULT_METHOD, preset, episodes=args.episodes,
-                            steps_per_episode=args.steps_per_episode, method_overrides=_parse_overrides(args.set))
+                            steps_per_episode=args.steps_per_episode, test_episode_every=args.test_episode_every,
+                            method_overrides=_parse_overrides(args.set))
 
 
 def _tuples(x):
@@ -278,7 +282,8 @@ def reconcile_metrics_jsonl(path: pathlib.Path, hist: dict, step: int, num_seeds
 
 
 def _experiment_flags_given(args) -> bool:
-    return any(getattr(args, k) is not None for k in ("env", "method", "preset", "episodes", "steps_per_episode")) or bool(args.set)
+    return any(getattr(args, k) is not None for k in ("env", "method", "preset", "episodes", "steps_per_episode",
+                                                  "test_episode_every")) or bool(args.set)
 
 
 def _resume_command(out: pathlib.Path) -> str:
@@ -380,7 +385,7 @@ def _main(args) -> int:
                 n = min(chunk, total - done)
                 new_state, metrics = run_chunk(state, n, done)
                 flat = reporting.flatten_tree(jax.device_get(metrics))
-                problems = find_nonfinite(flat, new_state, done, exp.loop.test_every)
+                problems = find_nonfinite(flat, new_state, done, exp.loop.tests_at)
                 if problems:
                     bad = out / "nonfinite_chunk.jsonl"
                     bad.unlink(missing_ok=True)
