@@ -137,3 +137,108 @@ def test_rasterise_hand_made_terrain():
     # Height lookup interpolates linearly across the one-cell face.
     x_mid = 30 * S - grid.dx / 2
     assert abs(float(T.height_at(jnp.asarray(prof), grid, jnp.float32(x_mid))) - 3.5) < 1e-4
+
+
+class _ReplayRNG:
+    """Stands in for Gymnasium's ``np_random`` inside ``BipedalWalker._generate_terrain``: each draw
+    returns what our generator makes of the same column's uniforms, so both generators see the same
+    random choices and their terrains must agree exactly. The column is read off the env's
+    ``terrain_x`` (appended at the start of every column)."""
+
+    def __init__(self, env, uniforms):
+        self.env, self.u, self.calls = env, np.asarray(uniforms, np.float64), []
+
+    def _col(self):
+        i = len(self.env.terrain_x) - 1
+        if not self.calls or self.calls[-1][0] != i:
+            self.calls.append((i, []))
+        return i, self.calls[-1][1]
+
+    def uniform(self, lo, hi):
+        i, seen = self._col()
+        seen.append("uniform")
+        assert (lo, hi) == (-1, 1)
+        return 2.0 * self.u[i, 0] - 1.0
+
+    def random(self):
+        i, seen = self._col()
+        seen.append("random")
+        return self.u[i, 4]
+
+    def integers(self, lo, hi):
+        i, seen = self._col()
+        pick = lambda v: min(int(np.floor(v * (hi - lo))), hi - lo - 1)  # noqa: E731
+        if (lo, hi) == (3, 5):  # pit gap, or the stair count after the stair width
+            v = self.u[i, 5] if "width" in seen else self.u[i, 1]
+        elif (lo, hi) == (4, 5):
+            seen.append("width")
+            return 4
+        elif (lo, hi) == (1, 3):
+            v = self.u[i, 2]
+        elif (lo, hi) == (5, 10):
+            v = self.u[i, 6]
+        elif (lo, hi) == (1, 4):
+            v = self.u[i, 7]
+        else:
+            raise AssertionError(f"unexpected draw integers({lo}, {hi})")
+        seen.append((lo, hi))
+        return lo + pick(v)
+
+
+def test_gym_hardcore_mode_equals_gymnasiums_generator():
+    """``gym_hardcore`` levels: Gymnasium's own BipedalWalkerHardcore generator, driven by the same
+    random choices, gives the same column heights and the same obstacle boxes."""
+    gym = pytest.importorskip("gymnasium")
+    env = gym.make("BipedalWalker-v3", hardcore=True).unwrapped
+    env.reset(seed=0)
+    level = make_params(roughness=7.0, stump_height_high=0.1, gym_hardcore=True)  # the 8 values are ignored
+    f = jax.jit(T.generate_from_uniforms)
+    kinds_seen = set()
+    for seed in range(6):
+        u = T.column_uniforms(jax.random.PRNGKey(seed))
+        ours = jax.tree_util.tree_map(np.asarray, f(u, level))
+        for body in env.terrain:  # only the terrain: the walker's bodies stay (a second _destroy would free them twice)
+            env.world.DestroyBody(body)
+        env._np_random = _ReplayRNG(env, u)
+        env._generate_terrain(True)
+        np.testing.assert_allclose(ours.x, env.terrain_x, atol=1e-4)
+        np.testing.assert_allclose(ours.y, env.terrain_y, atol=2e-4)
+        polys = [np.asarray(b.fixtures[0].shape.vertices) for b in env.terrain
+                 if len(b.fixtures[0].shape.vertices) == 4]  # obstacles; the ground edges have 2
+        gym_boxes = np.array([[p[:, 0].min(), p[:, 0].max(), p[:, 1].min(), p[:, 1].max()] for p in polys])
+        gym_boxes = gym_boxes[np.lexsort((gym_boxes[:, 2], gym_boxes[:, 0]))]  # Gymnasium reverses its list
+        assert int(ours.n_boxes) == len(gym_boxes)
+        np.testing.assert_allclose(ours.boxes[: len(gym_boxes)], gym_boxes, atol=2e-4)
+        kinds_seen |= set(np.unique(ours.kinds).tolist())
+    assert kinds_seen == {C.GRASS, C.STUMP, C.STAIRS, C.PIT}
+
+
+def test_gym_hardcore_shapes(gen):
+    """Square stumps of 1-2 steps, pits 3-4 steps between walls, staircases of 3-4 unit steps;
+    a DCD level with the same vector keeps DCD's shapes (the flag alone switches the rules)."""
+    t = gen(make_params(roughness=0.0, gym_hardcore=True))
+    stumps, gaps, runs = [], [], []
+    for i in range(N_SEEDS):
+        b = boxes_of(t, i)
+        k = t.kinds[i]
+        w, h = (b[:, 1] - b[:, 0]) / S, (b[:, 3] - b[:, 2]) / S
+        sq = np.isclose(w, h, atol=1e-3) & (w < 2.5)
+        stumps += w[sq].round(3).tolist()
+        walls = np.isclose(w, 1.0, atol=1e-3) & np.isclose(h, C.PIT_DEPTH, atol=1e-3)
+        wb = b[walls]
+        gaps += ((wb[1::2, 0] - wb[0::2, 0]) / S).round(3).tolist()
+        st = b[np.isclose(w, C.STAIR_WIDTH, atol=1e-3)]
+        np.testing.assert_allclose((st[:, 3] - st[:, 2]) / S, 1.0, atol=1e-3)
+        run = 1
+        for a, c in zip(st[:-1], st[1:]):
+            if abs(c[0] - a[1]) < 1e-4:
+                run += 1
+            else:
+                runs.append(run)
+                run = 1
+        if len(st):
+            runs.append(run)
+        assert np.any(k == C.STUMP) or np.any(k == C.STAIRS) or np.any(k == C.PIT)
+    assert set(stumps) == {1.0, 2.0} and set(gaps) == {3.0, 4.0} and set(runs) <= {3, 4} and len(runs) > 0
+    # Gymnasium BipedalWalkerHardcore, seeds 0-39 (measured 2026-11-22): 28.9 boxes per level
+    assert 26.0 < t.n_boxes.mean() < 32.0

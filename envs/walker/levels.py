@@ -13,9 +13,10 @@ import numpy as np
 from envs.walker.params import FULL_HIGH, FULL_LOW, PARAM_NAMES, WalkerParams, make_params, param_space
 
 
-def _lvl(roughness=0.0, pit=(0.0, 0.0), stump=(0.0, 0.0), stair=(0.0, 0.0), steps=1.0, max_steps=2000):
+def _lvl(roughness=0.0, pit=(0.0, 0.0), stump=(0.0, 0.0), stair=(0.0, 0.0), steps=1.0, max_steps=2000, gym_hardcore=False):
     return dict(
         max_steps=max_steps,
+        gym_hardcore=gym_hardcore,
         roughness=roughness,
         pit_gap_low=pit[0],
         pit_gap_high=pit[1],
@@ -34,10 +35,10 @@ def _rose(r, stump_lo, stump_hi, pit_hi, pit_lo):
 #: name -> WalkerParams fields (SPEC 5.5). Obstacle levels are flat (roughness 0) as in DCD.
 LEVEL_FIELDS: dict[str, dict] = {
     "BipedalWalker": _lvl(roughness=1.0, max_steps=1600),
-    # Approximation of Gymnasium's hardcore generator in the 8-vector: its stumps are 1-2 steps
-    # high (but square), stairs 1 step high (3-4 steps; here randint(5) -> 0..4), pits 3-4 steps
-    # between walls (DCD gap = 1 + U(2, 3)).
-    "Hardcore": _lvl(roughness=1.0, pit=(2.0, 3.0), stump=(1.0, 2.0), stair=(1.0, 1.0), steps=5.0),
+    # Gymnasium's own hardcore generator (gym_hardcore). The generator ignores the 8 values; they
+    # are the closest DCD vector (stumps 1-2 steps high, stairs 1 step high, pits 3-4 steps between
+    # walls), kept for whatever needs a level as a vector (plots, distances).
+    "Hardcore": _lvl(roughness=1.0, pit=(2.0, 3.0), stump=(1.0, 2.0), stair=(1.0, 1.0), steps=5.0, gym_hardcore=True),
     "Stairs": _lvl(stair=(2.0, 2.0), steps=5.0),
     "PitGap": _lvl(pit=(5.0, 5.0)),
     "Stump": _lvl(stump=(2.0, 2.0)),

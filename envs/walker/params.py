@@ -29,7 +29,8 @@ class WalkerParams(EnvParams):
 
     A level is (the 8 parameters, ``terrain_seed``). With ``fixed_terrain`` every reset rebuilds the
     same terrain from ``terrain_seed`` (exact replay for PLR/ACCEL); otherwise each reset draws a
-    new terrain of the same parameters from the reset key.
+    new terrain of the same parameters from the reset key. ``gym_hardcore`` switches the generator
+    to Gymnasium's BipedalWalkerHardcore rules (``envs.walker.terrain``).
     """
 
     max_steps: jax.Array = struct.field(default_factory=lambda: jnp.int32(2000))
@@ -43,6 +44,9 @@ class WalkerParams(EnvParams):
     stair_steps: jax.Array = struct.field(default_factory=lambda: jnp.float32(1.0))
     terrain_seed: jax.Array = struct.field(default_factory=lambda: jnp.int32(0))
     fixed_terrain: jax.Array = struct.field(default_factory=lambda: jnp.bool_(False))
+    # Gymnasium's own hardcore generator instead of DCD's parametric one (the "Hardcore" test
+    # level): the 8 parameters are then ignored. Not teacher-controlled (not in the vector).
+    gym_hardcore: jax.Array = struct.field(default_factory=lambda: jnp.bool_(False))
 
 
 def make_params(**fields) -> WalkerParams:

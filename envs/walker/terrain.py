@@ -9,6 +9,14 @@ so physics, sensing and drawing agree).
 
 Everything is pure jnp on scalars and fixed-size arrays, so a batch of different levels is one
 ``vmap``. Any parameter vector is valid: pairs are sorted and thresholds applied here.
+
+A level with ``gym_hardcore`` set runs Gymnasium's BipedalWalkerHardcore rules instead (SPEC 5.2),
+in the same scan, selected per level so that one batch can mix both: every obstacle type present,
+roughness 1, square stumps of 1 or 2 steps (the counter restarts at the stump's size), pits 3 or 4
+steps between walls with no fractional part, staircases of 3 or 4 steps of height 1 and width 4
+(counter = steps x 4), and Gymnasium's stair polyline: the column height ramps linearly,
+``y_o + (steps*4 - counter - slope) / 4 * slope`` steps, so in the second half of each step the
+polyline rises above the step's box (and, being ground, is walked on there).
 """
 from __future__ import annotations
 
@@ -91,18 +99,31 @@ class _Carry:
 
 def generate(key: jax.Array, level: Any, max_boxes: int = 64, unroll: int = 1) -> Terrain:
     """Run the column state machine. ``level`` has the 8 DCD fields (e.g. ``WalkerParams``)."""
+    return generate_from_uniforms(column_uniforms(key), level, max_boxes, unroll)
+
+
+def column_uniforms(key: jax.Array) -> jax.Array:
+    """The generator's random numbers: 8 uniforms per column, drawn up front in one call (threefry
+    inside the scan body would dominate its cost). Column i uses row i: [0] grass walk, [1] pit gap,
+    [2] stump size, [3] stair height, [4] stair direction, [5] stair count, [6] grass counter,
+    [7] next obstacle type."""
+    return jax.random.uniform(key, (C.TERRAIN_LENGTH, 8), jnp.float32)
+
+
+def generate_from_uniforms(uniforms: jax.Array, level: Any, max_boxes: int = 64, unroll: int = 1) -> Terrain:
+    """``generate`` with its random numbers given (``[200, 8]``, see ``column_uniforms``)."""
     lv = process(level)
     S = C.TERRAIN_STEP
-    hardcore = lv.has_stump | lv.has_stairs | lv.has_pit
-    present = jnp.stack([lv.has_stump, lv.has_stairs, lv.has_pit])
+    gym = jnp.asarray(getattr(level, "gym_hardcore", False), bool)
+    hardcore = gym | lv.has_stump | lv.has_stairs | lv.has_pit
+    present = jnp.stack([lv.has_stump, lv.has_stairs, lv.has_pit]) | gym
+    roughness = jnp.where(gym, 1.0, lv.roughness)
     w = C.STAIR_WIDTH
 
     n_present = jnp.sum(present)
 
     def column(carry: _Carry, inp):
-        # u: this column's 8 uniforms, drawn up front in one call (threefry inside the scan body
-        # would dominate its cost).
-        i, u = inp
+        i, u = inp  # u: this column's 8 uniforms
         x = i.astype(jnp.float32) * S
         st, one = carry.state, carry.oneshot
         y, vel, counter = carry.y, carry.velocity, carry.counter
@@ -114,7 +135,7 @@ def generate(key: jax.Array, level: Any, max_boxes: int = 64, unroll: int = 1) -
         v_new = 0.8 * vel + 0.01 * jnp.sign(C.TERRAIN_HEIGHT - y)
         v_new = v_new + jnp.where(i > C.TERRAIN_STARTPAD, (2.0 * u[0] - 1.0) / C.SCALE, 0.0)
         vel = jnp.where(grass, v_new, vel)
-        y = jnp.where(grass, y + lv.roughness * v_new, y)
+        y = jnp.where(grass, y + roughness * v_new, y)
 
         cand = jnp.zeros((BOX_SLOTS_PER_COLUMN, 4), jnp.float32)
         cand_ok = jnp.zeros((BOX_SLOTS_PER_COLUMN,), bool)
@@ -122,6 +143,7 @@ def generate(key: jax.Array, level: Any, max_boxes: int = 64, unroll: int = 1) -
         # PIT oneshot: two walls, gap 1 + U(lo, hi) steps apart.
         pit_one = (st == C.PIT) & one
         gap = 1.0 + lv.pit[0] + u[1] * (lv.pit[1] - lv.pit[0])
+        gap = jnp.where(gym, 3.0 + jnp.minimum(jnp.floor(2.0 * u[1]), 1.0), gap)  # randint(3, 5)
         c_gap = jnp.ceil(gap)
         wall1 = jnp.stack([x, x + S, y - C.PIT_DEPTH * S, y])
         wall2 = wall1 + jnp.stack([gap * S, gap * S, 0.0, 0.0])
@@ -139,16 +161,24 @@ def generate(key: jax.Array, level: Any, max_boxes: int = 64, unroll: int = 1) -
         pit_diff = jnp.where(closing, 0.0, pit_diff)
 
         # STUMP oneshot: width 1, float 0, height U(lo, hi) steps; the counter is not reset.
+        # Gymnasium: a square of randint(1, 3) steps, and the counter restarts at that size.
         stump_one = (st == C.STUMP) & one
         h_stump = lv.stump[0] + u[2] * (lv.stump[1] - lv.stump[0])
-        cand = jnp.where(stump_one, cand.at[0].set(jnp.stack([x, x + S, y, y + h_stump * S])), cand)
+        size_gym = 1.0 + jnp.minimum(jnp.floor(2.0 * u[2]), 1.0)
+        h_stump = jnp.where(gym, size_gym, h_stump)
+        w_stump = jnp.where(gym, size_gym, 1.0)
+        cand = jnp.where(stump_one, cand.at[0].set(jnp.stack([x, x + w_stump * S, y, y + h_stump * S])), cand)
         cand_ok = jnp.where(stump_one, cand_ok.at[0].set(True), cand_ok)
+        counter = jnp.where(stump_one & gym, size_gym.astype(jnp.int32), counter)
 
         # STAIRS oneshot: N = randint(steps) boxes of width 4, height h, slope +-1 (if h > 0.01).
         stairs_one = (st == C.STAIRS) & one
         h_new = lv.stair[0] + u[3] * (lv.stair[1] - lv.stair[0])
         slope_new = jnp.where(u[4] > 0.5, 1.0, -1.0)
         n_new = jnp.minimum(jnp.floor(u[5] * lv.steps).astype(jnp.int32), lv.steps - 1)  # randint(steps)
+        # Gymnasium: height 1, randint(3, 5) steps
+        h_new = jnp.where(gym, 1.0, h_new)
+        n_new = jnp.where(gym, 3 + jnp.minimum(jnp.floor(2.0 * u[5]), 1.0).astype(jnp.int32), n_new)
         s_idx = jnp.arange(BOX_SLOTS_PER_COLUMN, dtype=jnp.float32)
         stair_boxes = jnp.stack(
             [
@@ -162,7 +192,7 @@ def generate(key: jax.Array, level: Any, max_boxes: int = 64, unroll: int = 1) -
         build = stairs_one & (h_new > 0.01)
         cand = jnp.where(build, stair_boxes, cand)
         cand_ok = jnp.where(build, s_idx < n_new, cand_ok)
-        counter = jnp.where(build, n_new * w + 1, counter)
+        counter = jnp.where(build, n_new * w + jnp.where(gym, 0, 1), counter)
         y_orig = jnp.where(stairs_one, y, y_orig)
         s_h = jnp.where(stairs_one, h_new, s_h)
         s_slope = jnp.where(stairs_one, slope_new, s_slope)
@@ -173,6 +203,8 @@ def generate(key: jax.Array, level: Any, max_boxes: int = 64, unroll: int = 1) -
         s_pos = s_n * w - counter
         n_done = jnp.floor_divide(s_pos, w).astype(jnp.float32)
         y_stairs = y_orig + (n_done * s_h * s_slope - jnp.where(s_slope < 0, s_h, 0.0)) * S
+        y_ramp = y_orig + (s_pos.astype(jnp.float32) - s_slope) / w * s_slope * S  # Gymnasium's rule
+        y_stairs = jnp.where(gym, y_ramp, y_stairs)
         y = jnp.where(stairs_walk, y_stairs, y)
 
         # Append this column's boxes (compacted; slots beyond max_boxes are dropped).
@@ -212,7 +244,6 @@ def generate(key: jax.Array, level: Any, max_boxes: int = 64, unroll: int = 1) -
         n_boxes=jnp.int32(0),
     )
     idx = jnp.arange(C.TERRAIN_LENGTH, dtype=jnp.int32)
-    uniforms = jax.random.uniform(key, (C.TERRAIN_LENGTH, 8), jnp.float32)
     carry, (xs, ys, kinds) = jax.lax.scan(column, init, (idx, uniforms), unroll=unroll)
     valid = jnp.arange(max_boxes) < carry.n_boxes
     return Terrain(x=xs, y=ys, boxes=carry.boxes, box_valid=valid, n_boxes=carry.n_boxes, kinds=kinds)
