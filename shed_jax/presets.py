@@ -96,7 +96,7 @@ def build_experiment(env: str, method: str, preset: str, *, episodes: int | None
             mcfg.update(num_eval_episodes=1, eval_max_steps=test["test_max_steps"])
     T = steps_per_episode or T
     # SHED/h-MDP paper runs: test the students of teacher episodes 0, 10, 20, ... and the last
-    # (SPEC 3.3 reports the first and last episodes), which should save about a fifth of the run's time (estimated from step counts)
+    # (SPEC 3.3 reports the first and last episodes); by step counts this saves about a fifth
     test_ep = 10 if (preset == "paper" and episodic) else 1
     test_ep = test_episode_every or test_ep
     if episodic:
