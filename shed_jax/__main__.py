@@ -9,6 +9,10 @@ import argparse
 import importlib
 import sys
 
+from shed_jax.xla_cpu import single_thread_eigen
+
+single_thread_eigen()  # before any JAX computation (shed_jax/xla_cpu.py says why)
+
 COMMANDS = {
     "demo": "roll out a built-in controller on generated levels; print a table and write a GIF",
     "ppo": "train the PPO student on fixed levels",
