@@ -110,6 +110,11 @@ def column_uniforms(key: jax.Array) -> jax.Array:
     return jax.random.uniform(key, (C.TERRAIN_LENGTH, 8), jnp.float32)
 
 
+def _randint(u: jax.Array, low: int, high: int) -> jax.Array:
+    """numpy's ``integers(low, high)`` (high exclusive) from one uniform in [0, 1), as a float."""
+    return low + jnp.minimum(jnp.floor(u * (high - low)), high - low - 1.0)
+
+
 def generate_from_uniforms(uniforms: jax.Array, level: Any, max_boxes: int = 64, unroll: int = 1) -> Terrain:
     """``generate`` with its random numbers given (``[200, 8]``, see ``column_uniforms``)."""
     lv = process(level)
@@ -143,7 +148,7 @@ def generate_from_uniforms(uniforms: jax.Array, level: Any, max_boxes: int = 64,
         # PIT oneshot: two walls, gap 1 + U(lo, hi) steps apart.
         pit_one = (st == C.PIT) & one
         gap = 1.0 + lv.pit[0] + u[1] * (lv.pit[1] - lv.pit[0])
-        gap = jnp.where(gym, 3.0 + jnp.minimum(jnp.floor(2.0 * u[1]), 1.0), gap)  # randint(3, 5)
+        gap = jnp.where(gym, _randint(u[1], 3, 5), gap)
         c_gap = jnp.ceil(gap)
         wall1 = jnp.stack([x, x + S, y - C.PIT_DEPTH * S, y])
         wall2 = wall1 + jnp.stack([gap * S, gap * S, 0.0, 0.0])
@@ -164,7 +169,7 @@ def generate_from_uniforms(uniforms: jax.Array, level: Any, max_boxes: int = 64,
         # Gymnasium: a square of randint(1, 3) steps, and the counter restarts at that size.
         stump_one = (st == C.STUMP) & one
         h_stump = lv.stump[0] + u[2] * (lv.stump[1] - lv.stump[0])
-        size_gym = 1.0 + jnp.minimum(jnp.floor(2.0 * u[2]), 1.0)
+        size_gym = _randint(u[2], 1, 3)
         h_stump = jnp.where(gym, size_gym, h_stump)
         w_stump = jnp.where(gym, size_gym, 1.0)
         cand = jnp.where(stump_one, cand.at[0].set(jnp.stack([x, x + w_stump * S, y, y + h_stump * S])), cand)
@@ -178,7 +183,7 @@ def generate_from_uniforms(uniforms: jax.Array, level: Any, max_boxes: int = 64,
         n_new = jnp.minimum(jnp.floor(u[5] * lv.steps).astype(jnp.int32), lv.steps - 1)  # randint(steps)
         # Gymnasium: height 1, randint(3, 5) steps
         h_new = jnp.where(gym, 1.0, h_new)
-        n_new = jnp.where(gym, 3 + jnp.minimum(jnp.floor(2.0 * u[5]), 1.0).astype(jnp.int32), n_new)
+        n_new = jnp.where(gym, _randint(u[5], 3, 5).astype(jnp.int32), n_new)
         s_idx = jnp.arange(BOX_SLOTS_PER_COLUMN, dtype=jnp.float32)
         stair_boxes = jnp.stack(
             [
