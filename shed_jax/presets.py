@@ -98,7 +98,8 @@ def build_experiment(env: str, method: str, preset: str, *, episodes: int | None
     # SHED/h-MDP paper runs: test the students of teacher episodes 0, 10, 20, ... and the last
     # (SPEC 3.3 reports the first and last episodes); by step counts this saves about a fifth
     test_ep = 10 if (preset == "paper" and episodic) else 1
-    test_ep = test_episode_every or test_ep
+    if test_episode_every is not None:  # LoopSpec rejects values < 1
+        test_ep = test_episode_every
     if episodic:
         mcfg["budget_steps"] = T  # the teacher's done flag marks the T-th transition
     if method_overrides:

@@ -48,16 +48,19 @@ class _UniformLevels:
         return {**mstate, "calls": mstate["calls"] + 1}, sstate, info
 
 
-@pytest.fixture(scope="module")
-def setup():
+def _cartpole_loop(spec: LoopSpec):
+    """``init`` and the jitted ``run`` of the test method on a tiny cartpole student."""
     env = envs.make("cartpole")
     student = make_student(env, PPOConfig.for_env("cartpole", num_envs=4, num_steps=8, update_epochs=1, num_minibatches=1))
     method = _UniformLevels(env, student)
     test_levels = env.param_space.sample(jax.random.PRNGKey(7), (2,))
-    spec = LoopSpec(steps_per_episode=2, num_episodes=2, test_episodes=1, test_max_steps=20)
     init, run = make_run(student, method, test_levels, spec)
-    run_jit = jax.jit(run, static_argnums=1)
-    return init, run_jit
+    return init, jax.jit(run, static_argnums=1)
+
+
+@pytest.fixture(scope="module")
+def setup():
+    return _cartpole_loop(LoopSpec(steps_per_episode=2, num_episodes=2, test_episodes=1, test_max_steps=20))
 
 
 def _allclose_trees(a, b):
@@ -131,16 +134,12 @@ def test_tests_at_schedule():
 
 def test_skipping_test_episodes_changes_only_the_test_metrics(setup):
     """Episodes without a test run give NaN test returns and leave training exactly as it was."""
-    env = envs.make("cartpole")
-    student = make_student(env, PPOConfig.for_env("cartpole", num_envs=4, num_steps=8, update_epochs=1, num_minibatches=1))
-    method = _UniformLevels(env, student)
-    test_levels = env.param_space.sample(jax.random.PRNGKey(7), (2,))
     init_all, run_all = setup
-    spec = LoopSpec(steps_per_episode=2, num_episodes=3, test_episodes=1, test_max_steps=20, test_episode_every=2)
-    init, run = make_run(student, method, test_levels, spec)
+    init, run = _cartpole_loop(LoopSpec(steps_per_episode=2, num_episodes=3, test_episodes=1, test_max_steps=20,
+                                        test_episode_every=2))
     key = jax.random.PRNGKey(5)
     s_all, m_all = run_all(init_all(key), 6, 0)  # the fixture's loop tests at every step
-    s_skip, m_skip = jax.jit(run, static_argnums=1)(init(key), 6, 0)
+    s_skip, m_skip = run(init(key), 6, 0)
     ret_all, ret_skip = np.asarray(m_all["test_return"]), np.asarray(m_skip["test_return"])
     np.testing.assert_array_equal(np.isnan(ret_skip), [False, False, True, True, False, False])
     np.testing.assert_array_equal(ret_skip[[0, 1, 4, 5]], ret_all[[0, 1, 4, 5]])

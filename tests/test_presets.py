@@ -22,6 +22,8 @@ def test_paper_lander_budget_matches_spec():
     assert tested == [0, 10, 20, 30, 40, 49]
     assert dr.loop.test_episode_every == 1
     assert build_experiment("lander", "shed", "paper", test_episode_every=1).loop.test_episode_every == 1
+    with pytest.raises(ValueError, match="test_episode_every"):  # 0 is an error, not "use the default"
+        build_experiment("lander", "shed", "paper", test_episode_every=0)
 
 
 def test_walker_paper_budget_is_1e7_steps():
