@@ -10,33 +10,43 @@ Sections (each is independent; a failure is recorded in results.json and the nex
                               final evaluation return per seed (stochastic and deterministic
                               policy), compile time, env steps/s and wall time.
   walker                      4 vmapped seeds on a flat level (`--walker-level`, default
-                              "BipedalWalker") up to `--walker-steps`.
-  brax                        Brax's own PPO (brax.training.agents.ppo.train) on the continuous
-                              lander through a thin adapter to brax's Env interface, with the
+                              "BipedalWalker") up to `--walker-steps`; target 230.
+  brax                        Brax's own PPO (brax.training.agents.ppo.train) on `--brax-env`
+                              (lander-continuous or walker; Brax's PPO has only tanh-Gaussian
+                              policies) through a thin adapter to brax's Env interface, with the
                               same network sizes and PPO settings, `--brax-seeds` runs one after
                               another; reports env steps/s and the final evaluation return, and
-                              their ratios to ours at equal env steps. Brax's PPO has only
-                              continuous (tanh-Gaussian) policies, hence lander-continuous.
-Any registered env works for the first kind of section (e.g. --sections cartpole). One device
-command may run at most 10 minutes, so run the sections as separate commands, e.g.
-    python -m experiments.bench_ppo --sections lander --out $OUT/lander
+                              their ratios to ours at equal env steps.
+Options for long runs: `--ppo KEY=VALUE ...` overrides the preset (e.g. num_envs=2048);
+`--stop-at R` ends a student section once the median training return reaches R; `--log FILE`
+appends one JSON line per chunk; `--ckpt DIR` saves the learning state after every chunk and
+continues from it when run again (`--time-limit S` stops in time for the next device call, and
+`--eval-only` only evaluates the checkpoint). One device command may run at most 10 minutes:
+    python -m experiments.bench_ppo --sections walker --ppo num_envs=2048 --stop-at 230 \
+        --walker-steps 100000000 --chunks 100 --ckpt /tmp/wck --time-limit 500 --out $OUT/walker
 Writes OUT/results.json and OUT/<section>_curve.png.
 """
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import functools
 import json
 import os
 import pathlib
 import time
 import traceback
+import warnings
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-TARGET = 200.0
+TARGETS = {"walker": 230.0}  # issue 4: walker >= 230, the landers >= 200
+
+
+def target_of(env_name):
+    return TARGETS.get(env_name, 200.0)
 
 
 def first_crossing(x, y, target):
@@ -45,22 +55,164 @@ def first_crossing(x, y, target):
     return None if idx.size == 0 else int(x[idx[0]])
 
 
-def bench_student(env_name, total_steps, seeds, out, level_name=None, chunks=20, eval_episodes=16, seed=0):
+def parse_overrides(items) -> dict:
+    """``["num_envs=2048", "ent_coef=0"]`` -> {"num_envs": 2048, "ent_coef": 0.0}: PPOConfig fields
+    (ints, floats, bools, int tuples such as ``actor_hidden=256,256``) and PPOHyperparams fields."""
+    from shed_jax.student import PPOConfig, PPOHyperparams
+
+    cfg_fields = {f.name: f for f in dataclasses.fields(PPOConfig)}
+    hp_fields = set(PPOHyperparams.__dataclass_fields__)
+    out = {}
+    for item in items or []:
+        if "=" not in item:
+            raise ValueError(f"--ppo takes KEY=VALUE, got {item!r}")
+        key, value = item.split("=", 1)
+        if key in hp_fields:
+            out[key] = float(value)
+        elif key in cfg_fields and key != "hparams":
+            default = getattr(PPOConfig(), key)
+            if isinstance(default, bool):
+                if value.lower() not in ("true", "false", "1", "0"):
+                    raise ValueError(f"--ppo {key} takes true or false, got {value!r}")
+                out[key] = value.lower() in ("true", "1")
+            elif isinstance(default, tuple):
+                out[key] = tuple(int(v) for v in value.split(","))
+            elif isinstance(default, int):
+                out[key] = int(value)
+            elif isinstance(default, float):
+                out[key] = float(value)
+            else:
+                out[key] = value
+        else:
+            known = sorted((set(cfg_fields) - {"hparams"}) | hp_fields)
+            raise ValueError(f"--ppo: unknown field {key!r}; known: {', '.join(known)}")
+    return out
+
+
+def make_config(env_name, overrides=None):
+    """The env's PPO preset with ``overrides`` (from parse_overrides) applied."""
+    from shed_jax.student import PPOConfig, PPOHyperparams
+
+    config = PPOConfig.for_env(env_name) if env_name in ("lander", "lander-continuous", "walker", "cartpole") else PPOConfig()
+    overrides = dict(overrides or {})
+    hp = {k: overrides.pop(k) for k in list(overrides) if k in PPOHyperparams.__dataclass_fields__}
+    if hp:
+        overrides["hparams"] = config.hparams.replace(**hp)
+    return config.replace(**overrides) if overrides else config
+
+
+def _learning_state(states):
+    """What a resumed run keeps: everything but the env slots (those are reset on resume)."""
+    return states.replace(env_state=None, obs=None, levels=None)
+
+
+def save_checkpoint(ckpt, states, history, meta):
+    """Atomic save of the learning state, the per-update metrics so far and `meta` into `ckpt`."""
+    ckpt.mkdir(parents=True, exist_ok=True)
+    leaves = jax.tree_util.tree_leaves(jax.device_get(_learning_state(states)))
+    metrics = {k: np.concatenate([h[k] for h in history], axis=1) for k in history[0]}
+    for name, arrays in (("state", {f"a{i}": x for i, x in enumerate(leaves)}), ("metrics", metrics)):
+        with open(ckpt / f"{name}.tmp.npz", "wb") as f:
+            np.savez(f, **arrays)
+        os.replace(ckpt / f"{name}.tmp.npz", ckpt / f"{name}.npz")
+    (ckpt / "meta.tmp.json").write_text(json.dumps(meta))
+    os.replace(ckpt / "meta.tmp.json", ckpt / "meta.json")
+
+
+def load_checkpoint(ckpt, meta_expected):
+    """(chunks_done, restore_fn, history) from `ckpt`, or (0, None, []) if it holds none.
+    A checkpoint of another configuration is an error, never silently restarted."""
+    if not (ckpt / "meta.json").exists():
+        return 0, None, []
+    meta = json.loads((ckpt / "meta.json").read_text())
+    diff = {k: (meta.get(k), v) for k, v in meta_expected.items() if meta.get(k) != v}
+    if diff:
+        raise ValueError(f"checkpoint {ckpt} is from another run configuration (saved, now): {diff}")
+    with np.load(ckpt / "state.npz") as z:
+        leaves = [z[f"a{i}"] for i in range(len(z.files))]
+    with np.load(ckpt / "metrics.npz") as z:
+        history = [{k: z[k] for k in z.files}]
+
+    def restore(states):
+        treedef = jax.tree_util.tree_structure(_learning_state(states))
+        saved = jax.tree_util.tree_unflatten(treedef, [jnp.asarray(x) for x in leaves])
+        return states.replace(params=saved.params, opt_state=saved.opt_state, hparams=saved.hparams,
+                              obs_norm=saved.obs_norm, ret_norm=saved.ret_norm.reset(), update_step=saved.update_step)
+
+    return int(meta["chunks_done"]), restore, history
+
+
+def bench_student(env_name, total_steps, seeds, out, level_name=None, chunks=20, eval_episodes=16, seed=0,
+                  overrides=None, stop_at=None, log_path=None, ckpt=None, time_limit=None, eval_only=False):
+    """Train `seeds` vmapped students; ``stop_at``: stop after the first chunk at whose end the
+    median over seeds of the training return (whole chunk) is >= stop_at.
+    ``log_path``: one JSON line per chunk (env steps, per-seed return, elapsed seconds).
+    ``ckpt``: a directory; the learning state is saved there after every chunk, and a run that
+    finds a checkpoint there continues from it (with freshly reset env slots: episodes running at
+    the save are cut, which is the only difference from an uninterrupted run).
+    ``time_limit``: seconds; stop after the chunk after which another chunk would not fit.
+    ``eval_only``: restore the checkpoint and only evaluate it (curve from the saved metrics)."""
     import envs
     from shed_jax import reporting
     from shed_jax.cli.ppo import resolve_level, smoothed, train_seeds
-    from shed_jax.student import PPOConfig, PPOHyperparams, make_student
+    from shed_jax.student import PPOHyperparams, make_student
 
     env = envs.make(env_name)
-    config = PPOConfig.for_env(env_name) if env_name in ("lander", "lander-continuous", "walker", "cartpole") else PPOConfig()
+    config = make_config(env_name, overrides)
     student = make_student(env, config)
     level = resolve_level(env, level_name)
     keys = jax.random.split(jax.random.PRNGKey(seed), seeds)
     hps = PPOHyperparams.stack([config.hparams] * seeds)
     num_updates = -(-total_steps // student.env_steps_per_update)
+    chunks = max(1, min(chunks, num_updates))
+    per_chunk = -(-num_updates // chunks)
+    t_start = time.perf_counter()
+    ckpt = None if ckpt is None else pathlib.Path(ckpt)
+    meta = {"env": env_name, "level": level_name, "seeds": seeds, "seed": seed, "chunks": chunks,
+            "per_chunk": per_chunk, "config": repr(config)}
+    start_chunk, restore, history = (0, None, []) if ckpt is None else load_checkpoint(ckpt, meta)
+    if eval_only:
+        if not start_chunk:
+            raise ValueError(f"--eval-only needs a checkpoint in --ckpt; none in {ckpt}")
+        chunks = start_chunk  # train nothing more: restore, then evaluate
+    if start_chunk:
+        print(f"resuming from {ckpt} after chunk {start_chunk} of {chunks}", flush=True)
+
+    stop = {}
+
+    def on_chunk(c, states, m):
+        # mean over the whole chunk of the training episodes that ended in it (NaN: none ended;
+        # long episodes on a synchronised batch, e.g. the walker's 2000 steps, can skip a chunk)
+        with np.errstate(invalid="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            ret = np.nanmean(m["episode_return"], axis=1)
+            med = float(np.nanmedian(ret))
+        if log_path is not None:
+            with open(log_path, "a") as f:
+                f.write(json.dumps({"chunk": c, "env_steps_per_seed": (c + 1) * per_chunk * student.env_steps_per_update,
+                                    "train_return": ret.tolist(), "median": med,
+                                    "elapsed_s": time.perf_counter() - t_start}) + "\n")
+        history.append(m)
+        if ckpt is not None:
+            save_checkpoint(ckpt, states, history, dict(meta, chunks_done=c + 1))
+        if stop_at is not None and med >= stop_at:
+            stop["reason"] = f"median training return {med:.1f} >= {stop_at}"
+        elapsed = time.perf_counter() - t_start
+        stop["chunk_s"] = elapsed - stop.get("elapsed", 0.0)
+        stop["elapsed"] = elapsed
+        if time_limit is not None and elapsed + 1.2 * stop["chunk_s"] > time_limit:
+            stop.setdefault("reason", f"time limit {time_limit:.0f} s")
+        return "reason" in stop
+
     t0 = time.perf_counter()
-    states, metrics, timing = train_seeds(student, keys, hps, level, num_updates, chunks, progress=True)
+    states, _, timing = train_seeds(student, keys, hps, level, chunks * per_chunk, chunks, progress=True,
+                                    on_chunk=on_chunk, start_chunk=start_chunk, restore=restore)
     train_wall = time.perf_counter() - t0
+    metrics = {k: np.concatenate([h[k] for h in history], axis=1) for k in history[0]}
+    if stop.get("reason", "").startswith("time limit"):  # to be continued from the checkpoint
+        return {"env": env_name, "seeds": seeds, "stop_reason": stop["reason"], "resumed_from_chunk": start_chunk,
+                "env_steps_per_seed": timing["env_steps_per_seed"], "compile_s": timing["compile_s"],
+                "train_s": timing["train_s"], "env_steps_per_s": timing["env_steps_per_s"]}
 
     levels = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[None], level)
     final = {}
@@ -73,15 +225,22 @@ def bench_student(env_name, total_steps, seeds, out, level_name=None, chunks=20,
     reporting.plot_curves({env_name: (x, curve)}, out / f"{env_name}_curve.png", xlabel="env steps per seed",
                           ylabel="training episode return (10-update avg)",
                           title=f"PPO student on {env_name}{' / ' + level_name if level_name else ''}: {seeds} seeds",
-                          references={str(TARGET): TARGET})
+                          references={str(target_of(env_name)): target_of(env_name)})
     stride = max(1, len(x) // 300)
     return {
         "env": env_name, "level": level_name, "seeds": seeds,
+        "config": {k: v for k, v in dataclasses.asdict(config).items() if k != "hparams"},
+        "hparams": {f: float(getattr(config.hparams, f)) for f in PPOHyperparams.__dataclass_fields__},
+        "stop_reason": stop.get("reason"),
+        "resumed_from_chunk": start_chunk,
         "env_steps_per_seed": timing["env_steps_per_seed"],
         "compile_s": timing["compile_s"], "train_s": timing["train_s"], "wall_s": train_wall,
         "env_steps_per_s": timing["env_steps_per_s"],
-        "median_reaches_200_at": first_crossing(x, median, TARGET),
-        "seeds_reaching_200_within_1e6": int(sum(first_crossing(x, c, TARGET) is not None and first_crossing(x, c, TARGET) <= 1_000_000 for c in curve)),
+        "target": target_of(env_name),
+        "median_reaches_target_at": first_crossing(x, median, target_of(env_name)),
+        "seeds_reaching_target_within_1e6": int(sum(
+            first_crossing(x, c, target_of(env_name)) is not None and first_crossing(x, c, target_of(env_name)) <= 1_000_000
+            for c in curve)),
         "final_eval_stochastic": final["stochastic"].mean(1).tolist(),
         "final_eval_deterministic": final["deterministic"].mean(1).tolist(),
         "final_eval_median_stochastic": float(np.median(final["stochastic"].mean(1))),
@@ -151,21 +310,24 @@ def make_brax_adapter(env, level):
     return Adapter()
 
 
-def bench_brax(env_name, total_steps, seeds, ours):
+def bench_brax(env_name, total_steps, seeds, ours, level_name=None, overrides=None, seed0=0):
     import envs
     from brax.envs.wrappers.training import VmapWrapper
     from brax.training.agents.ppo import networks as ppo_networks
     from brax.training.agents.ppo import train as ppo
     from shed_jax.student import PPOConfig
 
+    from shed_jax.cli.ppo import resolve_level
+
     _brax_compat()
     env = envs.make(env_name)
-    cfg = PPOConfig.for_env(env_name)
+    cfg = make_config(env_name, overrides)
     hp = cfg.hparams
-    adapter = make_brax_adapter(env, env.default_params)
-    max_steps = int(env.default_params.max_steps)
+    level = resolve_level(env, level_name)
+    adapter = make_brax_adapter(env, level)
+    max_steps = int(level.max_steps)
     results = []
-    for seed in range(seeds):
+    for seed in range(seed0, seed0 + seeds):
         evals = []
         t0 = time.perf_counter()
         ppo.train(
@@ -191,7 +353,9 @@ def bench_brax(env_name, total_steps, seeds, ours):
             num_evals=5,
             num_eval_envs=16,
             seed=seed,
-            progress_fn=lambda step, m: evals.append((int(step), float(m.get("eval/episode_reward", np.nan)), time.perf_counter())),
+            progress_fn=lambda step, m: (evals.append((int(step), float(m.get("eval/episode_reward", np.nan)), time.perf_counter())),
+                                         print(f"brax {env_name} seed {seed}: step {int(step)} eval return "
+                                               f"{evals[-1][1]:.1f} at {evals[-1][2] - t0:.0f} s", flush=True)),
         )
         wall = time.perf_counter() - t0
         # steady-state rate between the first and last progress callbacks: excludes the initial
@@ -223,9 +387,23 @@ def main(argv=None) -> int:
     p.add_argument("--walker-level", default="BipedalWalker")
     p.add_argument("--brax-seeds", type=int, default=3)
     p.add_argument("--brax-env", default="lander-continuous", help="a registered env with a Box action space")
+    p.add_argument("--brax-level", default=None, help="a named level of --brax-env (default: its default level)")
     p.add_argument("--chunks", type=int, default=20)
+    p.add_argument("--ppo", nargs="*", default=[], metavar="KEY=VALUE",
+                   help="PPOConfig / PPOHyperparams overrides for every section, e.g. num_envs=2048 ent_coef=0")
+    p.add_argument("--stop-at", type=float, default=None,
+                   help="stop a student section once the median training return over seeds reaches this")
+    p.add_argument("--log", default=None, help="append one JSON line per chunk to this file (progress of long runs)")
+    p.add_argument("--ckpt", default=None, help="save the learning state here after every chunk; continue from it if present")
+    p.add_argument("--time-limit", type=float, default=None,
+                   help="seconds: stop (checkpoint kept) before a chunk would end after this; needs --ckpt")
+    p.add_argument("--eval-only", action="store_true", help="evaluate the checkpoint in --ckpt without training further")
+    p.add_argument("--brax-seed0", type=int, default=0, help="first Brax seed (runs seeds seed0 .. seed0+brax_seeds-1)")
     p.add_argument("--out", default=os.environ.get("OUT", "runs/bench_ppo"))
     args = p.parse_args(argv)
+    if args.time_limit is not None and args.ckpt is None:
+        p.error("--time-limit needs --ckpt (the run continues from the checkpoint later)")
+    overrides = parse_overrides(args.ppo)
     out = pathlib.Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     results = {"device": str(jax.devices()[0]), "jax": jax.__version__, "sections": {}}
@@ -237,11 +415,16 @@ def main(argv=None) -> int:
         t0 = time.perf_counter()
         try:
             if section == "walker":
-                r = bench_student("walker", args.walker_steps, args.walker_seeds, out, args.walker_level, args.chunks)
+                r = bench_student("walker", args.walker_steps, args.walker_seeds, out, args.walker_level, args.chunks,
+                                  overrides=overrides, stop_at=args.stop_at, log_path=args.log, ckpt=args.ckpt,
+                                  time_limit=args.time_limit, eval_only=args.eval_only)
             elif section == "brax":
-                r = bench_brax(args.brax_env, args.total_steps, args.brax_seeds, results["sections"].get(args.brax_env))
+                r = bench_brax(args.brax_env, args.total_steps, args.brax_seeds, results["sections"].get(args.brax_env),
+                               args.brax_level, overrides, args.brax_seed0)
             else:
-                r = bench_student(section, args.total_steps, args.seeds, out, None, args.chunks)
+                r = bench_student(section, args.total_steps, args.seeds, out, None, args.chunks,
+                                  overrides=overrides, stop_at=args.stop_at, log_path=args.log, ckpt=args.ckpt,
+                                  time_limit=args.time_limit, eval_only=args.eval_only)
         except Exception as err:  # record and go on with the other sections
             r = {"error": f"{type(err).__name__}: {err}", "traceback": traceback.format_exc()[-4000:]}
         r["section_wall_s"] = time.perf_counter() - t0

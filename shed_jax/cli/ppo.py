@@ -14,6 +14,7 @@ import argparse
 import importlib
 import json
 import math
+import warnings
 import pathlib
 import time
 
@@ -64,11 +65,18 @@ def resolve_level(env, name: str | None):
     return level() if callable(level) else level
 
 
-def train_seeds(student, keys, hparams, level, num_updates: int, chunks: int, progress: bool = True, on_chunk=None):
+def train_seeds(student, keys, hparams, level, num_updates: int, chunks: int, progress: bool = True, on_chunk=None,
+                start_chunk: int = 0, restore=None):
     """Train one student per row of `keys` (and of `hparams`, which has the same leading axis).
 
-    Returns (states, metrics with leaves [B, num_updates_rounded], timing dict). `num_updates` is
+    Returns (states, metrics with leaves [B, updates_done], timing dict). `num_updates` is
     rounded up to a multiple of the chunk size so every chunk is the same compiled call.
+    ``on_chunk(c, states, metrics_of_chunk)`` runs after each chunk; if it returns True the
+    training stops there (an early stop, e.g. once a target return is reached), and the timing
+    and metrics cover the chunks done. To continue an interrupted run, pass ``start_chunk`` (the
+    chunks already done) and ``restore(states) -> states``, which puts the saved learning state
+    into the freshly initialised (and freshly reset) states; the chunk keys are the same as in
+    the uninterrupted run.
     """
     from tqdm import tqdm
 
@@ -85,31 +93,36 @@ def train_seeds(student, keys, hparams, level, num_updates: int, chunks: int, pr
 
     t0 = time.perf_counter()
     states = jax.jit(jax.vmap(init_one))(keys, hparams)
+    if restore is not None:
+        states = restore(states)
     chunk_keys = jax.vmap(lambda k: jax.random.split(jax.random.fold_in(k, 1), chunks))(keys)  # [B, chunks]
-    compiled = jax.jit(jax.vmap(chunk_one)).lower(states, chunk_keys[:, 0]).compile()
+    if start_chunk < chunks:  # else nothing is left to train (a finished run, restored to be evaluated)
+        compiled = jax.jit(jax.vmap(chunk_one)).lower(states, chunk_keys[:, 0]).compile()
     jax.block_until_ready(states)
     compile_s = time.perf_counter() - t0
     history = []
     t1 = time.perf_counter()
-    bar = tqdm(range(chunks), desc=f"ppo {student.env.name}", disable=not progress)
+    bar = tqdm(range(start_chunk, chunks), desc=f"ppo {student.env.name}", disable=not progress)
     for c in bar:
         states, m = compiled(states, chunk_keys[:, c])
         m = jax.device_get(m)
         history.append(m)
-        ret = np.nanmean(m["episode_return"][:, -max(1, per_chunk // 4):], axis=1)
+        with warnings.catch_warnings():  # chunks in which no episode ended give NaN
+            warnings.simplefilter("ignore", RuntimeWarning)
+            ret = np.nanmean(m["episode_return"][:, -max(1, per_chunk // 4):], axis=1)
         bar.set_postfix(ret=f"{np.nanmedian(ret):.1f}", steps=f"{(c + 1) * per_chunk * student.env_steps_per_update:.3g}")
-        if on_chunk is not None:
-            on_chunk(c, states, m)
+        if on_chunk is not None and on_chunk(c, states, m):
+            break
     run_s = time.perf_counter() - t1
-    metrics = jax.tree_util.tree_map(lambda *xs: np.concatenate(xs, axis=1), *history)
-    total_updates = chunks * per_chunk
-    env_steps = total_updates * student.env_steps_per_update
+    metrics = jax.tree_util.tree_map(lambda *xs: np.concatenate(xs, axis=1), *history) if history else {}
+    run_updates = len(history) * per_chunk
     timing = {
         "compile_s": compile_s,
         "train_s": run_s,
-        "updates": total_updates,
-        "env_steps_per_seed": env_steps,
-        "env_steps_per_s": env_steps * keys.shape[0] / run_s,
+        "updates": (start_chunk + len(history)) * per_chunk,  # in total, earlier runs included
+        "updates_this_run": run_updates,
+        "env_steps_per_seed": (start_chunk + len(history)) * per_chunk * student.env_steps_per_update,
+        "env_steps_per_s": run_updates * student.env_steps_per_update * keys.shape[0] / run_s if run_updates else float("nan"),
     }
     return states, metrics, timing
 
