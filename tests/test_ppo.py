@@ -355,5 +355,7 @@ def test_config_and_hparam_validation():
     walker = PPOConfig.for_env("walker")
     assert (walker.num_envs, walker.num_steps, walker.update_epochs, walker.num_minibatches) == (256, 32, 5, 8)
     assert (walker.hparams.gamma, walker.hparams.gae_lambda, walker.hparams.ent_coef) == (0.99, 0.9, 1e-3)
-    assert hash(lander) == hash(PPOConfig.for_env("lander-continuous"))
+    cont = PPOConfig.for_env("lander-continuous")  # the discrete preset, tuned for a Gaussian policy
+    assert (cont.num_envs, cont.num_steps, cont.num_minibatches, cont.init_log_std, cont.hparams.ent_coef) == (40, 128, 32, -0.5, 0.0)
+    assert cont.hparams.replace(ent_coef=0.01) == lander.hparams
     assert make_student(envs.make("cartpole"), SMALL).env_steps_per_update == 128

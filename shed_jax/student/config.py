@@ -149,9 +149,9 @@ class PPOConfig:
         return dataclasses.replace(PRESETS[name], **overrides)
 
 
-# SPEC 6.1, lander column (SB3 LunarLander practice); shared by the discrete and continuous lander.
-# Not tuned yet: the acceptance check (median of 8 seeds >= 200 within 3M env steps) needs the GPU
-# run of experiments/bench_ppo.py; change these values only with that run's evidence.
+# SPEC 6.1, lander column (SB3 LunarLander practice). Meets the acceptance check (median of 8 seeds
+# >= 200 within 3M env steps) on the discrete lander; change these values only with the evidence of
+# a GPU run of experiments/bench_ppo.py (docs/benchmarks.md).
 _LANDER = PPOConfig(
     num_envs=40,
     num_steps=128,
@@ -161,9 +161,18 @@ _LANDER = PPOConfig(
     hparams=PPOHyperparams(lr=3e-4, ent_coef=0.01, clip_eps=0.2, vf_coef=0.5, gamma=0.999, gae_lambda=0.98, max_grad_norm=0.5),
 )
 
+# The continuous lander: the discrete preset with a Gaussian policy that starts narrower (std
+# e^-0.5 = 0.61 instead of 1), no entropy bonus, and 32 minibatches (160 samples each, 4x the
+# gradient steps). With the discrete preset unchanged the stochastic policy's median was 144 at 3M
+# steps; with this one it is 276, and the median training return passes 200 at 0.71M steps
+# (8 seeds, H200, 2026-11-22; docs/benchmarks.md).
+_LANDER_CONTINUOUS = dataclasses.replace(
+    _LANDER, num_minibatches=32, init_log_std=-0.5, hparams=_LANDER.hparams.replace(ent_coef=0.0)
+)
+
 PRESETS: dict[str, PPOConfig] = {
     "lander": _LANDER,
-    "lander-continuous": _LANDER,
+    "lander-continuous": _LANDER_CONTINUOUS,
     # SPEC 6.1, walker "default" column: 256 x 32, 5 epochs / 8 minibatches, returns normalised,
     # no value clipping, Gaussian policy with state-independent log-std.
     "walker": PPOConfig(
