@@ -91,19 +91,27 @@ def test_brax_adapter_follows_our_env():
     level = env.default_params
     adapter = bench_ppo.make_brax_adapter(env, level)
     assert (adapter.observation_size, adapter.action_size) == (8, 2)
-    state = jax.jit(adapter.reset)(jax.random.PRNGKey(3))
-    obs, ours = env.reset(jax.random.split(jax.random.PRNGKey(3))[0], level)
-    np.testing.assert_allclose(state.obs, obs, rtol=1e-5, atol=1e-6)  # jit vs eager rounding
-    step = jax.jit(adapter.step)
     action = jax.numpy.array([1.0, 0.0])  # main engine on
-    total = 0.0
-    for _ in range(5):
-        k_step = jax.random.split(state.info["rng"])[0]
-        obs, ours, r, done, _ = env.step(k_step, ours, action, level)
-        state = step(state, action)
-        np.testing.assert_allclose(state.obs, obs, rtol=1e-5, atol=1e-5)
-        assert float(state.reward) == pytest.approx(float(r), abs=1e-4)
-        assert float(state.done) == float(done) == 0.0
-        total += float(r)
-    assert float(state.info["episode_metrics"]["sum_reward"]) == pytest.approx(total, abs=1e-4)
+
+    @jax.jit
+    def both(key):  # one compile for both paths (XLA shares their identical work)
+        state = adapter.reset(key)
+        obs0, ours = env.reset(jax.random.split(key)[0], level)
+
+        def body(carry, _):
+            state, ours = carry
+            obs, ours, r, done, _ = env.step(jax.random.split(state.info["rng"])[0], ours, action, level)
+            state = adapter.step(state, action)
+            return (state, ours), (state.obs, obs, state.reward, r, state.done, done.astype(jax.numpy.float32))
+
+        first_obs = state.obs
+        (state, _), per_step = jax.lax.scan(body, (state, ours), None, length=5)
+        return (first_obs, obs0), state, per_step
+
+    (a_obs0, obs0), state, (a_obs, obs, a_rew, rew, a_done, done) = both(jax.random.PRNGKey(3))
+    np.testing.assert_allclose(a_obs0, obs0, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(a_obs, obs, rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(a_rew, rew, atol=1e-4)
+    assert np.all(np.asarray(a_done) == 0.0) and np.all(np.asarray(done) == 0.0)
+    assert float(state.info["episode_metrics"]["sum_reward"]) == pytest.approx(float(np.sum(rew)), abs=1e-3)
     assert float(state.info["steps"]) == 5.0 and float(state.info["truncation"]) == 0.0

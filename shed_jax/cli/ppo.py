@@ -14,9 +14,9 @@ import argparse
 import importlib
 import json
 import math
-import warnings
 import pathlib
 import time
+import warnings
 
 import jax
 import jax.numpy as jnp
