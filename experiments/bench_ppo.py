@@ -311,17 +311,23 @@ def make_brax_adapter(env, level):
 
 
 def bench_brax(env_name, total_steps, seeds, ours, level_name=None, overrides=None, seed0=0):
+    cfg = make_config(env_name, overrides)
+    # Brax's minibatches are whole rollouts (batch_size envs x unroll_length steps); ours are
+    # num_envs * num_steps / num_minibatches samples. They match only when envs split evenly.
+    if cfg.num_envs % cfg.num_minibatches:
+        raise ValueError(
+            f"Brax PPO needs num_envs ({cfg.num_envs}) divisible by num_minibatches ({cfg.num_minibatches}) "
+            f"to use the same minibatches as ours; pass e.g. --ppo num_minibatches=8"
+        )
     import envs
     from brax.envs.wrappers.training import VmapWrapper
     from brax.training.agents.ppo import networks as ppo_networks
     from brax.training.agents.ppo import train as ppo
-    from shed_jax.student import PPOConfig
 
     from shed_jax.cli.ppo import resolve_level
 
     _brax_compat()
     env = envs.make(env_name)
-    cfg = make_config(env_name, overrides)
     hp = cfg.hparams
     level = resolve_level(env, level_name)
     adapter = make_brax_adapter(env, level)

@@ -82,6 +82,12 @@ def test_stop_at_ends_the_run_early(tmp_path):
         _run(tmp_path, "e", ckpt=tmp_path / "none", eval_only=True)
 
 
+def test_brax_needs_whole_rollout_minibatches():
+    # the tuned continuous-lander preset: 40 envs in 32 minibatches cannot be brax minibatches
+    with pytest.raises(ValueError, match="num_minibatches=8"):
+        bench_ppo.bench_brax("lander-continuous", 1000, 1, None)
+
+
 def test_brax_adapter_follows_our_env():
     """Brax's PPO sees our env through the adapter: same observations, rewards and done flags as
     our own step with the key the adapter carries, and the episode bookkeeping brax reads."""
