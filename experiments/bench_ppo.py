@@ -134,10 +134,15 @@ def load_checkpoint(ckpt, meta_expected):
         history = [{k: z[k] for k in z.files}]
 
     def restore(states):
+        # one transfer of all leaves, after the fresh states are ready, and no eager ops: the two
+        # XLA:CPU hangs seen in this path were in eager transfers next to an in-flight computation
+        states = jax.block_until_ready(states)
         treedef = jax.tree_util.tree_structure(_learning_state(states))
-        saved = jax.tree_util.tree_unflatten(treedef, [jnp.asarray(x) for x in leaves])
+        saved = jax.tree_util.tree_unflatten(treedef, jax.device_put(leaves))
+        # the running returns restart at zero with the freshly reset envs: keep the fresh ones
         return states.replace(params=saved.params, opt_state=saved.opt_state, hparams=saved.hparams,
-                              obs_norm=saved.obs_norm, ret_norm=saved.ret_norm.reset(), update_step=saved.update_step)
+                              obs_norm=saved.obs_norm, ret_norm=saved.ret_norm.replace(ret=states.ret_norm.ret),
+                              update_step=saved.update_step)
 
     return int(meta["chunks_done"]), restore, history
 
