@@ -101,6 +101,11 @@ def make_config(env_name, overrides=None):
     return config.replace(**overrides) if overrides else config
 
 
+def _concat(history):
+    """Per-chunk metrics dicts ([seeds, updates_of_chunk] leaves) -> one dict over all updates."""
+    return {k: np.concatenate([h[k] for h in history], axis=1) for k in history[0]}
+
+
 def _learning_state(states):
     """What a resumed run keeps: everything but the env slots (those are reset on resume)."""
     return states.replace(env_state=None, obs=None, levels=None)
@@ -110,7 +115,7 @@ def save_checkpoint(ckpt, states, history, meta):
     """Atomic save of the learning state, the per-update metrics so far and `meta` into `ckpt`."""
     ckpt.mkdir(parents=True, exist_ok=True)
     leaves = jax.tree_util.tree_leaves(jax.device_get(_learning_state(states)))
-    metrics = {k: np.concatenate([h[k] for h in history], axis=1) for k in history[0]}
+    metrics = _concat(history)
     for name, arrays in (("state", {f"a{i}": x for i, x in enumerate(leaves)}), ("metrics", metrics)):
         with open(ckpt / f"{name}.tmp.npz", "wb") as f:
             np.savez(f, **arrays)
@@ -213,7 +218,7 @@ def bench_student(env_name, total_steps, seeds, out, level_name=None, chunks=20,
     states, _, timing = train_seeds(student, keys, hps, level, chunks * per_chunk, chunks, progress=True,
                                     on_chunk=on_chunk, start_chunk=start_chunk, restore=restore)
     train_wall = time.perf_counter() - t0
-    metrics = {k: np.concatenate([h[k] for h in history], axis=1) for k in history[0]}
+    metrics = _concat(history)
     if stop.get("reason", "").startswith("time limit"):  # to be continued from the checkpoint
         return {"env": env_name, "seeds": seeds, "stop_reason": stop["reason"], "resumed_from_chunk": start_chunk,
                 "env_steps_per_seed": timing["env_steps_per_seed"], "compile_s": timing["compile_s"],
@@ -224,13 +229,15 @@ def bench_student(env_name, total_steps, seeds, out, level_name=None, chunks=20,
     for det in (False, True):
         ev = jax.jit(jax.vmap(lambda s, k: student.evaluate(s, k, levels, eval_episodes, None, det)))
         final["deterministic" if det else "stochastic"] = np.asarray(ev(states, jax.vmap(lambda k: jax.random.fold_in(k, 7))(keys)))[:, 0]
+    target = target_of(env_name)
     x = (np.arange(timing["updates"]) + 1) * student.env_steps_per_update
     curve = smoothed(metrics["episode_return"], 10)  # [seeds, updates]
     median = np.nanmedian(curve, axis=0)
     reporting.plot_curves({env_name: (x, curve)}, out / f"{env_name}_curve.png", xlabel="env steps per seed",
                           ylabel="training episode return (10-update avg)",
                           title=f"PPO student on {env_name}{' / ' + level_name if level_name else ''}: {seeds} seeds",
-                          references={str(target_of(env_name)): target_of(env_name)})
+                          references={str(target): target})
+    crossings = [first_crossing(x, c, target) for c in curve]
     stride = max(1, len(x) // 300)
     return {
         "env": env_name, "level": level_name, "seeds": seeds,
@@ -241,11 +248,9 @@ def bench_student(env_name, total_steps, seeds, out, level_name=None, chunks=20,
         "env_steps_per_seed": timing["env_steps_per_seed"],
         "compile_s": timing["compile_s"], "train_s": timing["train_s"], "wall_s": train_wall,
         "env_steps_per_s": timing["env_steps_per_s"],
-        "target": target_of(env_name),
-        "median_reaches_target_at": first_crossing(x, median, target_of(env_name)),
-        "seeds_reaching_target_within_1e6": int(sum(
-            first_crossing(x, c, target_of(env_name)) is not None and first_crossing(x, c, target_of(env_name)) <= 1_000_000
-            for c in curve)),
+        "target": target,
+        "median_reaches_target_at": first_crossing(x, median, target),
+        "seeds_reaching_target_within_1e6": sum(c is not None and c <= 1_000_000 for c in crossings),
         "final_eval_stochastic": final["stochastic"].mean(1).tolist(),
         "final_eval_deterministic": final["deterministic"].mean(1).tolist(),
         "final_eval_median_stochastic": float(np.median(final["stochastic"].mean(1))),
