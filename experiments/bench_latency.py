@@ -81,6 +81,8 @@ def main(argv=None) -> int:
     p.add_argument("--unroll", type=int, default=1)
     p.add_argument("--velocity-iterations", type=int, default=None, help="lander solver override")
     p.add_argument("--position-iterations", type=int, default=None, help="lander solver override")
+    p.add_argument("--solver-kernel", default="auto", choices=["auto", "xla", "pallas", "interpret"],
+                   help="lander solver loops: fused Pallas kernel or plain XLA (auto: Pallas on GPU)")
     p.add_argument("--env", default="lander")
     p.add_argument("--batches", default="40,400,4096")
     p.add_argument("--steps", type=int, default=256)
@@ -90,6 +92,8 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     solver = {k: v for k, v in (("velocity_iterations", args.velocity_iterations),
                                 ("position_iterations", args.position_iterations)) if v is not None}
+    if args.env.startswith("lander"):
+        solver["solver_kernel"] = args.solver_kernel
     env = envs.make(args.env, unroll=args.unroll, **solver)
     res = dict(device=str(jax.devices()[0]), unroll=args.unroll, env=args.env, tag=args.tag, **solver,
                xla_flags=os.environ.get("XLA_FLAGS", ""), env_rows=[])

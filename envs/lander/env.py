@@ -97,7 +97,8 @@ class LunarLander(Environment):
     """Gymnasium LunarLander-v3 as a pure-JAX, level-parametric environment (see module docstring)."""
 
     def __init__(self, continuous: bool = False, velocity_iterations: int = M.VELOCITY_ITERATIONS,
-                 position_iterations: int = M.POSITION_ITERATIONS, unroll: int | None = None):
+                 position_iterations: int = M.POSITION_ITERATIONS, unroll: int | None = None,
+                 solver_kernel: str = "auto"):
         # unroll: solver-loop unroll factor, a speed knob with no effect on results. None picks 4 on
         # accelerators (2.4 vs 3.7 ms per sequential step at batch 40 on an H200; docs/benchmarks.md)
         # and 1 on CPU, where the larger program mostly costs compile time.
@@ -105,7 +106,9 @@ class LunarLander(Environment):
             unroll = 1 if jax.default_backend() == "cpu" else 4
         self.continuous = bool(continuous)
         self.name = "lander-continuous" if self.continuous else "lander"
-        self.model = M.lander_model(int(velocity_iterations), int(position_iterations), int(unroll))
+        # solver_kernel: how the solver's iteration loops run; "auto" fuses each into one Pallas
+        # kernel on GPU (envs/physics2d/fused.py) and uses plain XLA loops elsewhere.
+        self.model = M.lander_model(int(velocity_iterations), int(position_iterations), int(unroll), solver_kernel)
         pos, ang = M.initial_pose()
         self._start_bodies = (pos, ang)
         self._reset_projector = M.reset_projector(int(velocity_iterations), int(position_iterations), int(unroll))

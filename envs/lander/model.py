@@ -47,7 +47,7 @@ POSITION_ITERATIONS = 20
 
 @functools.lru_cache(maxsize=None)
 def lander_model(velocity_iterations: int = VELOCITY_ITERATIONS, position_iterations: int = POSITION_ITERATIONS,
-                 unroll: int = 1) -> physics2d.Model:
+                 unroll: int = 1, kernel: str = "auto") -> physics2d.Model:
     """The (cached, static) lander model for the given solver iteration counts."""
     hull = physics2d.Polygon(
         body=0, vertices=tuple((x / SCALE, y / SCALE) for x, y in LANDER_POLY), density=5.0, friction=0.1,
@@ -68,7 +68,7 @@ def lander_model(velocity_iterations: int = VELOCITY_ITERATIONS, position_iterat
         ))
     cfg = physics2d.SolverConfig(
         dt=1.0 / FPS, velocity_iterations=velocity_iterations, position_iterations=position_iterations,
-        ground_friction=0.1, unroll=unroll,
+        ground_friction=0.1, unroll=unroll, kernel=kernel,
     )
     return physics2d.make_model(3, (hull,) + legs, tuple(joints), cfg)
 

@@ -5,23 +5,25 @@ with the limit impulse clamped to one sign and the point rows re-solved when it 
 2x2 point block. Position phase: non-linear Gauss-Seidel on the limit angle and the anchor gap.
 Every branch is computed and selected with ``jnp.where`` so it vectorises over a batch of worlds.
 
-All functions act on one joint; ``va, wa, vb, wb`` are the two bodies' velocities (2,) and ().
+All functions act on one joint; ``va, wa, vb, wb`` are the two bodies' velocities and spins: (2,)
+arrays in ``warm_start``, ``V2`` in the iteration passes.
 """
 from __future__ import annotations
 
 import jax.numpy as jnp
+import numpy as np
 
-from envs.physics2d.vec import cross, cross_sv, rotate
+from envs.physics2d.vec import V2, cross, cross_sv2, rotate, rotate2
 
 INACTIVE, AT_LOWER, AT_UPPER, EQUAL = 0, 1, 2, 3
 
 
 def _k33(ma, mb, ia, ib, ra, rb):
-    k11 = ma + mb + ra[1] ** 2 * ia + rb[1] ** 2 * ib
-    k12 = -ra[1] * ra[0] * ia - rb[1] * rb[0] * ib
-    k13 = -ra[1] * ia - rb[1] * ib
-    k22 = ma + mb + ra[0] ** 2 * ia + rb[0] ** 2 * ib
-    k23 = ra[0] * ia + rb[0] * ib
+    k11 = ma + mb + ra.y ** 2 * ia + rb.y ** 2 * ib
+    k12 = -ra.y * ra.x * ia - rb.y * rb.x * ib
+    k13 = -ra.y * ia - rb.y * ib
+    k22 = ma + mb + ra.x ** 2 * ia + rb.x ** 2 * ib
+    k23 = ra.x * ia + rb.x * ib
     k33 = ia + ib
     return k11, k12, k13, k22, k23, k33
 
@@ -81,7 +83,11 @@ def warm_start(joint, m, ra, rb, impulse, motor_impulse, va, wa, vb, wb):
 
 
 def solve_velocity(joint, m, ra, rb, state, impulse, motor_impulse, va, wa, vb, wb, dt):
-    """One Gauss-Seidel pass over the joint's rows; returns new impulses and velocities."""
+    """One Gauss-Seidel pass over the joint's rows; returns new impulses and velocities.
+
+    Component form (runs inside ``fused.per_world_fori_loop``): ``ra, rb, va, vb`` are ``V2``,
+    ``impulse`` is the (x, y, limit) triple, ``state`` the limit state as a float.
+    """
     ma, mb, ia, ib = m
     if joint.enable_motor:
         motor_mass = 1.0 / (ia + ib) if ia + ib > 0 else 0.0
@@ -95,16 +101,16 @@ def solve_velocity(joint, m, ra, rb, state, impulse, motor_impulse, va, wa, vb, 
         wb = wb + ib * d
     k = _k33(ma, mb, ia, ib, ra, rb)
     k11, k12, k13, k22, k23, _ = k
-    cdot1 = vb + cross_sv(wb, rb) - va - cross_sv(wa, ra)
+    cdot1 = vb + cross_sv2(wb, rb) - va - cross_sv2(wa, ra)
     cdot2 = wb - wa
     # point-only (2x2) solution
-    px, py = _solve22(k11, k12, k22, -cdot1[0], -cdot1[1])
+    px, py = _solve22(k11, k12, k22, -cdot1.x, -cdot1.y)
     if joint.enable_limit:
-        ix, iy, iz = _solve33(k, (-cdot1[0], -cdot1[1], -cdot2))
+        ix, iy, iz = _solve33(k, (-cdot1.x, -cdot1.y, -cdot2))
         new_z = impulse[2] + iz
         pull = jnp.where(state == AT_LOWER, new_z < 0.0, jnp.where(state == AT_UPPER, new_z > 0.0, False))
         # limit would pull: drop it and re-solve the point rows with the limit impulse removed
-        rx, ry = _solve22(k11, k12, k22, -cdot1[0] + impulse[2] * k13, -cdot1[1] + impulse[2] * k23)
+        rx, ry = _solve22(k11, k12, k22, -cdot1.x + impulse[2] * k13, -cdot1.y + impulse[2] * k23)
         bx = jnp.where(pull, rx, ix)
         by = jnp.where(pull, ry, iy)
         bz = jnp.where(pull, -impulse[2], iz)
@@ -114,17 +120,20 @@ def solve_velocity(joint, m, ra, rb, state, impulse, motor_impulse, va, wa, vb, 
         dz = jnp.where(active, bz, 0.0)
     else:
         dx, dy, dz = px, py, 0.0
-    impulse = impulse + jnp.stack([dx, dy, jnp.asarray(dz, impulse.dtype)])
-    p = jnp.stack([dx, dy])
+    impulse = (impulse[0] + dx, impulse[1] + dy, impulse[2] + dz)
+    p = V2(dx, dy)
     va = va - ma * p
-    wa = wa - ia * (cross(ra, p) + dz)
+    wa = wa - ia * (ra.cross(p) + dz)
     vb = vb + mb * p
-    wb = wb + ib * (cross(rb, p) + dz)
+    wb = wb + ib * (rb.cross(p) + dz)
     return impulse, motor_impulse, va, wa, vb, wb
 
 
 def solve_position(joint, m, lc_a, lc_b, state, ca, aa, cb, ab, cfg):
-    """One NGS pass; returns new poses and whether this joint is within tolerance."""
+    """One NGS pass; returns new poses and whether this joint is within tolerance.
+
+    Component form: ``lc_a, lc_b`` (float32 constants), ``ca, cb`` are ``V2``; ``state`` a float.
+    """
     ma, mb, ia, ib = m
     angular_error = jnp.zeros((), jnp.float32)
     if joint.enable_limit:
@@ -141,18 +150,19 @@ def solve_position(joint, m, lc_a, lc_b, state, ca, aa, cb, ab, cfg):
         limit_impulse = -motor_mass * c
         aa = aa - ia * limit_impulse
         ab = ab + ib * limit_impulse
-    ra = rotate(aa, jnp.asarray(joint.local_anchor_a, jnp.float32) - lc_a)
-    rb = rotate(ab, jnp.asarray(joint.local_anchor_b, jnp.float32) - lc_b)
+    f32 = np.float32
+    ra = rotate2(aa, V2(f32(joint.local_anchor_a[0]) - lc_a.x, f32(joint.local_anchor_a[1]) - lc_a.y))
+    rb = rotate2(ab, V2(f32(joint.local_anchor_b[0]) - lc_b.x, f32(joint.local_anchor_b[1]) - lc_b.y))
     c = cb + rb - ca - ra
-    position_error = jnp.sqrt(c[0] ** 2 + c[1] ** 2)
-    k11 = ma + mb + ia * ra[1] ** 2 + ib * rb[1] ** 2
-    k12 = -ia * ra[0] * ra[1] - ib * rb[0] * rb[1]
-    k22 = ma + mb + ia * ra[0] ** 2 + ib * rb[0] ** 2
-    ix, iy = _solve22(k11, k12, k22, -c[0], -c[1])
-    imp = jnp.stack([ix, iy])
+    position_error = jnp.sqrt(c.x ** 2 + c.y ** 2)
+    k11 = ma + mb + ia * ra.y ** 2 + ib * rb.y ** 2
+    k12 = -ia * ra.x * ra.y - ib * rb.x * rb.y
+    k22 = ma + mb + ia * ra.x ** 2 + ib * rb.x ** 2
+    ix, iy = _solve22(k11, k12, k22, -c.x, -c.y)
+    imp = V2(ix, iy)
     ca = ca - ma * imp
-    aa = aa - ia * cross(ra, imp)
+    aa = aa - ia * ra.cross(imp)
     cb = cb + mb * imp
-    ab = ab + ib * cross(rb, imp)
+    ab = ab + ib * rb.cross(imp)
     ok = (position_error <= cfg.linear_slop) & (angular_error <= cfg.angular_slop)
     return ca, aa, cb, ab, ok

@@ -81,6 +81,9 @@ class SolverConfig:
     continuous: bool = True  # Box2D-style time of impact for solid slots hitting the ground
     toi_iterations: int = 4  # velocity passes of the per-body time-of-impact solve
     unroll: int = 1  # unroll factor of the solver-iteration loops (speed knob, no effect on results)
+    # how the iteration loops run: "auto" (one fused Pallas kernel per loop on GPU, XLA elsewhere),
+    # "xla", "pallas" or "interpret" (the kernel through Pallas' interpreter); see physics2d/fused.py
+    kernel: str = "auto"
 
     def __post_init__(self):
         if self.dt <= 0:
@@ -92,6 +95,8 @@ class SolverConfig:
             )
         if self.unroll < 1:
             raise ValueError(f"SolverConfig.unroll must be >= 1, got {self.unroll}")
+        if self.kernel not in ("auto", "xla", "pallas", "interpret"):
+            raise ValueError(f"SolverConfig.kernel must be 'auto', 'xla', 'pallas' or 'interpret', got {self.kernel!r}")
 
 
 @dataclasses.dataclass(frozen=True, eq=False)

@@ -1,6 +1,7 @@
 """Tiny 2-D vector helpers on (..., 2) arrays (cross products, rotations) shared by the solver."""
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 
 
@@ -22,3 +23,70 @@ def rotate(angle, v):
 
 def dot(a, b):
     return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1]
+
+
+@jax.tree_util.register_pytree_node_class
+class V2:
+    """A 2-vector held as two per-world scalars (``x``, ``y``) rather than one (..., 2) array.
+
+    The solver's iteration loops use it: their bodies are then purely elementwise over worlds, which
+    is what a fused kernel (``envs.physics2d.fused``) needs, and XLA sees no stack/slice ops there.
+    """
+
+    __slots__ = ("x", "y")
+
+    def __init__(self, x, y):
+        self.x, self.y = x, y
+
+    @classmethod
+    def of(cls, a) -> "V2":
+        """From a (..., 2) array (or any pair)."""
+        return cls(a[..., 0], a[..., 1]) if hasattr(a, "shape") else cls(*a)
+
+    def array(self):
+        """Back to a (..., 2) array."""
+        return jnp.stack([jnp.asarray(self.x), jnp.asarray(self.y)], -1)
+
+    def tree_flatten(self):
+        return (self.x, self.y), None
+
+    @classmethod
+    def tree_unflatten(cls, _, children):
+        return cls(*children)
+
+    def __add__(self, o):
+        return V2(self.x + o.x, self.y + o.y)
+
+    def __sub__(self, o):
+        return V2(self.x - o.x, self.y - o.y)
+
+    def __neg__(self):
+        return V2(-self.x, -self.y)
+
+    def __mul__(self, s):
+        return V2(self.x * s, self.y * s)
+
+    def __rmul__(self, s):
+        return V2(s * self.x, s * self.y)
+
+    def dot(self, o):
+        return self.x * o.x + self.y * o.y
+
+    def cross(self, o):
+        """z-component of self x o."""
+        return self.x * o.y - self.y * o.x
+
+    def where(self, cond, other) -> "V2":
+        """Componentwise ``jnp.where(cond, self, other)``."""
+        return V2(jnp.where(cond, self.x, other.x), jnp.where(cond, self.y, other.y))
+
+
+def cross_sv2(s, v: V2) -> V2:
+    """s x v for a scalar and a V2: (-s v_y, s v_x)."""
+    return V2(-s * v.y, s * v.x)
+
+
+def rotate2(angle, v: V2) -> V2:
+    """R(angle) @ v for a V2."""
+    c, s = jnp.cos(angle), jnp.sin(angle)
+    return V2(c * v.x - s * v.y, s * v.x + c * v.y)

@@ -14,13 +14,17 @@ docs/lander.md). Sensor polygons are detected in 1 but never solved.
 """
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
+import numpy as np
 
+from envs.physics2d import fused
 from envs.physics2d import joint as jnt
 from envs.physics2d.collision import polyline_points_in_polygon, vertex_segment_touching, vertex_vs_polyline
 from envs.physics2d.model import BodyState, Model, WorldState
-from envs.physics2d.vec import cross, cross_sv, dot, rotate
+from envs.physics2d.vec import V2, cross, cross_sv, cross_sv2, dot, rotate, rotate2
 
 
 def slot_points(model: Model, bodies: BodyState):
@@ -133,42 +137,24 @@ def step(model: Model, world: WorldState, ground, gravity, force=None, torque=No
         jmot.append(mot)
         jstate.append(st)
 
-    # 4. velocity iterations
-    def vel_iter(_, carry):
-        vel, omg, jimp, jmot, ln, lt = carry
-        vel, omg, jimp, jmot, ln, lt = list(vel), list(omg), list(jimp), list(jmot), list(ln), list(lt)
-        for j, J in enumerate(model.joints):
-            m, ra, rb = jprep[j]
-            a_, b_ = J.body_a, J.body_b
-            jimp[j], jmot[j], vel[a_], omg[a_], vel[b_], omg[b_] = jnt.solve_velocity(
-                J, m, ra, rb, jstate[j], jimp[j], jmot[j], vel[a_], omg[a_], vel[b_], omg[b_], dt)
-        for s, k in enumerate(slots):
-            i = sb[k]
-            on = active[k].astype(jnp.float32)
-            # friction first (Box2D order), bounded by the current normal impulse
-            dv = vel[i] + cross_sv(omg[i], arm[k])
-            vt = dot(dv, tangent[k])
-            max_f = mu[k] * ln[s]
-            new_t = jnp.clip(lt[s] - tangent_mass[k] * vt, -max_f, max_f) * on
-            p = (new_t - lt[s]) * tangent[k]
-            lt[s] = new_t
-            vel[i] = vel[i] + inv_m[i] * p
-            omg[i] = omg[i] + inv_i[i] * cross(arm[k], p)
-            dv = vel[i] + cross_sv(omg[i], arm[k])
-            vn = dot(dv, normal[k])
-            new_n = jnp.maximum(ln[s] - normal_mass[k] * vn, 0.0) * on
-            p = (new_n - ln[s]) * normal[k]
-            ln[s] = new_n
-            vel[i] = vel[i] + inv_m[i] * p
-            omg[i] = omg[i] + inv_i[i] * cross(arm[k], p)
-        return tuple(vel), tuple(omg), tuple(jimp), tuple(jmot), tuple(ln), tuple(lt)
-
-    carry = (tuple(vel), tuple(omg), tuple(jimp), tuple(jmot),
+    # 4. velocity iterations (component form: per-world scalars, so the loop can run fused)
+    f32 = jnp.float32
+    vconsts = dict(
+        on=tuple(active[k].astype(f32) for k in slots),
+        arm=tuple(V2.of(arm[k]) for k in slots), n=tuple(V2.of(normal[k]) for k in slots),
+        t=tuple(V2.of(tangent[k]) for k in slots),
+        nm=tuple(normal_mass[k] for k in slots), tm=tuple(tangent_mass[k] for k in slots),
+        ra=tuple(V2.of(p[1]) for p in jprep), rb=tuple(V2.of(p[2]) for p in jprep),
+        state=tuple(s.astype(f32) for s in jstate),
+    )
+    carry = (tuple(V2.of(v) for v in vel), tuple(omg), tuple((i[0], i[1], i[2]) for i in jimp), tuple(jmot),
              tuple(lam_n[k] for k in slots), tuple(lam_t[k] for k in slots))
     if projector is None:
-        vel, omg, jimp, jmot, ln, lt = jax.lax.fori_loop(0, cfg.velocity_iterations, vel_iter, carry,
-                                                         unroll=cfg.unroll)
-        vel, omg = list(vel), list(omg)
+        vel, omg, jimp, jmot, ln, lt = fused.per_world_fori_loop(
+            cfg.velocity_iterations, functools.partial(_velocity_pass, model, slots), vconsts, carry,
+            mode=cfg.kernel, unroll=cfg.unroll)
+        vel, omg = [v.array() for v in vel], list(omg)
+        jimp = [jnp.stack(list(i)) for i in jimp]
     else:  # exact locked-joint solve from the integrated (not warm-started) velocities
         v = jnp.concatenate([jnp.concatenate([b.vel[i] + dt * (gravity + inv_m[i] * force[i]),
                                               (b.omega[i] + dt * inv_i[i] * torque[i])[None]]) for i in range(nb)])
@@ -177,6 +163,7 @@ def step(model: Model, world: WorldState, ground, gravity, force=None, torque=No
         omg = [v[3 * i + 2] for i in range(nb)]
         jimp = [jnp.zeros_like(x) for x in jimp]
         jmot = [jnp.zeros_like(x) for x in jmot]
+        ln, lt = carry[4], carry[5]
 
     # 5. integrate positions (Box2D clamps the motion per step)
     com, ang = [], []
@@ -195,41 +182,16 @@ def step(model: Model, world: WorldState, ground, gravity, force=None, torque=No
     # plane point: start of the ground segment under the vertex at the start pose (fixed for the step)
     _, _, plane_q, inside = vertex_vs_polyline(slot_points(model, b)[0], ground)
 
-    def pos_iter(_, carry):
-        com, ang, solved = carry
-        com0, ang0 = com, ang
-        com, ang = list(com), list(ang)
-        min_sep = jnp.asarray(0.0, jnp.float32)
-        for k in slots:
-            i = sb[k]
-            on = active[k]
-            arm_k = rotate(ang[i], local_v[k] - lc[i])
-            point = com[i] + arm_k
-            sep = dot(point - plane_q[k], plane_n[k]) - cfg.contact_radius
-            min_sep = jnp.where(on, jnp.minimum(min_sep, sep), min_sep)
-            c = jnp.clip(cfg.baumgarte * (sep + cfg.linear_slop), -cfg.max_linear_correction, 0.0)
-            rnk = cross(arm_k, plane_n[k])
-            kk = inv_m[i] + inv_i[i] * rnk * rnk
-            imp = jnp.where(on & (kk > 0), -c / kk, 0.0)
-            p = imp * plane_n[k]
-            com[i] = com[i] + inv_m[i] * p
-            ang[i] = ang[i] + inv_i[i] * cross(arm_k, p)
-        ok = min_sep >= -3.0 * cfg.linear_slop
-        for j, J in enumerate(model.joints):
-            a_, b_ = J.body_a, J.body_b
-            com[a_], ang[a_], com[b_], ang[b_], jok = jnt.solve_position(
-                J, jprep[j][0], lc[a_], lc[b_], jstate[j], com[a_], ang[a_], com[b_], ang[b_], cfg)
-            ok = ok & jok
-        com = tuple(jnp.where(solved, c0, c1) for c0, c1 in zip(com0, com))
-        ang = tuple(jnp.where(solved, a0, a1) for a0, a1 in zip(ang0, ang))
-        return com, ang, solved | ok
-
-    solved0 = jnp.zeros((), bool)
+    pconsts = dict(on=tuple(active[k].astype(f32) for k in slots), q=tuple(V2.of(plane_q[k]) for k in slots),
+                   n=tuple(V2.of(plane_n[k]) for k in slots), state=tuple(s.astype(f32) for s in jstate))
     if n_pos > 0:
-        com, ang, solved = jax.lax.fori_loop(0, n_pos, pos_iter, (tuple(com), tuple(ang), solved0),
-                                             unroll=cfg.unroll)
+        com, ang, solved = fused.per_world_fori_loop(
+            n_pos, functools.partial(_position_pass, model, slots),
+            pconsts, (tuple(V2.of(c) for c in com), tuple(ang), jnp.zeros((), f32)),
+            mode=cfg.kernel, unroll=cfg.unroll)
+        com, ang, solved = [c.array() for c in com], list(ang), solved > 0.5
     else:
-        solved = solved0
+        solved = jnp.zeros((), bool)
 
     # 7. continuous collision (Box2D SolveTOI, simplified): a body whose slot crosses the TOI target
     #    separation during the step is moved back to the time of impact, its contacts there are
@@ -317,3 +279,83 @@ def step(model: Model, world: WorldState, ground, gravity, force=None, torque=No
     info = dict(touching=touching | toi_touch, polygon_touching=poly_touch, pair_touching=pairs,
                 position_solved=solved, asleep=asleep)
     return new_world, info
+
+
+def _masses(model: Model, joint):
+    inv_m, inv_i = model.inv_mass, model.inv_inertia
+    return (float(inv_m[joint.body_a]), float(inv_m[joint.body_b]),
+            float(inv_i[joint.body_a]), float(inv_i[joint.body_b]))
+
+
+def _velocity_pass(model: Model, slots, c, carry):
+    """One Gauss-Seidel velocity pass (joints, then each contact slot: friction, then normal).
+
+    Per-world scalars only (``V2`` for vectors), as ``fused.per_world_fori_loop`` requires.
+    """
+    dt = model.config.dt
+    inv_m, inv_i = [float(x) for x in model.inv_mass], [float(x) for x in model.inv_inertia]
+    sb = model.slot_body
+    vel, omg, jimp, jmot, ln, lt = (list(x) for x in carry)
+    for j, J in enumerate(model.joints):
+        a_, b_ = J.body_a, J.body_b
+        jimp[j], jmot[j], vel[a_], omg[a_], vel[b_], omg[b_] = jnt.solve_velocity(
+            J, _masses(model, J), c["ra"][j], c["rb"][j], c["state"][j], jimp[j], jmot[j],
+            vel[a_], omg[a_], vel[b_], omg[b_], dt)
+    for s, k in enumerate(slots):
+        i = sb[k]
+        on, arm, normal, tangent = c["on"][s], c["arm"][s], c["n"][s], c["t"][s]
+        # friction first (Box2D order), bounded by the current normal impulse
+        dv = vel[i] + cross_sv2(omg[i], arm)
+        vt = dv.dot(tangent)
+        max_f = np.float32(model.slot_friction[k]) * ln[s]
+        new_t = jnp.clip(lt[s] - c["tm"][s] * vt, -max_f, max_f) * on
+        p = (new_t - lt[s]) * tangent
+        lt[s] = new_t
+        vel[i] = vel[i] + inv_m[i] * p
+        omg[i] = omg[i] + inv_i[i] * arm.cross(p)
+        dv = vel[i] + cross_sv2(omg[i], arm)
+        vn = dv.dot(normal)
+        new_n = jnp.maximum(ln[s] - c["nm"][s] * vn, 0.0) * on
+        p = (new_n - ln[s]) * normal
+        ln[s] = new_n
+        vel[i] = vel[i] + inv_m[i] * p
+        omg[i] = omg[i] + inv_i[i] * arm.cross(p)
+    return tuple(vel), tuple(omg), tuple(jimp), tuple(jmot), tuple(ln), tuple(lt)
+
+
+def _position_pass(model: Model, slots, c, carry):
+    """One non-linear Gauss-Seidel position pass (contacts, then joints); frozen once solved.
+
+    ``carry = (com, angle, solved)`` with ``solved`` a 0/1 float (per-world scalars only).
+    """
+    cfg = model.config
+    inv_m, inv_i = [float(x) for x in model.inv_mass], [float(x) for x in model.inv_inertia]
+    sb = model.slot_body
+    lc = np.asarray(model.local_com, np.float32)
+    local_v = np.asarray(model.slot_vertex, np.float32)
+    com0, ang0, solved = carry
+    com, ang = list(com0), list(ang0)
+    min_sep = jnp.zeros((), jnp.float32)
+    for s, k in enumerate(slots):
+        i = sb[k]
+        on, normal = c["on"][s] > 0.5, c["n"][s]
+        arm_k = rotate2(ang[i], V2(*(local_v[k] - lc[i])))
+        sep = (com[i] + arm_k - c["q"][s]).dot(normal) - cfg.contact_radius
+        min_sep = jnp.where(on, jnp.minimum(min_sep, sep), min_sep)
+        corr = jnp.clip(cfg.baumgarte * (sep + cfg.linear_slop), -cfg.max_linear_correction, 0.0)
+        rnk = arm_k.cross(normal)
+        kk = inv_m[i] + inv_i[i] * rnk * rnk
+        imp = jnp.where(on & (kk > 0), -corr / kk, 0.0)
+        p = imp * normal
+        com[i] = com[i] + inv_m[i] * p
+        ang[i] = ang[i] + inv_i[i] * arm_k.cross(p)
+    ok = min_sep >= -3.0 * cfg.linear_slop
+    for j, J in enumerate(model.joints):
+        a_, b_ = J.body_a, J.body_b
+        com[a_], ang[a_], com[b_], ang[b_], jok = jnt.solve_position(
+            J, _masses(model, J), V2(*lc[a_]), V2(*lc[b_]), c["state"][j], com[a_], ang[a_], com[b_], ang[b_], cfg)
+        ok = ok & jok
+    done = solved > 0.5
+    com = tuple(c0.where(done, c1) for c0, c1 in zip(com0, com))
+    ang = tuple(jnp.where(done, a0, a1) for a0, a1 in zip(ang0, ang))
+    return com, ang, jnp.where(done | ok, 1.0, 0.0).astype(jnp.float32)
