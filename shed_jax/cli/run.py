@@ -412,8 +412,11 @@ def _main(args) -> int:
                 steps_train = hist["info/env_steps_train"].astype(np.float64).sum(axis=1).mean()
                 tr = flat["test_return"][:, -1]
                 teacher_r = np.nanmean(flat["info/teacher_reward"]) if np.any(np.isfinite(flat["info/teacher_reward"])) else math.nan
+                # the test set runs only in some teacher episodes (--test-episode-every): say so, not "nan"
+                test = (f"test return {np.nanmean(tr):8.1f} ± {reporting.mean_se(tr)[1]:.1f}" if np.any(np.isfinite(tr))
+                        else "test return  (not run in this episode)")
                 bar.write(f"step {done:5d}/{total}  episode {int(flat['episode'][0, -1])}  student env steps/seed {steps_train:,.0f}  "
-                          f"test return {np.nanmean(tr):8.1f} ± {reporting.mean_se(tr)[1]:.1f}  teacher reward {teacher_r:8.3f}  "
+                          f"{test}  teacher reward {teacher_r:8.3f}  "
                           f"{steps_train * num_seeds / max(time.time() - t0 + previous_wall, 1e-9):,.0f} train steps/s")
                 if done >= total:
                     break
