@@ -3,7 +3,8 @@
 A run batch is a pytree whose leaves all carry the same leading axis (one entry per run). Runs are
 independent, so the batch axis is the one axis worth sharding: a 1-D mesh over all devices with
 axis name ``"batch"`` and ``NamedSharding(mesh, P("batch"))`` on every leaf. The same code uses one
-device (a mesh of one) or N; XLA partitions the vmapped program and no run talks to another.
+device (a mesh of one) or N. Each device runs the vmapped program on its own slice of the batch
+(``shard_map``, see ``per_device``), and no run talks to another.
 
     mesh = batch_mesh()                                  # all devices of all processes
     inputs, n = pad_batch(inputs, mesh.size)             # or pad=False: raise if not divisible
@@ -121,7 +122,7 @@ def put_batch(tree: Any, mesh: Mesh) -> Any:
 def sharded_init(init: Callable, mesh: Mesh) -> Callable:
     """``jit(vmap(init))`` taking and returning batches sharded over the mesh's ``"batch"`` axis."""
     s = batch_sharding(mesh)
-    return jax.jit(jax.vmap(init), in_shardings=s, out_shardings=s)
+    return jax.jit(per_device(jax.vmap(init), mesh, P(AXIS)), in_shardings=s, out_shardings=s)
 
 
 def sharded_run(run: Callable, mesh: Mesh) -> Callable:
@@ -132,12 +133,24 @@ def sharded_run(run: Callable, mesh: Mesh) -> Callable:
     so the loop's schedule conditions stay unbatched.
     """
     s = batch_sharding(mesh)
-    return jax.jit(
-        jax.vmap(run, in_axes=(0, None, None)),
-        static_argnums=1,
-        in_shardings=(s, replicated(mesh)),
-        out_shardings=s,
-    )
+
+    def chunk(state, num_steps, start_step):
+        local = lambda st, t: jax.vmap(run, in_axes=(0, None, None))(st, num_steps, t)  # noqa: E731
+        return per_device(local, mesh, (P(AXIS), P()))(state, start_step)
+
+    return jax.jit(chunk, static_argnums=1, in_shardings=(s, replicated(mesh)), out_shardings=s)
+
+
+def per_device(fn: Callable, mesh: Mesh, in_specs) -> Callable:
+    """``fn`` run by every device on its own slice of the batch (``shard_map``).
+
+    ``in_specs``: per argument, ``P("batch")`` (split along the leading, run axis) or ``P()`` (the
+    same on every device); a single spec applies to all. Every output is split. The runs are independent, so this is
+    the same computation as the plain vmap; writing it per device keeps custom kernels (the lander's
+    fused solver, ``envs/physics2d/fused.py``) out of XLA's SPMD partitioner, which cannot split a
+    Pallas call and would otherwise gather the whole batch onto every device for it.
+    """
+    return jax.shard_map(fn, mesh=mesh, in_specs=in_specs, out_specs=P(AXIS), check_vma=False)
 
 
 def devices_of(tree: Any) -> set:

@@ -1,4 +1,4 @@
-"""Tiny 2-D vector helpers on (..., 2) arrays (cross products, rotations) shared by the solver."""
+"""Tiny 2-D vector helpers shared by the solver: on (..., 2) arrays, and ``V2`` (two per-world scalars)."""
 from __future__ import annotations
 
 import jax
