@@ -1,8 +1,16 @@
-"""envs.physics2d.fused: the per-world loop gives the same numbers as lax.fori_loop on every path.
+"""envs.physics2d.fused: the per-world loop gives the same numbers as lax.fori_loop on every path
+(unbatched, vmapped, nested vmaps, and per device under shard_map).
 
 The Pallas kernel itself only compiles on a GPU; here it runs through Pallas' interpreter, which
 executes the same kernel program (load rows, loop, store) on the CPU.
 """
+import json
+import os
+import pathlib
+import subprocess
+import sys
+import textwrap
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -61,6 +69,9 @@ def test_bad_leaves_and_modes_raise():
     assert fused.resolve_mode("auto") == ("pallas" if jax.default_backend() == "gpu" else "xla")
 
 
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+
+
 def motor_on_box(kernel):
     """A box resting on the ground with a second box pinned to it by a motorised, limited joint."""
     cfg = physics2d.SolverConfig(dt=DT, velocity_iterations=12, position_iterations=4, kernel=kernel)
@@ -70,29 +81,64 @@ def motor_on_box(kernel):
     return physics2d.make_model(2, polys, (j,), cfg)
 
 
-def test_solver_interpret_kernel_equals_xla_on_contacts_and_joints():
-    """Seeds x worlds of the full step (contacts, friction, motor, limits, position passes)."""
-    def rollout(kernel):
-        m = motor_on_box(kernel)
+def runs_of_worlds(kernel):
+    """A run = 3 worlds of ``motor_on_box`` pushed at different speeds and spins, 30 steps each.
 
-        def world(vx, spin):
-            b = physics2d.bodies_from_origin(m, [[5.0, 1.3], [6.0, 1.55]], [0.0, 0.0],
-                                             vel=[[vx, 0.0], [0.0, 0.0]], omega=[0.0, spin])
-            w = physics2d.init_world(m, b)
+    Returns per world and step the COMs (30, 2, 2), spins (30, 2), touching slots (30, 8) and the
+    position-solved flag (30,): contacts, friction, the motor, the limits and both passes."""
+    m = motor_on_box(kernel)
 
-            def body(w, _):
-                w, info = physics2d.step(m, w, FLAT, -10.0)
-                return w, (w.bodies.com, w.bodies.omega, info["touching"], info["position_solved"])
+    def world(vx):
+        b = physics2d.bodies_from_origin(m, [[5.0, 1.3], [6.0, 1.55]], [0.0, 0.0],
+                                         vel=[[vx, 0.0], [0.0, 0.0]], omega=[0.0, 1.5 * vx])
 
-            return jax.lax.scan(body, w, None, length=40)[1]
+        def body(w, _):
+            w, info = physics2d.step(m, w, FLAT, -10.0)
+            return w, (w.bodies.com, w.bodies.omega, info["touching"], info["position_solved"])
 
-        vx = jnp.linspace(-2.0, 2.0, 12, dtype=jnp.float32).reshape(2, 6)
-        spin = jnp.linspace(-3.0, 3.0, 12, dtype=jnp.float32).reshape(2, 6)
-        return jax.jit(jax.vmap(jax.vmap(world)))(vx, spin)
+        return jax.lax.scan(body, physics2d.init_world(m, b), None, length=30)[1]
 
-    ref, ker = rollout("xla"), rollout("interpret")
-    for r, k in zip(ref, ker):
-        np.testing.assert_array_equal(np.asarray(r), np.asarray(k))
-    com, omega, touching, solved = ref
-    assert bool(jnp.any(touching)) and bool(jnp.any(solved))  # contacts and position passes exercised
-    assert float(jnp.max(jnp.std(com[..., 0, 0], axis=(0, 1)))) > 0.05  # the worlds really differ
+    return jax.vmap(world)
+
+
+RUN_SPEEDS = np.linspace(-2.0, 2.0, 12, dtype=np.float32).reshape(4, 3)  # 4 runs x 3 worlds
+
+_SHARDED = textwrap.dedent(
+    """
+    import json, sys
+    import jax, numpy as np
+    sys.path.insert(0, "tests")
+    from test_fused import RUN_SPEEDS, runs_of_worlds
+    from shed_jax import sharding
+    from jax.sharding import PartitionSpec as P
+
+    mesh = sharding.batch_mesh()
+    run = jax.jit(sharding.per_device(jax.vmap(runs_of_worlds("interpret")), mesh, P("batch")))
+    out = run(sharding.put_batch(RUN_SPEEDS, mesh))
+    print(json.dumps(dict(devices=sorted(d.id for d in sharding.devices_of(out)),
+                          out=[np.asarray(x).astype(float).tolist() for x in out])))
+    """
+)
+
+
+def test_solver_kernel_inside_per_device_shard_map_equals_xla():
+    """The full step with the kernel (Pallas' interpreter) on 2 virtual devices through the sweep's
+    sharded path (``sharding.per_device``): each device vmaps its runs x worlds (nested vmap) into its
+    own kernel calls, and gets the numbers of the unsharded XLA loops."""
+    env = {**os.environ, "XLA_FLAGS": "--xla_force_host_platform_device_count=2", "JAX_PLATFORMS": "cpu",
+           "PYTHONPATH": str(ROOT)}
+    proc = subprocess.Popen([sys.executable, "-c", _SHARDED], cwd=ROOT, env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    ref = jax.jit(jax.vmap(runs_of_worlds("xla")))(RUN_SPEEDS)  # meanwhile, in this process
+    stdout, stderr = proc.communicate(timeout=300)
+    assert proc.returncode == 0, stderr[-4000:]
+    out = json.loads(stdout.strip().splitlines()[-1])
+    assert out["devices"] == [0, 1]
+    com, omega, touching, solved = (np.asarray(x) for x in ref)
+    # equal up to XLA:CPU fusing the sharded program differently (seen: 5e-7)
+    for r, k in zip((com, omega), out["out"][:2]):
+        np.testing.assert_allclose(np.asarray(k), r, rtol=0, atol=1e-5)
+    for r, k in zip((touching, solved), out["out"][2:]):
+        np.testing.assert_array_equal(np.asarray(k, bool), r)
+    assert touching.any() and solved.any()  # contacts made, position passes ran to tolerance
+    assert float(np.std(com[:, :, -1, 0, 0])) > 0.05  # the worlds really differ
