@@ -40,8 +40,8 @@ class V2:
 
     @classmethod
     def of(cls, a) -> "V2":
-        """From a (..., 2) array (or any pair)."""
-        return cls(a[..., 0], a[..., 1]) if hasattr(a, "shape") else cls(*a)
+        """From a (..., 2) array."""
+        return cls(a[..., 0], a[..., 1])
 
     def array(self):
         """Back to a (..., 2) array."""
@@ -59,9 +59,6 @@ class V2:
 
     def __sub__(self, o):
         return V2(self.x - o.x, self.y - o.y)
-
-    def __neg__(self):
-        return V2(-self.x, -self.y)
 
     def __mul__(self, s):
         return V2(self.x * s, self.y * s)
