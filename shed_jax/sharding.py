@@ -145,10 +145,10 @@ def per_device(fn: Callable, mesh: Mesh, in_specs) -> Callable:
     """``fn`` run by every device on its own slice of the batch (``shard_map``).
 
     ``in_specs``: per argument, ``P("batch")`` (split along the leading, run axis) or ``P()`` (the
-    same on every device); a single spec applies to all. Every output is split. The runs are independent, so this is
-    the same computation as the plain vmap; writing it per device keeps custom kernels (the lander's
-    fused solver, ``envs/physics2d/fused.py``) out of XLA's SPMD partitioner, which cannot split a
-    Pallas call and would otherwise gather the whole batch onto every device for it.
+    same on every device); a single spec applies to all. Every output is split. The runs are
+    independent, so this is the same computation as the plain vmap. Writing it per device keeps
+    custom kernels (the lander's fused solver, ``envs/physics2d/fused.py``) away from XLA's SPMD
+    partitioner, which has no rule to split a Pallas call (an opaque custom call) by worlds.
     """
     return jax.shard_map(fn, mesh=mesh, in_specs=in_specs, out_specs=P(AXIS), check_vma=False)
 
