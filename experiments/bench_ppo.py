@@ -19,8 +19,8 @@ Sections (each is independent; a failure is recorded in results.json and the nex
                               their ratios to ours at equal env steps.
 Options for long runs: `--ppo KEY=VALUE ...` overrides the preset (e.g. num_envs=2048);
 `--stop-at R` ends a student section once the median training return reaches R; `--log FILE`
-appends one JSON line per chunk; `--ckpt DIR` saves the learning state after every chunk and
-continues from it when run again (`--time-limit S` stops in time for the next device call, and
+appends one JSON line per chunk; `--ckpt DIR` saves the learning state after every chunk (orbax,
+`shed_jax.checkpoint.RunCheckpointer`, in DIR/checkpoints) and continues from it when run again (`--time-limit S` stops in time for the next device call, and
 `--eval-only` only evaluates the checkpoint). One device command may run at most 10 minutes:
     python -m experiments.bench_ppo --sections walker --ppo num_envs=2048 --stop-at 230 \
         --walker-steps 100000000 --chunks 100 --ckpt /tmp/wck --time-limit 500 --out $OUT/walker
@@ -41,6 +41,8 @@ import warnings
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+from shed_jax.checkpoint import CheckpointNotFoundError, ConfigMismatchError, RunCheckpointer, check_config
 
 TARGETS = {"walker": 230.0}  # issue 4: walker >= 230, the landers >= 200
 
@@ -111,45 +113,42 @@ def _learning_state(states):
     return states.replace(env_state=None, obs=None, levels=None)
 
 
-def save_checkpoint(ckpt, states, history, meta):
-    """Atomic save of the learning state, the per-update metrics so far and `meta` into `ckpt`."""
-    ckpt.mkdir(parents=True, exist_ok=True)
-    leaves = jax.tree_util.tree_leaves(jax.device_get(_learning_state(states)))
-    metrics = _concat(history)
-    for name, arrays in (("state", {f"a{i}": x for i, x in enumerate(leaves)}), ("metrics", metrics)):
-        with open(ckpt / f"{name}.tmp.npz", "wb") as f:
-            np.savez(f, **arrays)
-        os.replace(ckpt / f"{name}.tmp.npz", ckpt / f"{name}.npz")
-    (ckpt / "meta.tmp.json").write_text(json.dumps(meta))
-    os.replace(ckpt / "meta.tmp.json", ckpt / "meta.json")
+def save_checkpoint(ckpt, states, history, meta, chunks_done):
+    """Save the learning state and the per-update metrics after chunk ``chunks_done``, with ``meta``
+    as the run configuration: the project's orbax ``RunCheckpointer`` (atomic, digest-checked; only
+    the latest is kept)."""
+    with RunCheckpointer(ckpt, keep=1, async_save=False) as ck:
+        ck.save(chunks_done, _learning_state(states), _concat(history), config=meta)
 
 
 def load_checkpoint(ckpt, meta_expected):
     """(chunks_done, restore_fn, history) from `ckpt`, or (0, None, []) if it holds none.
     A checkpoint of another configuration is an error, never silently restarted."""
-    if not (ckpt / "meta.json").exists():
+    try:
+        with RunCheckpointer(ckpt, keep=1, create=False, async_save=False) as ck:
+            step = ck.latest_step()
+            if step is None:
+                return 0, None, []
+            try:
+                check_config(ck.read_config(step), meta_expected, keys=list(meta_expected))
+            except ConfigMismatchError as err:
+                raise ValueError(f"checkpoint {ckpt} is from another run configuration: {err}") from err
+            history = [ck.read_history(step)]
+    except CheckpointNotFoundError:
         return 0, None, []
-    meta = json.loads((ckpt / "meta.json").read_text())
-    diff = {k: (meta.get(k), v) for k, v in meta_expected.items() if meta.get(k) != v}
-    if diff:
-        raise ValueError(f"checkpoint {ckpt} is from another run configuration (saved, now): {diff}")
-    with np.load(ckpt / "state.npz") as z:
-        leaves = [z[f"a{i}"] for i in range(len(z.files))]
-    with np.load(ckpt / "metrics.npz") as z:
-        history = [{k: z[k] for k in z.files}]
 
     def restore(states):
-        # one transfer of all leaves, after the fresh states are ready, and no eager ops: the two
-        # XLA:CPU hangs seen in this path were in eager transfers next to an in-flight computation
+        # restore only after the fresh states are ready: the two XLA:CPU hangs seen in this path
+        # were in device transfers next to an in-flight computation
         states = jax.block_until_ready(states)
-        treedef = jax.tree_util.tree_structure(_learning_state(states))
-        saved = jax.tree_util.tree_unflatten(treedef, jax.device_put(leaves))
+        with RunCheckpointer(ckpt, keep=1, create=False, async_save=False) as ck:
+            saved = ck.restore(_learning_state(states), step=step, with_history=False).state
         # the running returns restart at zero with the freshly reset envs: keep the fresh ones
         return states.replace(params=saved.params, opt_state=saved.opt_state, hparams=saved.hparams,
                               obs_norm=saved.obs_norm, ret_norm=saved.ret_norm.replace(ret=states.ret_norm.ret),
                               update_step=saved.update_step)
 
-    return int(meta["chunks_done"]), restore, history
+    return step, restore, history
 
 
 def bench_student(env_name, total_steps, seeds, out, level_name=None, chunks=20, eval_episodes=16, seed=0,
@@ -204,7 +203,7 @@ def bench_student(env_name, total_steps, seeds, out, level_name=None, chunks=20,
                                     "elapsed_s": time.perf_counter() - t_start}) + "\n")
         history.append(m)
         if ckpt is not None:
-            save_checkpoint(ckpt, states, history, dict(meta, chunks_done=c + 1))
+            save_checkpoint(ckpt, states, history, meta, c + 1)
         if stop_at is not None and med >= stop_at:
             stop["reason"] = f"median training return {med:.1f} >= {stop_at}"
         elapsed = time.perf_counter() - t_start

@@ -299,6 +299,17 @@ class RunCheckpointer:
     def read_config(self, step: int | None = None) -> dict:
         return self.read_meta(step)["config"]
 
+    def read_history(self, step: int | None = None) -> dict[str, np.ndarray]:
+        """The metrics history of a checkpoint (digest-checked), without reading the state."""
+        step = self._resolve_step(step)
+        meta = self.read_meta(step)
+        where = self.directory / str(step)
+        try:
+            out = self.manager.restore(step, args=self._ocp.args.Composite(history=self._ocp.args.StandardRestore()))
+        except Exception as err:  # noqa: BLE001
+            raise CheckpointCorruptError(f"cannot read the metrics history of checkpoint {where}: {type(err).__name__}: {err}") from err
+        return _checked_history(out.history, meta, where)
+
     # ---------------------------------------------------------------- save
     def save(self, step: int, state, history: dict[str, np.ndarray], config: dict, extra: dict | None = None) -> None:
         """Save ``state`` (device arrays, not copied), ``history`` (flat ``[seeds, step, ...]``) and
@@ -391,15 +402,19 @@ class RunCheckpointer:
         state = jax.tree_util.tree_map(jax.numpy.asarray, host_state)
         if tree_digest(host_state) != meta["state_sha256"]:
             raise CheckpointCorruptError(f"checkpoint {where}: the run state read back differs from what was saved (digest mismatch)")
-        history = None
-        if with_history:
-            history = unnest(out.history)
-            if tree_digest(dict(sorted(history.items()))) != meta["history_sha256"]:
-                raise CheckpointCorruptError(f"checkpoint {where}: the metrics history read back differs from what was saved (digest mismatch)")
+        history = _checked_history(out.history, meta, where) if with_history else None
         state = _unstorable(state, target)
         if jax.tree_util.tree_structure(state) != jax.tree_util.tree_structure(target):
             raise CheckpointCorruptError(f"checkpoint {where}: restored tree structure differs from the target")
         return Restored(step=step, state=state, history=history, config=meta["config"], extra=meta.get("extra", {}))
+
+
+def _checked_history(saved_tree, meta: dict, where) -> dict[str, np.ndarray]:
+    """The flat metrics history of a checkpoint item, after checking it against the saved digest."""
+    history = unnest(saved_tree)
+    if tree_digest(dict(sorted(history.items()))) != meta["history_sha256"]:
+        raise CheckpointCorruptError(f"checkpoint {where}: the metrics history read back differs from what was saved (digest mismatch)")
+    return history
 
 
 # --------------------------------------------------------------------------------------------

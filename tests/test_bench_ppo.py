@@ -39,20 +39,21 @@ def test_checkpoint_resume_and_eval_only(tmp_path):
     # stop after the first chunk (a time limit of 0 s leaves room for no second chunk)
     first = _run(tmp_path, "a", ckpt=ck, time_limit=0.0, log_path=log)
     assert first["stop_reason"].startswith("time limit") and first["env_steps_per_seed"] == 64
-    meta = json.loads((ck / "meta.json").read_text())
-    assert meta["chunks_done"] == 1
-    saved_leaves = dict(np.load(ck / "state.npz"))
+    from shed_jax.checkpoint import RunCheckpointer
+    reader = RunCheckpointer(ck, create=False, async_save=False)
+    meta = reader.read_meta()
+    assert meta["step"] == 1 and reader.steps() == [1]  # chunks done; only the latest is kept
 
     # the restore puts exactly the saved learning state into fresh states
-    _, restore, history = bench_ppo.load_checkpoint(ck, {k: meta[k] for k in meta if k != "chunks_done"})
+    _, restore, history = bench_ppo.load_checkpoint(ck, meta["config"])
     assert history[0]["episode_return"].shape[1] == 1  # one update per chunk here
     import envs
     from shed_jax.student import make_student
     student = make_student(envs.make("cartpole"), bench_ppo.make_config("cartpole", bench_ppo.parse_overrides(TINY)))
     fresh = jax.vmap(student.init)(jax.random.split(jax.random.PRNGKey(5), 2))
     restored = bench_ppo._learning_state(restore(fresh))
-    treedef = jax.tree_util.tree_structure(restored)
-    saved = jax.tree_util.tree_unflatten(treedef, [saved_leaves[f"a{i}"] for i in range(len(saved_leaves))])
+    saved = reader.restore(bench_ppo._learning_state(fresh), with_history=False).state
+    reader.close()
     assert np.any(np.asarray(saved.ret_norm.ret) != 0)  # running returns of the cut episodes ...
     saved = saved.replace(ret_norm=saved.ret_norm.reset())  # ... restart with the freshly reset envs
     jax.tree_util.tree_map(np.testing.assert_array_equal, jax.device_get(restored), jax.device_get(saved))

@@ -144,6 +144,11 @@ def test_resume_is_bitwise_exact(runs, capsys):
     for k in ra.history:
         np.testing.assert_array_equal(ra.history[k], rb.history[k], err_msg=k)
     assert ra.history["step"].shape == (SEEDS, 4)
+    with ck.RunCheckpointer(b, create=False) as reader:  # the history alone, without a state target
+        hist = reader.read_history()
+    assert sorted(hist) == sorted(rb.history)
+    for k in hist:
+        np.testing.assert_array_equal(hist[k], rb.history[k], err_msg=k)
     # the student learned something (so equality is not trivially about untouched params)
     init = jax.jit(jax.vmap(make_run(*run_cli.build(exp)[1:], exp.loop)[0]))(run_cli.seed_keys(0, SEEDS))
     assert not np.array_equal(np.asarray(init.student.params["actor"]["MLP_0"]["Dense_0"]["kernel"]),
@@ -217,6 +222,13 @@ def test_damaged_or_missing_checkpoints_raise(runs, patched, tmp_path):
     shutil.copytree(d / "checkpoints" / "3" / "state", d / "checkpoints" / "4" / "state")
     with pytest.raises(ck.CheckpointCorruptError, match="digest mismatch"):
         restore(d, target)
+    # the same for the metrics history, read alone
+    d = _copy_run(a, tmp_path / "swapped_history")
+    shutil.rmtree(d / "checkpoints" / "4" / "history")
+    shutil.copytree(d / "checkpoints" / "3" / "history", d / "checkpoints" / "4" / "history")
+    with ck.RunCheckpointer(d, create=False) as reader:
+        with pytest.raises(ck.CheckpointCorruptError, match="digest mismatch"):
+            reader.read_history()
     # the metadata item deleted: the newest step is not a complete checkpoint any more
     d = _copy_run(a, tmp_path / "nometa")
     shutil.rmtree(d / "checkpoints" / "4" / "meta")
