@@ -20,8 +20,9 @@ Sections (each is independent; a failure is recorded in results.json and the nex
 Options for long runs: `--ppo KEY=VALUE ...` overrides the preset (e.g. num_envs=2048);
 `--stop-at R` ends a student section once the median training return reaches R; `--log FILE`
 appends one JSON line per chunk; `--ckpt DIR` saves the learning state after every chunk (orbax,
-`shed_jax.checkpoint.RunCheckpointer`, in DIR/checkpoints) and continues from it when run again (`--time-limit S` stops in time for the next device call, and
-`--eval-only` only evaluates the checkpoint). One device command may run at most 10 minutes:
+`shed_jax.checkpoint.RunCheckpointer`, in DIR/checkpoints) and continues from it when run again
+(`--time-limit S` stops in time for the next device call, and `--eval-only` only evaluates the
+checkpoint). One device command may run at most 10 minutes:
     python -m experiments.bench_ppo --sections walker --ppo num_envs=2048 --stop-at 230 \
         --walker-steps 100000000 --chunks 100 --ckpt /tmp/wck --time-limit 500 --out $OUT/walker
 Writes OUT/results.json and OUT/<section>_curve.png.

@@ -124,7 +124,7 @@ def step(model: Model, world: WorldState, ground, gravity, force=None, torque=No
     jprep = []
     jimp, jmot, jstate = [], [], []
     for j, J in enumerate(model.joints):
-        m = (inv_m[J.body_a], inv_m[J.body_b], inv_i[J.body_a], inv_i[J.body_b])
+        m = _masses(model, J)
         ra, rb, st, imp = jnt.prepare(J, lc[J.body_a], lc[J.body_b], b.angle[J.body_a], b.angle[J.body_b],
                                       world.limit_state[j], world.joint_impulse[j], cfg)
         mot = world.motor_impulse[j] if (J.enable_motor and cfg.warm_start) else jnp.zeros((), jnp.float32)
@@ -132,7 +132,7 @@ def step(model: Model, world: WorldState, ground, gravity, force=None, torque=No
             imp = jnp.zeros_like(imp)
         va, wa, vb, wb = jnt.warm_start(J, m, ra, rb, imp, mot, vel[J.body_a], omg[J.body_a], vel[J.body_b], omg[J.body_b])
         vel[J.body_a], omg[J.body_a], vel[J.body_b], omg[J.body_b] = va, wa, vb, wb
-        jprep.append((m, ra, rb))
+        jprep.append((ra, rb))
         jimp.append(imp)
         jmot.append(mot)
         jstate.append(st)
@@ -144,7 +144,7 @@ def step(model: Model, world: WorldState, ground, gravity, force=None, torque=No
         arm=tuple(V2.of(arm[k]) for k in slots), n=tuple(V2.of(normal[k]) for k in slots),
         t=tuple(V2.of(tangent[k]) for k in slots),
         nm=tuple(normal_mass[k] for k in slots), tm=tuple(tangent_mass[k] for k in slots),
-        ra=tuple(V2.of(p[1]) for p in jprep), rb=tuple(V2.of(p[2]) for p in jprep),
+        ra=tuple(V2.of(p[0]) for p in jprep), rb=tuple(V2.of(p[1]) for p in jprep),
         state=tuple(s.astype(f32) for s in jstate),
     )
     carry = (tuple(V2.of(v) for v in vel), tuple(omg), tuple((i[0], i[1], i[2]) for i in jimp), tuple(jmot),
