@@ -44,6 +44,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from shed_jax.checkpoint import CheckpointNotFoundError, ConfigMismatchError, RunCheckpointer, check_config
+from shed_jax.student.config import parse_overrides
 
 TARGETS = {"walker": 230.0}  # issue 4: walker >= 230, the landers >= 200
 
@@ -58,50 +59,12 @@ def first_crossing(x, y, target):
     return None if idx.size == 0 else int(x[idx[0]])
 
 
-def parse_overrides(items) -> dict:
-    """``["num_envs=2048", "ent_coef=0"]`` -> {"num_envs": 2048, "ent_coef": 0.0}: PPOConfig fields
-    (ints, floats, bools, int tuples such as ``actor_hidden=256,256``) and PPOHyperparams fields."""
-    from shed_jax.student import PPOConfig, PPOHyperparams
-
-    cfg_fields = {f.name: f for f in dataclasses.fields(PPOConfig)}
-    hp_fields = set(PPOHyperparams.__dataclass_fields__)
-    out = {}
-    for item in items or []:
-        if "=" not in item:
-            raise ValueError(f"--ppo takes KEY=VALUE, got {item!r}")
-        key, value = item.split("=", 1)
-        if key in hp_fields:
-            out[key] = float(value)
-        elif key in cfg_fields and key != "hparams":
-            default = getattr(PPOConfig(), key)
-            if isinstance(default, bool):
-                if value.lower() not in ("true", "false", "1", "0"):
-                    raise ValueError(f"--ppo {key} takes true or false, got {value!r}")
-                out[key] = value.lower() in ("true", "1")
-            elif isinstance(default, tuple):
-                out[key] = tuple(int(v) for v in value.split(","))
-            elif isinstance(default, int):
-                out[key] = int(value)
-            elif isinstance(default, float):
-                out[key] = float(value)
-            else:
-                out[key] = value
-        else:
-            known = sorted((set(cfg_fields) - {"hparams"}) | hp_fields)
-            raise ValueError(f"--ppo: unknown field {key!r}; known: {', '.join(known)}")
-    return out
-
-
 def make_config(env_name, overrides=None):
-    """The env's PPO preset with ``overrides`` (from parse_overrides) applied."""
-    from shed_jax.student import PPOConfig, PPOHyperparams
+    """The env's PPO preset with ``overrides`` (from ``parse_overrides``) applied."""
+    from shed_jax.student import PPOConfig
 
     config = PPOConfig.for_env(env_name) if env_name in ("lander", "lander-continuous", "walker", "cartpole") else PPOConfig()
-    overrides = dict(overrides or {})
-    hp = {k: overrides.pop(k) for k in list(overrides) if k in PPOHyperparams.__dataclass_fields__}
-    if hp:
-        overrides["hparams"] = config.hparams.replace(**hp)
-    return config.replace(**overrides) if overrides else config
+    return config.with_overrides(overrides)
 
 
 def _concat(history):

@@ -53,9 +53,11 @@ def _base_env(env: str) -> str:
 
 def build_experiment(env: str, method: str, preset: str, *, episodes: int | None = None,
                      steps_per_episode: int | None = None, test_episode_every: int | None = None,
-                     method_overrides: dict | None = None) -> Experiment:
-    """The named preset for (env, method); ``episodes``/``steps_per_episode`` override N_ep/T and
-    ``test_episode_every`` the teacher episodes in which the test set runs (``LoopSpec``)."""
+                     method_overrides: dict | None = None, ppo_overrides: dict | None = None) -> Experiment:
+    """The named preset for (env, method); ``episodes``/``steps_per_episode`` override N_ep/T,
+    ``test_episode_every`` the teacher episodes in which the test set runs (``LoopSpec``),
+    ``method_overrides`` fields of the method's config and ``ppo_overrides`` fields of the student's
+    PPO config (``PPOConfig.with_overrides``)."""
     if preset not in PRESETS:
         raise ValueError(f"unknown preset {preset!r}; known: {', '.join(PRESETS)}")
     kind = _base_env(env)
@@ -104,6 +106,8 @@ def build_experiment(env: str, method: str, preset: str, *, episodes: int | None
         mcfg["budget_steps"] = T  # the teacher's done flag marks the T-th transition
     if method_overrides:
         mcfg.update(method_overrides)
+    if ppo_overrides:
+        ppo = ppo.with_overrides(ppo_overrides)
     loop = LoopSpec(
         steps_per_episode=T,
         num_episodes=episodes or n_ep,

@@ -49,3 +49,28 @@ def test_every_method_builds_from_the_quick_preset(method):
     env = envs.make(e.env)
     m = make_method(method, env, make_student(env, e.ppo), dict(e.method_config))
     assert m.name == method
+
+
+def test_ppo_overrides_reach_the_student_config_and_the_cli_flag():
+    import argparse
+
+    from shed_jax.cli import run as run_cli
+    from shed_jax.student.config import parse_overrides
+
+    # full-episode native rollouts for the lander: same C = 10 x 5,120 student steps per budget step
+    e = build_experiment("lander", "dr", "paper", ppo_overrides=parse_overrides(["num_envs=8", "num_steps=640", "lr=1e-4"]))
+    assert (e.ppo.num_envs, e.ppo.num_steps, e.ppo.hparams.lr) == (8, 640, 1e-4)
+    assert e.env_steps_per_budget_step == 51_200
+    assert e.ppo.hparams.gamma == build_experiment("lander", "dr", "paper").ppo.hparams.gamma  # the rest: preset
+    assert e.to_dict()["ppo"]["num_steps"] == 640  # saved in config.json, so --resume rebuilds it
+    p = argparse.ArgumentParser()
+    run_cli.add_arguments(p)
+    args = p.parse_args(["--env", "lander", "--method", "dr", "--preset", "quick", "--ppo", "num_steps=32"])
+    assert run_cli.experiment_from_args(args, "cpu").ppo.num_steps == 32
+    assert run_cli._experiment_flags_given(p.parse_args(["--ppo", "num_steps=32"]))  # checked against a resume
+    with pytest.raises(SystemExit, match="unknown field 'num_step'"):
+        run_cli.experiment_from_args(p.parse_args(["--ppo", "num_step=32"]), "cpu")
+    with pytest.raises(ValueError, match="PPOConfig.num_envs must be a positive int"):  # PPOConfig validates
+        build_experiment("lander", "dr", "paper", ppo_overrides={"num_envs": 0})
+    with pytest.raises(ValueError, match="unknown field"):
+        build_experiment("lander", "dr", "paper", ppo_overrides={"hparams": None})

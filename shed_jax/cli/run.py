@@ -58,6 +58,9 @@ def add_arguments(p) -> None:
                    help="budget steps per compiled call, i.e. between checkpoints (default: T)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override a field of the method's config (repeatable), e.g. --set eta=10")
+    p.add_argument("--ppo", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a field of the student's PPOConfig or PPOHyperparams (repeatable), "
+                        "e.g. --ppo num_envs=8 --ppo num_steps=640")
     p.add_argument("--out", default=None, help="run directory (default runs/<env>-<method>-<preset>-<time>)")
     p.add_argument("--no-gif", action="store_true", help="skip the GIF of the final student")
     g = p.add_argument_group("checkpoints and stopping")
@@ -154,7 +157,16 @@ def experiment_from_args(args, backend: str):
               f"({'GPU budgets from SPEC 6.3' if preset == 'paper' else 'a CPU-sized smoke run; pass --preset paper for the real budget'})")
     return build_experiment(args.env or DEFAULT_ENV, args.method or DEFAULT_METHOD, preset, episodes=args.episodes,
                             steps_per_episode=args.steps_per_episode, test_episode_every=args.test_episode_every,
-                            method_overrides=_parse_overrides(args.set))
+                            method_overrides=_parse_overrides(args.set), ppo_overrides=_parse_ppo(args.ppo))
+
+
+def _parse_ppo(items: list[str]) -> dict:
+    from shed_jax.student.config import parse_overrides
+
+    try:
+        return parse_overrides(items)
+    except ValueError as err:
+        raise SystemExit(str(err)) from None
 
 
 def _tuples(x):
@@ -283,7 +295,7 @@ def reconcile_metrics_jsonl(path: pathlib.Path, hist: dict, step: int, num_seeds
 
 def _experiment_flags_given(args) -> bool:
     return any(getattr(args, k) is not None for k in ("env", "method", "preset", "episodes", "steps_per_episode",
-                                                  "test_episode_every")) or bool(args.set)
+                                                  "test_episode_every")) or bool(args.set) or bool(args.ppo)
 
 
 def _resume_command(out: pathlib.Path) -> str:

@@ -141,6 +141,18 @@ class PPOConfig:
     def replace(self, **changes) -> "PPOConfig":
         return dataclasses.replace(self, **changes)
 
+    def with_overrides(self, overrides: dict | None) -> "PPOConfig":
+        """This config with ``overrides`` applied: PPOConfig fields and PPOHyperparams fields by name
+        (as :func:`parse_overrides` returns them); the result is validated like any PPOConfig."""
+        overrides = dict(overrides or {})
+        hp = {k: overrides.pop(k) for k in list(overrides) if k in _HPARAM_RANGES}
+        unknown = (set(overrides) - {f.name for f in dataclasses.fields(self)}) | ({"hparams"} & set(overrides))
+        if unknown:
+            raise ValueError(f"PPO overrides: unknown field(s) {sorted(unknown)}")
+        if hp:
+            overrides["hparams"] = self.hparams.replace(**hp)
+        return dataclasses.replace(self, **overrides) if overrides else self
+
     @classmethod
     def for_env(cls, name: str, **overrides) -> "PPOConfig":
         """The preset for a registered environment (SPEC 6.1), with optional field overrides."""
@@ -194,3 +206,39 @@ PRESETS: dict[str, PPOConfig] = {
         hparams=PPOHyperparams(lr=1e-3, ent_coef=0.01, clip_eps=0.2, vf_coef=0.5, gamma=0.99, gae_lambda=0.95, max_grad_norm=0.5),
     ),
 }
+
+
+def parse_overrides(items) -> dict:
+    """Command-line ``KEY=VALUE`` strings -> PPO overrides for :meth:`PPOConfig.with_overrides`.
+
+    ``["num_envs=2048", "ent_coef=0", "actor_hidden=128,128"]`` -> ``{"num_envs": 2048,
+    "ent_coef": 0.0, "actor_hidden": (128, 128)}``. Values take the type of the field's default
+    (int, float, bool as true/false/1/0, int tuples); hyperparameters are floats. Unknown keys and
+    malformed items raise ValueError naming the known fields.
+    """
+    cfg_fields = {f.name for f in dataclasses.fields(PPOConfig)} - {"hparams"}
+    defaults = PPOConfig()
+    out: dict[str, Any] = {}
+    for item in items or []:
+        if "=" not in item:
+            raise ValueError(f"--ppo takes KEY=VALUE, got {item!r}")
+        key, value = item.split("=", 1)
+        if key in _HPARAM_RANGES:
+            out[key] = float(value)
+        elif key in cfg_fields:
+            default = getattr(defaults, key)
+            if isinstance(default, bool):
+                if value.lower() not in ("true", "false", "1", "0"):
+                    raise ValueError(f"--ppo {key} takes true or false, got {value!r}")
+                out[key] = value.lower() in ("true", "1")
+            elif isinstance(default, tuple):
+                out[key] = tuple(int(v) for v in value.split(","))
+            elif isinstance(default, int):
+                out[key] = int(value)
+            elif isinstance(default, float):
+                out[key] = float(value)
+            else:
+                out[key] = value
+        else:
+            raise ValueError(f"--ppo: unknown field {key!r}; known: {', '.join(sorted(cfg_fields | set(_HPARAM_RANGES)))}")
+    return out
