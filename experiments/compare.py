@@ -18,11 +18,15 @@ Writes to OUT:
   with x = update x env steps per paper update (see ``PAPER_STEPS_PER_UPDATE``);
 * ``per_level_<env>_<label>.png``: one panel per test level (the reported student, as the curves);
 * ``params_<env>_<label>.png``: the parameters each method's teacher generated, per budget step;
-* ``eval_vector_<env>_<label>.png``: SHED/h-MDP's performance vector (teacher state) per budget step.
+* ``eval_vector_<env>_<label>.png``: SHED/h-MDP's performance vector (teacher state) per budget step;
+* ``results.csv``: the raw numbers behind them, one row per (run, seed, budget step) where the test
+  set ran: label, env, seed, teacher episode, step in it, the student env steps so far in that
+  episode, the teacher reward, the test return and its per-level means.
 """
 from __future__ import annotations
 
 import argparse
+import csv
 import dataclasses
 import json
 import pathlib
@@ -268,6 +272,37 @@ def write_plots(runs: list[Run], out: pathlib.Path, paper: str | None = None) ->
     return written
 
 
+def write_csv(runs: list[Run], path: pathlib.Path) -> int:
+    """One row per (run, seed, budget step) with a test-set result; returns the number of rows."""
+    levels = max((r.hist["test_return_per_level"].shape[-1] for r in runs if "test_return_per_level" in r.hist),
+                 default=0)
+    header = ["method", "env", "seed", "episode", "step_in_episode", "student_env_steps_in_episode",
+              "teacher_reward", "test_return"] + [f"test_level_{j + 1}" for j in range(levels)]
+    n = 0
+    with open(path, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(header)
+        for r in runs:
+            h = r.hist
+            episode = np.asarray(h["episode"])
+            train = np.asarray(h["info/env_steps_train"], np.float64)
+            in_episode = np.zeros_like(train)  # cumulative student env steps within each teacher episode
+            for e in np.unique(episode[0]):
+                sel = episode[0] == e
+                in_episode[:, sel] = np.cumsum(train[:, sel], axis=1)
+            step_in = np.asarray(h.get("step_in_episode", np.broadcast_to(np.arange(train.shape[1]), train.shape)))
+            reward = np.asarray(h.get("info/teacher_reward", np.full(train.shape, np.nan)), np.float64)
+            ret = np.asarray(h["test_return"], np.float64)
+            per_level = np.asarray(h.get("test_return_per_level", np.full(ret.shape + (0,), np.nan)), np.float64)
+            for s in range(ret.shape[0]):
+                for t in np.nonzero(np.isfinite(ret[s]))[0]:
+                    cells = [reward[s, t], ret[s, t], *per_level[s, t], *([np.nan] * (levels - per_level.shape[-1]))]
+                    w.writerow([r.label, r.env, s, int(episode[s, t]), int(step_in[s, t]), int(in_episode[s, t])]
+                               + ["" if not np.isfinite(v) else f"{v:.2f}" for v in cells])
+                    n += 1
+    return n
+
+
 def markdown(runs: list[Run], plots: list[pathlib.Path], out: pathlib.Path, paper: str | None) -> str:
     lines = [table(runs, paper), ""]
     lines.append("Final test return: mean over the test levels of the per-level mean return at the last budget "
@@ -286,19 +321,30 @@ def markdown(runs: list[Run], plots: list[pathlib.Path], out: pathlib.Path, pape
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m experiments.compare", description=__doc__.splitlines()[0])
     p.add_argument("runs", nargs="+", metavar="RUN_DIR", help="run directories written by `python -m shed_jax run`")
-    p.add_argument("--out", required=True, help="output directory (results.md and PNGs)")
+    p.add_argument("--out", required=True, help="output directory (results.md, results.csv and PNGs)")
+    p.add_argument("--labels", default=None,
+                   help="comma-separated labels, one per RUN_DIR, for the table and the plots "
+                        "(default: the method, disambiguated by preset, then directory name)")
     p.add_argument("--paper", choices=sorted(PAPER), default=None,
                    help="add the paper's digitised numbers (SPEC 3.4) for this environment")
     args = p.parse_args(argv)
     runs = [load_run(d) for d in args.runs]
     assign_labels(runs)
+    if args.labels is not None:
+        labels = [x.strip() for x in args.labels.split(",")]
+        if len(labels) != len(runs) or not all(labels) or len(set(labels)) != len(labels):
+            p.error(f"--labels needs {len(runs)} distinct non-empty labels (one per RUN_DIR), got {args.labels!r}")
+        for r, label in zip(runs, labels):
+            r.label = label
     out = pathlib.Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     plots = write_plots(runs, out, args.paper)
+    rows = write_csv(runs, out / "results.csv")
     text = markdown(runs, plots, out, args.paper)
     (out / "results.md").write_text(text)
     print(text)
-    print(f"[compare] wrote {out / 'results.md'} and {len(plots)} plot(s)", file=sys.stderr)
+    print(f"[compare] wrote {out / 'results.md'}, {len(plots)} plot(s) and {out / 'results.csv'} ({rows} rows)",
+          file=sys.stderr)
     return 0
 
 

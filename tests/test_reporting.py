@@ -1,5 +1,6 @@
 """Reporting and the results-comparison tool: statistics, records, table text and plots on
 hand-computed synthetic runs written the way ``shed_jax/cli/run.py`` writes them."""
+import csv
 import json
 import math
 import pathlib
@@ -165,6 +166,14 @@ def test_compare_table_rows_and_plots(runs, capsys):
     w, h = _png(out / "params_lander_shed.png")
     assert w > h  # three parameter panels side by side
     assert "| shed | lander |" in capsys.readouterr().out
+    with open(out / "results.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == 2 * 4 + 3 * 6  # every (seed, budget step) of dr and shed has a test result
+    assert [r["method"] for r in rows].count("dr") == 8
+    last = next(r for r in rows if (r["method"], r["seed"], r["episode"], r["step_in_episode"]) == ("shed", "1", "1", "2"))
+    assert (last["student_env_steps_in_episode"], last["teacher_reward"]) == ("3000", "0.50")  # restarts per episode
+    assert (float(last["test_return"]), float(last["test_level_1"]), float(last["test_level_10"])) == (-110, -160, -60)
+    assert rows[0]["method"] == "dr" and rows[0]["teacher_reward"] == ""  # DR has no teacher reward: empty cell
 
 
 def test_compare_partial_run_and_duplicate_methods(runs):
@@ -176,6 +185,16 @@ def test_compare_partial_run_and_duplicate_methods(runs):
     assert lines[2] == "| shed (shed-b) | lander | quick | 2 | -60.0 ± 10.0 (partial) | 3k | 3k | n/a |"
     assert lines[3] == "| shed (shed) | lander | quick | 3 | -110.0 ± 5.8 | 3k | 6k (2 ep.) | 40 s |"
     _png(out / "params_lander_shed_shed-b.png")
+    # labels given by the user replace those everywhere: table, plot names, CSV
+    out3 = runs / "report3"
+    assert compare.main([str(runs / "shed"), str(runs / "shed-b"), "--labels", "SHED L1,SHED short", "--out", str(out3)]) == 0
+    lines = (out3 / "results.md").read_text().splitlines()
+    assert lines[2].startswith("| SHED short | lander |") and lines[3].startswith("| SHED L1 | lander |")
+    _png(out3 / "params_lander_SHED_short.png")
+    assert (out3 / "results.csv").read_text().splitlines()[1].startswith("SHED L1,lander,0,0,0,1000,")
+    for bad in ("a", "a,a", "a,"):  # one distinct, non-empty label per run directory
+        with pytest.raises(SystemExit):
+            compare.main([str(runs / "shed"), str(runs / "shed-b"), "--labels", bad, "--out", str(out3)])
 
 
 def test_compare_rejects_a_directory_that_is_not_a_run(tmp_path):
