@@ -236,3 +236,28 @@ def test_dcd_easy_parents_lowest_return_minus_value_loss():
     vloss = jnp.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 10.0])  # level 7: 4 - 10 = -6, the lowest
     parents = np.asarray(dcd_easy_parents(levels, ret, vloss))
     np.testing.assert_array_equal(parents[:, 0], [7, 7, 4, 4, 1, 1, 6, 6])
+
+
+def test_native_methods_warn_when_rollouts_cut_training_episodes():
+    """Native mode resets every slot each rollout: rollouts shorter than a training episode warn,
+    with a rollout shape of the same update size that holds one; block mode never warns."""
+    import warnings
+
+    from shed_jax.methods.dr import RolloutTruncationWarning
+
+    lander = envs.make("lander")
+    paper = make_student(lander, PPOConfig.for_env("lander"))  # 40 x 128; lander training episodes: 600
+    for name in ("dr", "plr", "accel", "paired"):
+        with pytest.warns(RolloutTruncationWarning, match=r"rollouts of 128 steps .* may last 600 steps") as rec:
+            make_method(name, lander, paper, None)
+        assert "--ppo num_envs=8 --ppo num_steps=640 (the same 5,120 steps per update)" in str(rec[0].message)
+    long = make_student(lander, PPOConfig.for_env("lander", num_envs=8, num_steps=640))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RolloutTruncationWarning)
+        for name in ("dr", "plr", "accel", "paired"):
+            make_method(name, lander, long, None)
+        make_method("accel-norevisit", lander, paper, None)  # block mode: episodes carry over rollouts
+    odd = make_student(lander, PPOConfig.for_env("lander", num_envs=3, num_steps=100, num_minibatches=3))
+    with pytest.warns(RolloutTruncationWarning) as rec:  # no rollout >= 600 divides 300 steps: no hint
+        make_method("dr", lander, odd, None)
+    assert "e.g." not in str(rec[0].message)

@@ -14,10 +14,13 @@ Shared plumbing (used by plr.py, accel.py, paired.py):
   have a ``terrain_seed`` field (the walker) get the seed and ``fixed_terrain=True``, so a level
   is exactly reproducible (DCD level semantics, SPEC 5.6); others ignore the seed.
 * :func:`nan_like` -- NaN-filled metrics for ``lax.cond`` branches that skip a PPO update.
+* :func:`warn_if_rollouts_cut_episodes` -- native mode resets every slot at each rollout, so it
+  warns when a training episode can outlast a rollout.
 """
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from typing import Any
 
 import jax
@@ -53,6 +56,35 @@ def teacher_space(env, low=None, high=None) -> ParamSpace:
             raise ValueError(f"lander teacher box expects 3 parameters (gravity, wind, turbulence), got {space.names}")
         low, high = LANDER_THETA_LOW, LANDER_THETA_HIGH
     return space.with_bounds(low, high, base)
+
+
+class RolloutTruncationWarning(UserWarning):
+    """A native-mode method whose rollouts are shorter than a training episode may last."""
+
+
+def warn_if_rollouts_cut_episodes(name: str, student, space: ParamSpace) -> None:
+    """Warn when native-mode rollouts cannot hold a whole training episode.
+
+    Native mode (SPEC 2.0) resets every slot onto its new level at the start of each rollout, so an
+    episode longer than ``student.config.num_steps`` is cut off and its end (a landing, the walker's
+    goal) is never seen in training. DCD's and JaxUED's rollouts are as long as an episode; the
+    lander (128 < 600) and walker (32 < 2000) presets' are not (docs/baselines.md).
+    """
+    limit = getattr(space.base, "max_steps", None) if space.base is not None else None
+    if limit is None or student is None:  # a method built without a student only samples levels
+        return
+    limit, steps = int(np.max(np.asarray(limit))), int(student.config.num_steps)
+    if steps >= limit:
+        return
+    batch = steps * int(student.config.num_envs)
+    longer = next((k * steps for k in range(-(-limit // steps), batch // steps + 1) if batch % (k * steps) == 0), None)
+    hint = (f", e.g. --ppo num_envs={batch // longer} --ppo num_steps={longer} (the same {batch:,} steps per update)"
+            if longer is not None else "")
+    warnings.warn(
+        f"{name}: native-mode rollouts of {steps} steps reset every slot, but a training episode may last "
+        f"{limit} steps; longer episodes are cut off and their ends never reach the student (docs/baselines.md, "
+        f"'Rollout length in native mode'). Rollouts of >= {limit} steps avoid it{hint}.",
+        RolloutTruncationWarning, stacklevel=3)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -151,6 +183,7 @@ class DR:
             hi = np.array([c[3] for c in _CODE_DR], np.float32)
             space = ParamSpace(space.names, lo, hi, space.base)
         object.__setattr__(self, "codec", LevelCodec(space))
+        warn_if_rollouts_cut_episodes(self.name, self.student, space)
 
     def sample_levels(self, key: jax.Array, n: int):
         """``n`` DR levels -> (vectors [n, d], params pytree with leading n)."""

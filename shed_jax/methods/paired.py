@@ -34,7 +34,7 @@ import optax
 from flax import struct
 
 from shed_jax.methods.base import StepInfo
-from shed_jax.methods.dr import LevelCodec, mean_metrics, teacher_space
+from shed_jax.methods.dr import LevelCodec, mean_metrics, teacher_space, warn_if_rollouts_cut_episodes
 from shed_jax.methods.mutations import new_seeds
 from shed_jax.student import losses
 from shed_jax.student.config import PPOHyperparams
@@ -195,6 +195,7 @@ class PAIRED:
         codec = LevelCodec(teacher_space(self.env, self.config.low, self.config.high))
         object.__setattr__(self, "codec", codec)
         object.__setattr__(self, "adversary", Adversary(codec.dim, self.config))
+        warn_if_rollouts_cut_episodes(self.name, self.student, codec.space)
 
     def init(self, key: jax.Array, hparams=None) -> PAIREDState:
         k_ant, k_adv = jax.random.split(key)

@@ -32,7 +32,8 @@ import jax.numpy as jnp
 from flax import struct
 
 from shed_jax.methods.base import StepInfo
-from shed_jax.methods.dr import LevelCodec, mean_metrics, nan_like, teacher_space, update_metrics_shape
+from shed_jax.methods.dr import (LevelCodec, mean_metrics, nan_like, teacher_space, update_metrics_shape,
+                                 warn_if_rollouts_cut_episodes)
 from shed_jax.methods.level_sampler import LevelBuffer, LevelSampler, LevelSamplerConfig
 
 SCORES = ("pvl", "maxmc")
@@ -75,6 +76,7 @@ class PLR:
 
     def __post_init__(self):
         object.__setattr__(self, "codec", LevelCodec(teacher_space(self.env, self.config.low, self.config.high)))
+        warn_if_rollouts_cut_episodes(self.name, self.student, self.codec.space)
         object.__setattr__(self, "sampler", LevelSampler(self.config.sampler))
 
     # ---------------------------------------------------------------- hooks (ACCEL overrides)
