@@ -26,6 +26,9 @@ def test_parse_overrides_types_and_errors():
         bench_ppo.parse_overrides(["num_envs"])
     with pytest.raises(ValueError, match="true or false"):
         bench_ppo.parse_overrides(["anneal_lr=maybe"])
+    for item, kind in (("num_envs=abc", "an int"), ("lr=fast", "a float"), ("actor_hidden=64,x", "comma-separated ints")):
+        with pytest.raises(ValueError, match=f"--ppo {item.split('=')[0]} takes {kind}, got"):  # names field and type
+            bench_ppo.parse_overrides([item])
 
 
 def _run(tmp_path, name, **kw):

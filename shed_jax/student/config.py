@@ -223,22 +223,22 @@ def parse_overrides(items) -> dict:
         if "=" not in item:
             raise ValueError(f"--ppo takes KEY=VALUE, got {item!r}")
         key, value = item.split("=", 1)
-        if key in _HPARAM_RANGES:
-            out[key] = float(value)
-        elif key in cfg_fields:
-            default = getattr(defaults, key)
+        if key not in _HPARAM_RANGES and key not in cfg_fields:
+            raise ValueError(f"--ppo: unknown field {key!r}; known: {', '.join(sorted(cfg_fields | set(_HPARAM_RANGES)))}")
+        default = 0.0 if key in _HPARAM_RANGES else getattr(defaults, key)
+        try:
             if isinstance(default, bool):
                 if value.lower() not in ("true", "false", "1", "0"):
-                    raise ValueError(f"--ppo {key} takes true or false, got {value!r}")
+                    raise ValueError(value)
                 out[key] = value.lower() in ("true", "1")
             elif isinstance(default, tuple):
                 out[key] = tuple(int(v) for v in value.split(","))
-            elif isinstance(default, int):
-                out[key] = int(value)
-            elif isinstance(default, float):
-                out[key] = float(value)
+            elif isinstance(default, (int, float)):
+                out[key] = type(default)(value)
             else:
                 out[key] = value
-        else:
-            raise ValueError(f"--ppo: unknown field {key!r}; known: {', '.join(sorted(cfg_fields | set(_HPARAM_RANGES)))}")
+        except ValueError:
+            kind = ("true or false" if isinstance(default, bool) else "comma-separated ints" if isinstance(default, tuple)
+                    else f"an {type(default).__name__}" if isinstance(default, int) else f"a {type(default).__name__}")
+            raise ValueError(f"--ppo {key} takes {kind}, got {value!r}") from None
     return out
