@@ -11,7 +11,9 @@ Writes to OUT:
 
 * ``results.md``: the table (method, env, preset, seeds, final mean test return ± SE over seeds,
   student env steps of the reported student and of the whole run, wall time per seed and, with
-  ``--paper``, the paper's digitised final number from SPEC 3.4), followed by links to the plots;
+  ``--paper``, the paper's digitised final number from SPEC 3.4); for runs with several teacher
+  episodes (SHED, h-MDP) a second table of the test return at the end of each tested episode;
+  then links to the plots;
 * ``curves_<env>.png``: mean test return ± SE vs student env steps, all methods of that env on one
   axis; for episodic methods (shed, hmdp: several teacher episodes) the last teacher episode, as
   ``make_plots`` in cli/run.py does. With ``--paper`` the paper's digitised curves are drawn dashed,
@@ -272,6 +274,33 @@ def write_plots(runs: list[Run], out: pathlib.Path, paper: str | None = None) ->
     return written
 
 
+def episode_table(runs: list[Run]) -> str | None:
+    """Test return at the end of each tested teacher episode (mean ± SE over seeds), one row per
+    run with more than one teacher episode (SHED, h-MDP); None if there is no such run."""
+    from shed_jax import reporting
+
+    rows, columns = {}, set()
+    for r in runs:
+        if r.num_episodes < 2:
+            continue
+        episode = np.asarray(r.hist["episode"])[0]
+        ret = np.asarray(r.hist["test_return"], np.float64)
+        cells = {}
+        for e in np.unique(episode):
+            last = np.nonzero(episode == e)[0][-1]  # the episode's final budget step
+            if np.any(np.isfinite(ret[:, last])):
+                m, se = reporting.mean_se(ret[:, last])
+                cells[int(e)] = reporting.format_mean_se(float(m), float(se))
+        rows[r.label] = cells
+        columns |= set(cells)
+    if not rows:
+        return None
+    columns = sorted(columns)
+    return reporting.markdown_table(["teacher episode"] + [str(e) for e in columns],
+                                    [[label] + [cells.get(e, "—") for e in columns] for label, cells in rows.items()],
+                                    "l" + "r" * len(columns))
+
+
 def write_csv(runs: list[Run], path: pathlib.Path) -> int:
     """One row per (run, seed, budget step) with a test-set result; returns the number of rows."""
     levels = max((r.hist["test_return_per_level"].shape[-1] for r in runs if "test_return_per_level" in r.hist),
@@ -305,6 +334,9 @@ def write_csv(runs: list[Run], path: pathlib.Path) -> int:
 
 def markdown(runs: list[Run], plots: list[pathlib.Path], out: pathlib.Path, paper: str | None) -> str:
     lines = [table(runs, paper), ""]
+    episodes = episode_table(runs)
+    if episodes is not None:
+        lines += ["Test return at the end of each tested teacher episode (mean ± SE over seeds):", "", episodes, ""]
     lines.append("Final test return: mean over the test levels of the per-level mean return at the last budget "
                  "step, mean ± SE over seeds (SE = sd/√n, ddof 1). Student env steps: those of the reported "
                  "student (for SHED/h-MDP its last teacher episode); \"all teacher episodes\" counts every "

@@ -166,6 +166,9 @@ def test_compare_table_rows_and_plots(runs, capsys):
     w, h = _png(out / "params_lander_shed.png")
     assert w > h  # three parameter panels side by side
     assert "| shed | lander |" in capsys.readouterr().out
+    # episodic runs get a per-teacher-episode table: each of shed's 2 episodes ends at its seeds' finals
+    at = lines.index("| teacher episode | 0 | 1 |")
+    assert lines[at + 2] == "| shed | -110.0 ± 5.8 | -110.0 ± 5.8 |" and not lines[at + 3].startswith("| dr")
     with open(out / "results.csv", newline="") as f:
         rows = list(csv.DictReader(f))
     assert len(rows) == 2 * 4 + 3 * 6  # every (seed, budget step) of dr and shed has a test result
