@@ -108,6 +108,32 @@ def test_dr(setup):
     assert _changed(p0, p1)
 
 
+def test_dr_episode_level_switch_runs_episodes_across_rollouts(setup):
+    """level_switch="episode": begin_episode puts DR levels on the fresh student's slots; a slot takes
+    a new level only after an episode end, and otherwise keeps its level and its running episode."""
+    env, student = setup
+    method = make_method("dr", env, student, {"updates_per_step": 2, "level_switch": "episode"})
+    k = jax.random.split(jax.random.PRNGKey(5), 4)
+    m, s0 = method.begin_episode(k[0], method.init(k[1]), student.init(k[2]))
+    lo, hi = method.codec.space.low, method.codec.space.high
+    start = np.asarray(method.codec.space.to_vector(s0.levels))
+    assert np.all((start >= lo - 1e-6) & (start <= hi + 1e-6)) and len(np.unique(start, axis=0)) == E  # DR draws
+    m, s1, info = jax.jit(method.step)(k[3], m, s0)
+    used = np.asarray(info.extras["levels_trained_mask"]).reshape(2, E)  # [update, slot]: an episode ended
+    assert int(info.num_new_levels) == used.sum() and int(info.env_steps_train) == 2 * E * S
+    end = np.asarray(method.codec.space.to_vector(s1.levels))
+    drawn = np.asarray(info.levels).reshape(2, E, -1)
+    stayed = ~used.any(axis=0)
+    assert stayed.any() and not stayed.all(), used  # this key gives both kinds of slot
+    np.testing.assert_array_equal(end[stayed], start[stayed])
+    np.testing.assert_array_equal(np.asarray(s1.env_state.time)[stayed], 2 * S)  # one episode, never reset
+    last = np.where(used[1], 1, 0)  # a moved slot holds the level drawn in the last update it moved in
+    moved = ~stayed
+    np.testing.assert_array_equal(end[moved], drawn[last[moved], np.nonzero(moved)[0]])
+    with pytest.raises(ValueError, match="level_switch"):
+        make_method("dr", env, student, {"level_switch": "step"})
+
+
 def test_plr_trains_only_on_replayed_levels(setup):
     env, student = setup
     # capacity = slots, replay certain once full: update 1 explores (fills), updates 2-3 replay

@@ -164,6 +164,38 @@ def test_assign_levels_slot_j_runs_level_j_mod_n():
     assert s.obs.shape == (8, 4)
 
 
+def test_rollout_moves_a_slot_to_its_next_level_when_its_episode_ends(cart):
+    """next_levels: the episode after a slot's first episode end runs on its next level; a slot
+    whose episode has not ended keeps its level, and its episode runs on across rollouts."""
+    env, student, init, _ = cart
+    s = init(jax.random.PRNGKey(0))
+    # slots 0, 1 truncate after 5 steps on their current level; slots 2, 3 have 1000 steps and
+    # bounds so wide that they cannot fail within the rollout
+    old = _levels(env, max_steps=[5, 5, 1000, 1000], gravity=[9.8, 9.8, 1e-3, 1e-3],
+                  x_threshold=[2.4, 2.4, 1e3, 1e3], theta_threshold=[0.21, 0.21, 1e3, 1e3])
+    s = student.assign_levels(s, jax.random.PRNGKey(1), old)
+    nxt = _levels(env, max_steps=[11, 1000, 12, 13], gravity=[9.8, 9.8, 9.8, 9.8],
+                  x_threshold=[2.4] * 4, theta_threshold=[0.21] * 4)
+    roll = jax.jit(student.rollout)
+    s1, traj = roll(s, jax.random.PRNGKey(2), nxt)
+    done, length = np.asarray(traj.dones), np.asarray(traj.episode_lengths)
+    # slot 0: 5 steps on the old level, then episodes of 11 on the new one (ends at t = 4, 15, 26)
+    np.testing.assert_array_equal(np.nonzero(done[:, 0])[0], [4, 15, 26])
+    np.testing.assert_array_equal(length[[4, 15, 26], 0], [5, 11, 11])
+    assert np.nonzero(done[:, 1])[0][0] == 4  # slot 1: one 5-step episode, then the new level
+    moved = done.any(axis=0)
+    np.testing.assert_array_equal(s1.levels.max_steps, np.where(moved, [11, 1000, 12, 13], [5, 5, 1000, 1000]))
+    np.testing.assert_allclose(s1.levels.gravity, np.where(moved, 9.8, [9.8, 9.8, 1e-3, 1e-3]), rtol=1e-6)
+    np.testing.assert_array_equal(moved, [True, True, False, False])
+    np.testing.assert_array_equal(np.asarray(s1.env_state.time)[~moved], 32)  # no reset between rollouts
+    s2, _ = roll(s1, jax.random.PRNGKey(3), nxt)
+    np.testing.assert_array_equal(np.asarray(s2.env_state.time)[2:], 64)
+    # without next_levels a slot keeps its level through every episode end (the env's auto-reset)
+    s3, traj3 = roll(s, jax.random.PRNGKey(2))
+    np.testing.assert_array_equal(np.nonzero(np.asarray(traj3.dones)[:, 0])[0], [4, 9, 14, 19, 24, 29])
+    np.testing.assert_array_equal(s3.levels.max_steps, [5, 5, 1000, 1000])
+
+
 def test_level_scores_pvl_and_maxmc(cart):
     env, student, init, rollout = cart
     s = init(jax.random.PRNGKey(0))

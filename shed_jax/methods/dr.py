@@ -1,7 +1,9 @@
 """Domain randomisation (DR), plus the level plumbing every native-mode baseline shares.
 
 DR (SPEC 2.1): each PPO rollout, every slot gets a fresh level drawn from a fixed distribution and
-the student trains on all of them. Default distribution: U(Θ), the teacher's box (lander: the SPEC
+the student trains on all of them. Option ``level_switch="episode"``: a slot moves to its fresh
+level only when its current episode ends, so episodes longer than a rollout are played to the end
+(docs/baselines.md, "Rollout length in native mode"). Default distribution: U(Θ), the teacher's box (lander: the SPEC
 1.6 box with wind on; walker: U(FULL)). Option ``distribution="code"``: the official lander code's
 "hard" Gaussian DR (g ~ N(-10, 1), wind on with p 0.5, wind ~ N(15, 1), turb ~ N(1.5, 0.5), each
 clipped), which lies mostly outside Θ.
@@ -62,7 +64,7 @@ class RolloutTruncationWarning(UserWarning):
     """A native-mode method whose rollouts are shorter than a training episode may last."""
 
 
-def warn_if_rollouts_cut_episodes(name: str, student, space: ParamSpace) -> None:
+def warn_if_rollouts_cut_episodes(name: str, student, space: ParamSpace, other_fix: str = "") -> None:
     """Warn when native-mode rollouts cannot hold a whole training episode.
 
     Native mode (SPEC 2.0) resets every slot onto its new level at the start of each rollout, so an
@@ -83,7 +85,7 @@ def warn_if_rollouts_cut_episodes(name: str, student, space: ParamSpace) -> None
     warnings.warn(
         f"{name}: native-mode rollouts of {steps} steps reset every slot, but a training episode may last "
         f"{limit} steps; longer episodes are cut off and their ends never reach the student (docs/baselines.md, "
-        f"'Rollout length in native mode'). Rollouts of >= {limit} steps avoid it{hint}.",
+        f"'Rollout length in native mode'). Rollouts of >= {limit} steps avoid it{hint}.{other_fix}",
         RolloutTruncationWarning, stacklevel=3)
 
 
@@ -152,12 +154,18 @@ class DRConfig:
     distribution: str = "uniform"  # "uniform": U(Θ); "code": official-code Gaussian DR (lander only)
     low: tuple[float, ...] | None = None  # Θ override (default: teacher_space)
     high: tuple[float, ...] | None = None
+    # "rollout" (SPEC 2.0, DCD): every rollout resets every slot onto a new level. "episode": a slot
+    # moves to a new level only when its episode ends (student.rollout's next_levels), so episodes
+    # longer than a rollout run to their end.
+    level_switch: str = "rollout"
 
     def __post_init__(self):
         if not isinstance(self.updates_per_step, int) or self.updates_per_step < 1:
             raise ValueError(f"DRConfig.updates_per_step must be a positive int, got {self.updates_per_step!r}")
         if self.distribution not in ("uniform", "code"):
             raise ValueError(f"DRConfig.distribution must be 'uniform' or 'code', got {self.distribution!r}")
+        if self.level_switch not in ("rollout", "episode"):
+            raise ValueError(f"DRConfig.level_switch must be 'rollout' or 'episode', got {self.level_switch!r}")
 
 
 # SPEC 2.1 `dr=code` [official code]: (mean, std, clip low, clip high) per lander parameter.
@@ -183,7 +191,9 @@ class DR:
             hi = np.array([c[3] for c in _CODE_DR], np.float32)
             space = ParamSpace(space.names, lo, hi, space.base)
         object.__setattr__(self, "codec", LevelCodec(space))
-        warn_if_rollouts_cut_episodes(self.name, self.student, space)
+        if self.config.level_switch == "rollout":  # "episode" runs every episode to its end
+            warn_if_rollouts_cut_episodes(self.name, self.student, space,
+                                          " For DR, so does --set level_switch=episode.")
 
     def sample_levels(self, key: jax.Array, n: int):
         """``n`` DR levels -> (vectors [n, d], params pytree with leading n)."""
@@ -204,28 +214,38 @@ class DR:
         return {}
 
     def begin_episode(self, key: jax.Array, mstate, sstate):
+        if self.config.level_switch == "episode":  # the fresh student's slots start on DR levels
+            k_lvl, k_assign = jax.random.split(key)
+            sstate = self.student.assign_levels(sstate, k_assign, self.sample_levels(k_lvl, self.student.config.num_envs)[1])
         return mstate, sstate
 
     def step(self, key: jax.Array, mstate, sstate):
         student = self.student
         n = student.config.num_envs
+        per_episode = self.config.level_switch == "episode"
 
         def one_update(s, k):
             k_lvl, k_assign, k_roll, k_upd = jax.random.split(k, 4)
             vecs, params = self.sample_levels(k_lvl, n)
-            s = student.assign_levels(s, k_assign, params)
-            s, traj = student.rollout(s, k_roll)
+            if per_episode:  # slot j takes level j when its episode ends (at most once per rollout)
+                s, traj = student.rollout(s, k_roll, next_levels=params)
+                used = traj.dones.any(axis=0)
+            else:
+                s = student.assign_levels(s, k_assign, params)
+                s, traj = student.rollout(s, k_roll)
+                used = jnp.ones((n,), bool)
             s, metrics = student.update(s, k_upd, traj)
-            return s, (vecs, metrics)
+            return s, (vecs, used, metrics)
 
         u = self.config.updates_per_step
-        sstate, (vecs, metrics) = jax.lax.scan(one_update, sstate, jax.random.split(key, u))
+        sstate, (vecs, used, metrics) = jax.lax.scan(one_update, sstate, jax.random.split(key, u))
         info = StepInfo(
             levels=vecs.reshape(u * n, -1),
             env_steps_train=jnp.int32(u * student.env_steps_per_update),
             env_steps_eval=jnp.int32(0),
             teacher_reward=jnp.float32(jnp.nan),
-            num_new_levels=jnp.int32(u * n),
-            extras={"ppo": mean_metrics(metrics), "levels_trained_mask": jnp.ones((u * n,), bool)},
+            num_new_levels=used.sum().astype(jnp.int32),
+            # "episode": levels drawn but not reached (no episode end in that slot) were never played
+            extras={"ppo": mean_metrics(metrics), "levels_trained_mask": used.reshape(u * n)},
         )
         return mstate, sstate, info

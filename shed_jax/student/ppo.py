@@ -180,13 +180,29 @@ class PPOStudent:
             env_state=env_state, obs=obs.astype(jnp.float32), levels=slot_levels, ret_norm=state.ret_norm.reset()
         )
 
-    def rollout(self, state: StudentState, key):
-        """config.num_steps steps of all slots with the current policy -> (state, Trajectory)."""
+    def rollout(self, state: StudentState, key, next_levels=None):
+        """config.num_steps steps of all slots with the current policy -> (state, Trajectory).
+
+        ``next_levels`` (a params pytree with leading axis num_envs, optional): slot j moves to
+        ``next_levels[j]`` when its current episode ends, at most once per rollout. Its next
+        episode then starts there instead of on the same level, and ``state.levels`` holds each
+        slot's level at the end. The slots that moved are those with an episode end in the rollout,
+        ``traj.dones.any(axis=0)``. Without ``next_levels`` every slot keeps its level (the env's
+        own auto-reset).
+        """
         cfg = self.config
-        params, levels, hp = state.params, state.levels, state.hparams
+        params, hp = state.params, state.hparams
+        switching = next_levels is not None
+
+        def swap(moved, key, level, env_state, obs):
+            obs_new, state_new = self.env.reset(key, level)
+            pick = lambda new, old: jnp.where(moved, new, old)  # noqa: E731
+            return jax.tree_util.tree_map(pick, state_new, env_state), pick(obs_new, obs)
 
         def step(carry, k):
-            env_state, obs, obs_norm, ret_norm = carry
+            (env_state, obs, obs_norm, ret_norm), (levels, pending) = carry
+            if switching:
+                k, k_swap = jax.random.split(k)
             k_act, k_env = jax.random.split(k)
             if cfg.normalize_observations:
                 obs_norm = obs_norm.update(obs)
@@ -218,11 +234,22 @@ class PPOStudent:
                 episode_returns=info["episode_return"],
                 episode_lengths=info["episode_length"],
             )
-            return (env_state2, obs2.astype(jnp.float32), obs_norm, ret_norm), tr
+            if switching:  # an episode ended: the slot's next episode starts on its next level
+                moved = done & pending
+                env_state2, obs2 = jax.vmap(swap)(moved, jax.random.split(k_swap, cfg.num_envs), next_levels,
+                                                   env_state2, obs2)
+                levels = jax.tree_util.tree_map(
+                    lambda new, old: jnp.where(moved.reshape(moved.shape + (1,) * (old.ndim - 1)), new, old),
+                    next_levels, levels)
+                pending = pending & ~moved
+            return ((env_state2, obs2.astype(jnp.float32), obs_norm, ret_norm), (levels, pending)), tr
 
-        carry0 = (state.env_state, state.obs, state.obs_norm, state.ret_norm)
-        (env_state, obs, obs_norm, ret_norm), traj = jax.lax.scan(step, carry0, jax.random.split(key, cfg.num_steps))
-        return state.replace(env_state=env_state, obs=obs, obs_norm=obs_norm, ret_norm=ret_norm), traj
+        carry0 = ((state.env_state, state.obs, state.obs_norm, state.ret_norm),
+                  (state.levels, jnp.ones((cfg.num_envs,), bool)))
+        ((env_state, obs, obs_norm, ret_norm), (levels, pending)), traj = jax.lax.scan(
+            step, carry0, jax.random.split(key, cfg.num_steps))
+        state = state.replace(env_state=env_state, obs=obs, obs_norm=obs_norm, ret_norm=ret_norm)
+        return state.replace(levels=levels), traj
 
     def advantages(self, state: StudentState, traj: Trajectory):
         """GAE advantages and value targets [num_steps, num_envs] under the state's gamma/lambda."""
