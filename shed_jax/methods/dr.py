@@ -1,12 +1,12 @@
 """Domain randomisation (DR), plus the level plumbing every native-mode baseline shares.
 
 DR (SPEC 2.1): each PPO rollout, every slot gets a fresh level drawn from a fixed distribution and
-the student trains on all of them. Option ``level_switch="episode"``: a slot moves to its fresh
-level only when its current episode ends, so episodes longer than a rollout are played to the end
-(docs/baselines.md, "Rollout length in native mode"). Default distribution: U(Θ), the teacher's box (lander: the SPEC
+the student trains on all of them. Default distribution: U(Θ), the teacher's box (lander: the SPEC
 1.6 box with wind on; walker: U(FULL)). Option ``distribution="code"``: the official lander code's
 "hard" Gaussian DR (g ~ N(-10, 1), wind on with p 0.5, wind ~ N(15, 1), turb ~ N(1.5, 0.5), each
-clipped), which lies mostly outside Θ.
+clipped), which lies mostly outside Θ. Option ``level_switch="episode"``: a slot moves to its fresh
+level only when its current episode ends, so episodes longer than a rollout are played to the end
+(docs/baselines.md, "Rollout length in native mode").
 
 Shared plumbing (used by plr.py, accel.py, paired.py):
 

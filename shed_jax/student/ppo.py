@@ -194,10 +194,11 @@ class PPOStudent:
         params, hp = state.params, state.hparams
         switching = next_levels is not None
 
-        def swap(moved, key, level, env_state, obs):
-            obs_new, state_new = self.env.reset(key, level)
+        def swap(moved, key, next_level, level, env_state, obs):
+            """One slot: if ``moved``, a new episode on ``next_level`` replaces the auto-reset one."""
+            obs_new, state_new = self.env.reset(key, next_level)
             pick = lambda new, old: jnp.where(moved, new, old)  # noqa: E731
-            return jax.tree_util.tree_map(pick, state_new, env_state), pick(obs_new, obs)
+            return jax.tree_util.tree_map(pick, (next_level, state_new, obs_new), (level, env_state, obs))
 
         def step(carry, k):
             (env_state, obs, obs_norm, ret_norm), (levels, pending) = carry
@@ -236,11 +237,8 @@ class PPOStudent:
             )
             if switching:  # an episode ended: the slot's next episode starts on its next level
                 moved = done & pending
-                env_state2, obs2 = jax.vmap(swap)(moved, jax.random.split(k_swap, cfg.num_envs), next_levels,
-                                                   env_state2, obs2)
-                levels = jax.tree_util.tree_map(
-                    lambda new, old: jnp.where(moved.reshape(moved.shape + (1,) * (old.ndim - 1)), new, old),
-                    next_levels, levels)
+                levels, env_state2, obs2 = jax.vmap(swap)(moved, jax.random.split(k_swap, cfg.num_envs), next_levels,
+                                                           levels, env_state2, obs2)
                 pending = pending & ~moved
             return ((env_state2, obs2.astype(jnp.float32), obs_norm, ret_norm), (levels, pending)), tr
 
