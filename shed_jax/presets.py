@@ -7,7 +7,8 @@
   run N_ep = 50 teacher episodes (the student is re-initialised each episode; the test set runs in
   episodes 0, 10, 20, 30, 40 and 49); the baselines train
   one student over the same T budget steps. Walker: C = 25 updates of 256 x 32 = 204,800 steps,
-  T = 50 (1e7 student steps), n = 4, N_ep = 20, test set B (10 ladder levels, 2000 steps).
+  T = 50 (1e7 student steps), n = 4, E_eval = 4, N_ep = 20, test set B (10 ladder levels, 2000
+  steps).
 
 ``build_experiment(env, method, preset, **overrides)`` returns an :class:`Experiment`; the CLI and
 the sweep tools are the only places that read presets, so a library user can ignore this module and
@@ -81,6 +82,8 @@ def build_experiment(env: str, method: str, preset: str, *, episodes: int | None
             test_set = "walker-test-b"
             if method in ("shed", "hmdp", "accel-norevisit"):
                 mcfg["num_levels"] = 4
+            if episodic:  # SPEC 6.3: E_eval = 4 evaluation episodes per eval level (lander: 8)
+                mcfg["num_eval_episodes"] = 4
     else:  # quick
         if kind == "lander":
             ppo = PPOConfig.for_env(env, num_envs=16, num_steps=64, update_epochs=2, num_minibatches=4)
