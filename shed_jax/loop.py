@@ -28,6 +28,8 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from shed_jax.methods.base import thin_levels
+
 
 @struct.dataclass
 class RunState:
@@ -50,11 +52,17 @@ class LoopSpec:
     # others). Reports need the first and last episodes' curves (SPEC 3.3); testing the students of
     # the episodes between costs a 500-step evaluation per budget step, about a fifth of a SHED step.
     test_episode_every: int = 1
+    # At most this many of a budget step's levels go into the metrics record (evenly spaced rows,
+    # methods.base.thin_levels); None records all of them, as runs saved before this field did.
+    max_recorded_levels: int | None = 256
 
     def __post_init__(self):
         for name in ("steps_per_episode", "num_episodes", "test_episodes", "test_every", "test_episode_every"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"LoopSpec.{name} must be >= 1, got {getattr(self, name)}")
+        m = self.max_recorded_levels
+        if m is not None and (isinstance(m, bool) or not isinstance(m, int) or m < 1):
+            raise ValueError(f"LoopSpec.max_recorded_levels must be a positive int or None, got {m!r}")
 
     @property
     def total_steps(self) -> int:
@@ -104,6 +112,7 @@ def make_run(student, method, test_levels, spec: LoopSpec) -> tuple[Callable, Ca
             t_in_episode == 0, start_episode, lambda operand: operand, (state.method, state.student)
         )
         mstate, sstate, info = method.step(k_step, mstate, sstate)
+        info = thin_levels(info, spec.max_recorded_levels)
 
         def run_test(s):
             return student.evaluate(s, k_test, test_levels, spec.test_episodes, spec.test_max_steps)

@@ -145,3 +145,37 @@ def test_skipping_test_episodes_changes_only_the_test_metrics(setup):
     np.testing.assert_array_equal(ret_skip[[0, 1, 4, 5]], ret_all[[0, 1, 4, 5]])
     np.testing.assert_array_equal(np.asarray(m_skip["info"].levels), np.asarray(m_all["info"].levels))
     _allclose_trees(s_skip.student.params, s_all.student.params)
+
+
+def test_thin_levels_keeps_evenly_spaced_rows_and_aligned_extras():
+    from shed_jax.methods.base import thin_levels
+
+    levels = jnp.arange(10 * 3, dtype=jnp.float32).reshape(10, 3)
+    info = StepInfo(levels=levels, env_steps_train=jnp.int32(7), env_steps_eval=jnp.int32(0),
+                    teacher_reward=jnp.float32(1.5), num_new_levels=jnp.int32(10),
+                    extras={"levels_trained_mask": jnp.arange(10) % 2 == 0, "per_update": jnp.arange(10.0), "loss": jnp.float32(2.0)})
+    thin = thin_levels(info, 4)
+    rows = [0, 3, 6, 9]  # round(linspace(0, 9, 4)): first and last row of the step, evenly between
+    np.testing.assert_array_equal(np.asarray(thin.levels), np.asarray(levels)[rows])
+    np.testing.assert_array_equal(np.asarray(thin.extras["levels_trained_mask"]), [True, False, True, False])
+    np.testing.assert_array_equal(np.asarray(thin.extras["per_update"]), np.arange(10.0))  # not a levels_ entry
+    assert int(thin.num_new_levels) == 10 and int(thin.env_steps_train) == 7  # counts stay exact
+    assert thin_levels(info, None) is info and thin_levels(info, 10) is info
+    # jittable: the rows are static
+    np.testing.assert_array_equal(np.asarray(jax.jit(lambda i: thin_levels(i, 4))(info).levels), np.asarray(levels)[rows])
+
+
+def test_loop_records_at_most_max_recorded_levels():
+    init, run = _cartpole_loop(LoopSpec(steps_per_episode=2, num_episodes=1, test_episodes=1, test_max_steps=20,
+                                        max_recorded_levels=1))
+    _, m = run(init(jax.random.PRNGKey(0)), 2, 0)
+    init_all, run_all = _cartpole_loop(LoopSpec(steps_per_episode=2, num_episodes=1, test_episodes=1, test_max_steps=20,
+                                                max_recorded_levels=None))
+    _, m_all = run_all(init_all(jax.random.PRNGKey(0)), 2, 0)
+    assert m["info"].levels.shape == (2, 1, m_all["info"].levels.shape[-1]) and m_all["info"].levels.shape[1] == 2
+    # the kept row is the step's first level; training is untouched by what is recorded
+    np.testing.assert_array_equal(np.asarray(m["info"].levels[:, 0]), np.asarray(m_all["info"].levels[:, 0]))
+    np.testing.assert_array_equal(np.asarray(m["test_return"]), np.asarray(m_all["test_return"]))
+    for bad in (0, -3, 2.5, True):
+        with pytest.raises(ValueError, match="max_recorded_levels"):
+            LoopSpec(steps_per_episode=1, num_episodes=1, max_recorded_levels=bad)

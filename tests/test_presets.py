@@ -78,3 +78,15 @@ def test_ppo_overrides_reach_the_student_config_and_the_cli_flag():
         build_experiment("lander", "dr", "paper", ppo_overrides={"num_envs": 0})
     with pytest.raises(ValueError, match="unknown field"):
         build_experiment("lander", "dr", "paper", ppo_overrides={"hparams": None})
+
+
+def test_saved_configs_round_trip_and_older_ones_record_every_level():
+    from shed_jax.cli import run as run_cli
+
+    e = build_experiment("walker", "dr", "paper")
+    d = e.to_dict()
+    assert d["loop"]["max_recorded_levels"] == 256 and run_cli.experiment_from_dict(d) == e
+    # a config.json written before LoopSpec.max_recorded_levels existed keeps its old behaviour on
+    # --resume: every level recorded, so the metrics arrays of its steps keep one shape
+    del d["loop"]["max_recorded_levels"]
+    assert run_cli.experiment_from_dict(d).loop.max_recorded_levels is None

@@ -192,7 +192,9 @@ def experiment_from_dict(d: dict):
                 ppo[k] = tuple(ppo[k])
         return Experiment(
             env=d["env"], method=d["method"], preset=d["preset"], ppo=PPOConfig(**ppo, hparams=hp),
-            method_config=_tuples(dict(d["method_config"])), loop=LoopSpec(**d["loop"]), test_set=d["test_set"],
+            method_config=_tuples(dict(d["method_config"])),
+            # runs saved before LoopSpec.max_recorded_levels existed recorded every level
+            loop=LoopSpec(**{"max_recorded_levels": None, **d["loop"]}), test_set=d["test_set"],
         )
     except (KeyError, TypeError, ValueError) as err:
         raise CheckpointError(f"cannot rebuild the experiment from the saved configuration: {type(err).__name__}: {err}") from err

@@ -18,6 +18,7 @@ from __future__ import annotations
 from typing import Any, Protocol
 
 import jax
+import numpy as np
 from flax import struct
 
 
@@ -31,7 +32,9 @@ class StepInfo:
     env_steps_eval:  env steps spent on evaluation rollouts (teacher state, scoring, antagonist...).
     teacher_reward:  the teacher's reward for this step (NaN for methods without one).
     num_new_levels:  distinct newly generated levels in this step (the paper's resource).
-    extras:          method-specific scalars/arrays (losses, buffer sizes, ...).
+    extras:          method-specific scalars/arrays (losses, buffer sizes, ...). An entry whose key
+                     starts with ``levels_`` is per level: its leading axis is aligned with
+                     ``levels`` (e.g. ``levels_trained_mask``), and ``thin_levels`` thins it with them.
     """
 
     levels: jax.Array
@@ -40,6 +43,24 @@ class StepInfo:
     teacher_reward: jax.Array
     num_new_levels: jax.Array
     extras: dict = struct.field(default_factory=dict)
+
+
+def thin_levels(info: StepInfo, max_levels: int | None) -> StepInfo:
+    """Keep at most ``max_levels`` rows of ``info.levels`` (and of the ``levels_*`` extras) for the record.
+
+    Native-mode methods report every level of a budget step, ``updates_per_step x num_envs`` of
+    them: 30,720 walker levels per step and seed at 30 x 1024, about 24 MB of ``metrics.jsonl`` per
+    budget step for 5 seeds. The record only feeds plots of the generated parameters, so evenly
+    spaced rows over the step (early and late updates alike) are kept. The rows are static, so this
+    is free under jit. ``None`` keeps every row. Counts such as ``num_new_levels`` are computed by
+    the method before thinning and stay exact.
+    """
+    n = info.levels.shape[0]
+    if max_levels is None or n <= max_levels:
+        return info
+    rows = np.round(np.linspace(0, n - 1, max_levels)).astype(np.int32)
+    extras = {k: (v[rows] if k.startswith("levels_") else v) for k, v in info.extras.items()}
+    return info.replace(levels=info.levels[rows], extras=extras)
 
 
 class UEDMethod(Protocol):
