@@ -46,7 +46,7 @@ def add_arguments(p) -> None:
                    help=f"shed | hmdp | dr | paired | accel | accel-norevisit | plr (default {DEFAULT_METHOD})")
     p.add_argument("--preset", default=None, choices=("auto",) + PRESETS,
                    help="auto (default): 'paper' on a GPU, 'quick' on a CPU (the choice is printed)")
-    p.add_argument("--seeds", type=int, default=None, help="number of vmapped seeds (default: quick 2, paper 5)")
+    p.add_argument("--seeds", type=int, default=None, help="number of vmapped seeds (default: quick 2, paper 5; the walker on a CPU 1)")
     p.add_argument("--seed", type=int, default=None,
                    help=f"root seed (default {DEFAULT_ROOT_SEED}); seed i of the batch uses fold_in(root, i)")
     p.add_argument("--episodes", type=int, default=None, help="override the number of teacher episodes N_ep")
@@ -198,6 +198,22 @@ def experiment_from_dict(d: dict):
         )
     except (KeyError, TypeError, ValueError) as err:
         raise CheckpointError(f"cannot rebuild the experiment from the saved configuration: {type(err).__name__}: {err}") from err
+
+
+def _cpu_walker_hang_risk(exp, backend: str, num_seeds: int) -> bool:
+    return backend == "cpu" and exp.env == "walker" and num_seeds > 1
+
+
+def default_seeds(exp, backend: str) -> int:
+    """Seeds when --seeds is not given: paper 5, quick 2; the walker on a CPU 1.
+
+    Two or more vmapped seeds of a walker run deadlock XLA:CPU (jax 0.10.2, 2026-11-23): after the
+    compile every thread waits and the chunk never returns, with or without multi-threaded Eigen
+    (shed_jax/xla_cpu.py). One seed runs, and GPU runs of 5 seeds do too.
+    """
+    if exp.preset == "paper":
+        return 5
+    return 1 if _cpu_walker_hang_risk(exp, backend, 2) else 2
 
 
 def seed_keys(root_seed: int, num_seeds: int):
@@ -352,10 +368,13 @@ def _main(args) -> int:
         chunk = args.chunk or int(config.get("chunk") or exp.loop.steps_per_episode)
     else:
         exp = experiment_from_args(args, backend)
-        num_seeds = args.seeds or (5 if exp.preset == "paper" else 2)
+        num_seeds = args.seeds or default_seeds(exp, backend)
         root_seed = DEFAULT_ROOT_SEED if args.seed is None else args.seed
         if num_seeds < 1:
             raise SystemExit("--seeds must be >= 1")
+        if _cpu_walker_hang_risk(exp, backend, num_seeds):
+            print(f"[shed_jax] warning: {num_seeds} vmapped walker seeds on the CPU have hung XLA:CPU here (jax 0.10, "
+                  "every run tried; one seed runs). Use --seeds 1 on a CPU, or a GPU (docs/running.md).", file=sys.stderr)
         out = pathlib.Path(args.out or f"runs/{exp.env}-{exp.method}-{exp.preset}-{time.strftime('%Y%m%d-%H%M%S')}")
         out.mkdir(parents=True, exist_ok=True)
         for held in ("metrics.jsonl", "checkpoints"):
