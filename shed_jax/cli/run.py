@@ -373,8 +373,8 @@ def _main(args) -> int:
         if num_seeds < 1:
             raise SystemExit("--seeds must be >= 1")
         if _cpu_walker_hang_risk(exp, backend, num_seeds):
-            print(f"[shed_jax] warning: {num_seeds} vmapped walker seeds on the CPU have hung XLA:CPU here (jax 0.10, "
-                  "every run tried; one seed runs). Use --seeds 1 on a CPU, or a GPU (docs/running.md).", file=sys.stderr)
+            print(f"[shed_jax] warning: {num_seeds} vmapped walker seeds hung XLA:CPU (jax 0.10.2) in every run we tried;"
+                  " one seed runs. Use --seeds 1 on a CPU, or a GPU (docs/running.md).", file=sys.stderr)
         out = pathlib.Path(args.out or f"runs/{exp.env}-{exp.method}-{exp.preset}-{time.strftime('%Y%m%d-%H%M%S')}")
         out.mkdir(parents=True, exist_ok=True)
         for held in ("metrics.jsonl", "checkpoints"):
