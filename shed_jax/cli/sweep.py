@@ -451,6 +451,9 @@ def run_sweep(groups: list[Group], *, out: pathlib.Path, make_experiment: Callab
             bar.write(f"[shed_jax] {b.group.label}: {len(b.group.points)} point(s) x {num_seeds} seed(s) = {B} runs "
                       f"in one program over {mesh.size} device(s)"
                       + (f" (+{sharding.padded_size(B, mesh.size) - B} padding)" if B % mesh.size else ""))
+            if b.exp.env == "walker" and B > 1 and jax.default_backend() == "cpu":
+                bar.write(f"[shed_jax] warning: {B} vmapped walker runs hung XLA:CPU (jax 0.10.2) in every try of 2 or "
+                          "more; one runs. Sweep the walker on a GPU (docs/running.md).")
             rows += run_group(b, out=out, num_seeds=num_seeds, root_seed=root_seed, chunk=chunk, mesh=mesh, pad=pad,
                               plots=plots, bar=bar)
     finally:
