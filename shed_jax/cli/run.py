@@ -200,8 +200,9 @@ def experiment_from_dict(d: dict):
         raise CheckpointError(f"cannot rebuild the experiment from the saved configuration: {type(err).__name__}: {err}") from err
 
 
-def _cpu_walker_hang_risk(exp, backend: str, num_seeds: int) -> bool:
-    return backend == "cpu" and exp.env == "walker" and num_seeds > 1
+def cpu_walker_hang_risk(env: str, backend: str, num_runs: int) -> bool:
+    """Whether ``num_runs`` vmapped runs of ``env`` risk the XLA:CPU deadlock (see ``default_seeds``)."""
+    return backend == "cpu" and env == "walker" and num_runs > 1
 
 
 def default_seeds(exp, backend: str) -> int:
@@ -213,7 +214,7 @@ def default_seeds(exp, backend: str) -> int:
     """
     if exp.preset == "paper":
         return 5
-    return 1 if _cpu_walker_hang_risk(exp, backend, 2) else 2
+    return 1 if cpu_walker_hang_risk(exp.env, backend, 2) else 2
 
 
 def seed_keys(root_seed: int, num_seeds: int):
@@ -372,7 +373,7 @@ def _main(args) -> int:
         root_seed = DEFAULT_ROOT_SEED if args.seed is None else args.seed
         if num_seeds < 1:
             raise SystemExit("--seeds must be >= 1")
-        if _cpu_walker_hang_risk(exp, backend, num_seeds):
+        if cpu_walker_hang_risk(exp.env, backend, num_seeds):
             print(f"[shed_jax] warning: {num_seeds} vmapped walker seeds hung XLA:CPU (jax 0.10.2) in every run we tried;"
                   " one seed runs. Use --seeds 1 on a CPU, or a GPU (docs/running.md).", file=sys.stderr)
         out = pathlib.Path(args.out or f"runs/{exp.env}-{exp.method}-{exp.preset}-{time.strftime('%Y%m%d-%H%M%S')}")

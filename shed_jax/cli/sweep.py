@@ -430,6 +430,7 @@ def run_sweep(groups: list[Group], *, out: pathlib.Path, make_experiment: Callab
     from tqdm import tqdm
 
     from shed_jax import sharding
+    from shed_jax.cli.run import cpu_walker_hang_risk
 
     if num_seeds < 1:
         raise ValueError("--seeds must be >= 1")
@@ -451,7 +452,7 @@ def run_sweep(groups: list[Group], *, out: pathlib.Path, make_experiment: Callab
             bar.write(f"[shed_jax] {b.group.label}: {len(b.group.points)} point(s) x {num_seeds} seed(s) = {B} runs "
                       f"in one program over {mesh.size} device(s)"
                       + (f" (+{sharding.padded_size(B, mesh.size) - B} padding)" if B % mesh.size else ""))
-            if b.exp.env == "walker" and B > 1 and jax.default_backend() == "cpu":
+            if cpu_walker_hang_risk(b.exp.env, jax.default_backend(), B):
                 bar.write(f"[shed_jax] warning: {B} vmapped walker runs hung XLA:CPU (jax 0.10.2) in every try of 2 or "
                           "more; one runs. Sweep the walker on a GPU (docs/running.md).")
             rows += run_group(b, out=out, num_seeds=num_seeds, root_seed=root_seed, chunk=chunk, mesh=mesh, pad=pad,
