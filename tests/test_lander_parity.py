@@ -37,3 +37,34 @@ def test_heuristic_parity_with_gymnasium(continuous):
     for name in parity.SETTINGS:
         if name != "default":
             check(ours[name], reference[name], f"{mode} {name}")
+
+
+def test_per_episode_keys_repeat_a_row_of_a_larger_run():
+    """jax_episodes takes one key (split per episode) or the per-episode keys themselves: a row of a
+    larger run repeats exactly when it is given the keys it had there."""
+    import jax
+    import numpy as np
+
+    from envs.lander.env import make_params
+
+    g = np.array([-10.0, -1.0, -5.0])
+    levels = make_params(max_steps=np.full(3, 30), gravity=g, enable_wind=np.zeros(3, bool),
+                         wind_power=np.full(3, 15.0), turbulence_power=np.full(3, 1.5))
+    key = jax.random.PRNGKey(4)
+    whole = parity.jax_episodes(False, levels, key, max_steps=30)
+    one = jax.tree_util.tree_map(lambda x: x[1:2], levels)
+    row = parity.jax_episodes(False, one, jax.random.split(key, 3)[1:2], max_steps=30)
+    assert row["ret"][0] == pytest.approx(whole["ret"][1], abs=1e-4) and row["length"][0] == whole["length"][1]
+    with pytest.raises(ValueError, match="2 episode keys for 3 levels"):
+        parity.jax_episodes(False, levels, jax.random.split(key, 2), max_steps=30)
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--settings", "g -2"], "unknown setting"),
+    (["--iterations", "0/3"], "positive integers"),
+    (["--iterations", "60"], "V/P"),
+])
+def test_parity_cli_rejects_bad_rows_and_passes(argv, message, capsys):
+    with pytest.raises(SystemExit):
+        parity.main(["--jax-only", *argv])
+    assert message in capsys.readouterr().err

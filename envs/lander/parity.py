@@ -6,11 +6,13 @@ episode of every setting of one action type in a single compiled program (vmap o
 
     python -m envs.lander.parity --episodes 1000 --out runs/parity.json      # both sides
     python -m envs.lander.parity --gym-only --episodes 1000 --out tests/test_lander_parity_reference.json
+    python -m envs.lander.parity --jax-only --settings "g -1" --iterations 180/60   # one row, Box2D's passes
 """
 from __future__ import annotations
 
 import argparse
 import json
+import re
 import time
 
 import jax
@@ -41,7 +43,11 @@ def summarize(returns, lengths, landed, crashed, truncated) -> dict:
 
 
 def jax_episodes(continuous: bool, levels, key, max_steps: int = 1000, **env_kwargs):
-    """First episode of the heuristic on every level (params with leading axis n). Numpy dict of (n,)."""
+    """First episode of the heuristic on every level (params with leading axis n). Numpy dict of (n,).
+
+    ``key`` is one key, split into one per episode, or already an (n, 2) array of per-episode keys
+    (to repeat one row of a larger run with the keys it had there).
+    """
     env = LunarLander(continuous=continuous, **env_kwargs)
 
     def one(key, params):
@@ -63,7 +69,10 @@ def jax_episodes(continuous: bool, levels, key, max_steps: int = 1000, **env_kwa
         return out
 
     n = levels.gravity.shape[0]
-    out = jax.jit(jax.vmap(one))(jax.random.split(key, n), levels)
+    keys = key if jnp.ndim(key) == 2 else jax.random.split(key, n)
+    if keys.shape[0] != n:
+        raise ValueError(f"{keys.shape[0]} episode keys for {n} levels")
+    out = jax.jit(jax.vmap(one))(keys, levels)
     return jax.tree_util.tree_map(np.asarray, out)
 
 
@@ -138,18 +147,39 @@ def main(argv=None) -> int:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--gym-only", action="store_true")
     p.add_argument("--jax-only", action="store_true")
+    p.add_argument("--settings", default=None, metavar="NAME[,NAME...]",
+                   help=f"comma-separated rows to run (default all): {', '.join(SETTINGS)}")
+    p.add_argument("--iterations", default=None, metavar="V/P",
+                   help="our solver's velocity/position passes (default the lander's own; Box2D in Gymnasium: 180/60)")
+    p.add_argument("--solver-kernel", default="auto", choices=("auto", "xla"),
+                   help="our solver loops: auto (one Pallas kernel per loop on a GPU) or xla (plain loops)")
     p.add_argument("--out", default=None)
     args = p.parse_args(argv)
-    result = {"episodes": args.episodes, "seed": args.seed, "max_steps": 1000}
+    settings = SETTINGS
+    if args.settings:
+        names = [n.strip() for n in args.settings.split(",")]
+        unknown = [n for n in names if n not in SETTINGS]
+        if unknown:
+            p.error(f"unknown setting(s) {unknown}; known: {list(SETTINGS)}")
+        settings = {n: SETTINGS[n] for n in names}
+    env_kwargs = {"solver_kernel": args.solver_kernel}
+    if args.iterations:
+        m = re.fullmatch(r"(\d+)/(\d+)", args.iterations)
+        if not m or int(m[1]) < 1 or int(m[2]) < 1:
+            p.error(f"--iterations must be V/P with positive integers, e.g. 180/60; got {args.iterations!r}")
+        env_kwargs.update(velocity_iterations=int(m[1]), position_iterations=int(m[2]))
+    result = {"episodes": args.episodes, "seed": args.seed, "max_steps": 1000, "settings": list(settings),
+              "iterations": args.iterations, "solver_kernel": args.solver_kernel}
     for continuous in (False, True):
         mode = "continuous" if continuous else "discrete"
         if not args.jax_only:
             t = time.time()
-            result.setdefault("gym", {})[mode] = gym_stats(continuous, episodes=args.episodes, seed=args.seed)
+            result.setdefault("gym", {})[mode] = gym_stats(continuous, settings, episodes=args.episodes, seed=args.seed)
             print(f"gym {mode}: {time.time() - t:.1f}s", flush=True)
         if not args.gym_only:
             t = time.time()
-            result.setdefault("jax", {})[mode] = jax_stats(continuous, episodes=args.episodes, seed=args.seed)
+            result.setdefault("jax", {})[mode] = jax_stats(continuous, settings, episodes=args.episodes, seed=args.seed,
+                                                               **env_kwargs)
             print(f"jax {mode}: {time.time() - t:.1f}s", flush=True)
     for side in ("gym", "jax"):
         for mode, rows in result.get(side, {}).items():
