@@ -101,6 +101,9 @@ def test_config_errors():
     assert make_method("hmdp", env, student).capacity == 10000 and make_method("shed", env, student).capacity == 2048
     with pytest.raises(ValueError, match="unknown config field"):
         make_method("shed", env, student, {"bogus": 1})
+    # the reward's fields (eta, form, ...) live one level down; the error says where
+    with pytest.raises(ValueError, match=r"\['eta'\] are fields of the teacher reward.*reward=\{\"eta\": <value>\}"):
+        make_method("shed", env, student, {"eta": 10})
     with pytest.raises(ValueError, match="eval_set"):
         make_method("shed", env, student, {"eval_set": "random"})
     with pytest.raises(ValueError, match="multiple of num_levels"):

@@ -503,7 +503,10 @@ def make_method(name: str, env, student, config: Any = None):
         fields = {f.name for f in dataclasses.fields(SHEDConfig)}
         unknown = sorted(set(config) - fields)
         if unknown:
-            raise ValueError(f"method {name!r}: unknown config field(s) {unknown}; known: {sorted(fields)}")
+            nested = [k for k in unknown if k in {f.name for f in dataclasses.fields(RewardConfig)}]
+            hint = (f"; {nested} are fields of the teacher reward, given inside it: reward={{\"{nested[0]}\": <value>}} "
+                    f"(on the command line: --set 'reward={{\"{nested[0]}\": <value>}}')" if nested else "")
+            raise ValueError(f"method {name!r}: unknown config field(s) {unknown}{hint}; known: {sorted(fields)}")
         config = SHEDConfig(**config)
     elif not isinstance(config, SHEDConfig):
         raise TypeError(f"method {name!r}: config must be None, a dict or a SHEDConfig, got {type(config).__name__}")
