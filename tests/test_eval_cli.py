@@ -53,7 +53,8 @@ def run_dir(tmp_path_factory):
         mp.setattr(run_cli, "experiment_from_args", lambda args, backend: tiny_experiment())
         mp.setattr(run_cli, "test_levels", lambda name, env: cartpole_test_levels(env) if name == "cartpole-test" else original(name, env))
         d = tmp_path_factory.mktemp("eval") / "run"
-        assert run_cli.main(parse(run_cli, ["--out", str(d), "--seeds", str(SEEDS), "--chunk", "1", "--no-gif"])) == 0
+        assert run_cli.main(parse(run_cli, ["--out", str(d), "--seeds", str(SEEDS), "--chunk", "1", "--no-gif",
+                                            "--final-eval", "test", "--final-eval-episodes", "3"])) == 0
         yield d
 
 
@@ -137,6 +138,39 @@ def test_eval_named_and_file_levels(run_dir, tmp_path, capsys):
     assert res["labels"] == ["low-g", "level-1"] and returns.shape == (SEEDS, 2, 2)
     assert np.all(returns[:, 1] <= 15)  # the level's own time limit
     assert res["level_params"]["gravity"] == pytest.approx([3.0, 9.8])  # missing fields: the defaults
+
+
+def test_run_final_eval_equals_eval_on_the_saved_students(run_dir, tmp_path):
+    """run --final-eval evaluates the final students in memory; eval on the last checkpoint, with the
+    same seed, episodes and cap (the test set's 20 steps), must return the very same episodes."""
+    final = json.loads((run_dir / "final_eval_test.json").read_text())
+    assert final["budget_step"] == 4 and final["episodes"] == 3 and final["max_steps"] == 20
+    out = tmp_path / "again.json"
+    assert eval_cli.main(parse(eval_cli, ["--run", str(run_dir), "--levels", "test", "--episodes", "3", "--max-steps", "20",
+                                          "--out", str(out)])) == 0
+    again = json.loads(out.read_text())
+    np.testing.assert_array_equal(np.asarray(final["returns"]), np.asarray(again["returns"]))
+    assert final["per_level"] == again["per_level"] and final["labels"] == ["test-0", "test-1"]
+
+
+def test_final_eval_specs():
+    assert run_cli.final_eval_specs(None, "walker") == ["named"]  # DCD's levels by default
+    assert run_cli.final_eval_specs(None, "lander") == []
+    assert run_cli.final_eval_specs("none", "walker") == []
+    assert run_cli.final_eval_specs("test, named", "lander") == ["test", "named"]
+    with pytest.raises(SystemExit, match="'none' cannot be combined"):
+        run_cli.final_eval_specs("none,test", "walker")
+    with pytest.raises(SystemExit, match="twice"):
+        run_cli.final_eval_specs("test,test", "walker")
+
+
+def test_bad_final_eval_set_fails_before_training(tmp_path):
+    d = tmp_path / "run"
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(run_cli, "experiment_from_args", lambda args, backend: tiny_experiment())
+        with pytest.raises(SystemExit, match="--final-eval: .*'hard' is none of these"):
+            run_cli.main(parse(run_cli, ["--out", str(d), "--seeds", "1", "--no-gif", "--final-eval", "hard"]))
+    assert not (d / "metrics.jsonl").exists() and not (d / "checkpoints").exists()
 
 
 @pytest.mark.parametrize("content, message", [

@@ -255,6 +255,54 @@ def main(args) -> int:
         return EXIT_BAD_INPUT
 
 
+def evaluate_students(exp, env, student, student_state, num_seeds: int, resolved, *, episodes: int = 10,
+                      max_steps: int | None = None, deterministic: bool = False, seed: int = 0,
+                      solved_threshold: float | None = None) -> tuple[dict, str]:
+    """Evaluate every seed's student (vmapped, one compile) on a resolved level set.
+
+    ``resolved`` is what ``resolve_levels`` returns. Seed i of the run uses ``fold_in(PRNGKey(seed), i)``,
+    so the same state, levels and arguments give the same returns from ``eval`` and from ``run
+    --final-eval``. Returns the JSON-ready result (levels, returns, per-level table) and the
+    printed table.
+    """
+    import jax
+
+    levels, labels, name = resolved
+    threshold = solved_threshold if solved_threshold is not None else SOLVED_THRESHOLDS.get(exp.env)
+    root = jax.random.PRNGKey(seed)
+    keys = jax.vmap(lambda i: jax.random.fold_in(root, i))(np.arange(num_seeds))
+    evaluate = jax.jit(jax.vmap(lambda s, k: student.evaluate(s, k, levels, episodes, max_steps, deterministic)))
+    try:
+        returns = np.asarray(evaluate(student_state, keys))  # [seeds, levels, episodes]
+    except ValueError as err:  # e.g. levels longer than the env's default limit without --max-steps
+        raise LevelFileError(str(err)) from err
+    table = level_table(returns, threshold)
+    vectors = np.asarray(env.param_space.to_vector(levels))
+    result = {
+        "env": exp.env,
+        "method": exp.method,
+        "preset": exp.preset,
+        "levels": name,
+        "labels": labels,
+        "level_params": {n: vectors[:, j].tolist() for j, n in enumerate(env.param_space.names)},
+        "seeds": num_seeds,
+        "episodes": episodes,
+        "max_steps": max_steps,
+        "deterministic": bool(deterministic),
+        "seed": seed,
+        "solved_threshold": threshold,
+        "cvar_alpha": CVAR_ALPHA,
+        "returns": returns.tolist(),
+        "per_level": [
+            {"label": lab, "mean": _json_num(table["mean"][j]), "se": _json_num(table["se"][j]),
+             "solved_rate": _json_num(table["solved_rate"][j]), "cvar": _json_num(table["cvar"][j])}
+            for j, lab in enumerate(labels)
+        ],
+        "overall": {k: _json_num(v) for k, v in table["overall"].items()},
+    }
+    return result, format_table(labels, table)
+
+
 def _main(args) -> int:
     import jax
 
@@ -271,49 +319,17 @@ def _main(args) -> int:
         init, _ = make_run(student, method, tests, exp.loop)
         target = jax.eval_shape(jax.vmap(init), run_cli.seed_keys(root_seed, num_seeds))
         restored = reader.restore(target, step=args.step, with_history=False)
-    levels, labels, name = resolve_levels(args.levels, env, exp, tests)
-    threshold = args.solved_threshold if args.solved_threshold is not None else SOLVED_THRESHOLDS.get(exp.env)
-
-    root = jax.random.PRNGKey(args.seed)
-    keys = jax.vmap(lambda i: jax.random.fold_in(root, i))(np.arange(num_seeds))
-    evaluate = jax.jit(jax.vmap(lambda s, k: student.evaluate(s, k, levels, args.episodes, args.max_steps, args.deterministic)))
-    try:
-        returns = np.asarray(evaluate(restored.state.student, keys))  # [seeds, levels, episodes]
-    except ValueError as err:  # e.g. levels longer than the env's default limit without --max-steps
-        raise LevelFileError(str(err)) from err
-    table = level_table(returns, threshold)
-
+    resolved = resolve_levels(args.levels, env, exp, tests)
+    body, text = evaluate_students(exp, env, student, restored.state.student, num_seeds, resolved,
+                                   episodes=args.episodes, max_steps=args.max_steps, deterministic=args.deterministic,
+                                   seed=args.seed, solved_threshold=args.solved_threshold)
+    threshold = body["solved_threshold"]
     print(f"[shed_jax] {exp.method} on {exp.env}, {run_dir} at budget step {restored.step}: {num_seeds} seed(s) x "
           f"{args.episodes} episode(s) per level, {'deterministic' if args.deterministic else 'stochastic'} policy, "
           f"levels {args.levels!r}" + ("" if threshold is not None else " (no solved threshold for this env: pass --solved-threshold)"))
-    print(format_table(labels, table))
-    vectors = np.asarray(env.param_space.to_vector(levels))
-    result = {
-        "run": str(run_dir),
-        "checkpoint_step": restored.step,
-        "env": exp.env,
-        "method": exp.method,
-        "preset": exp.preset,
-        "levels": name,
-        "levels_arg": args.levels,
-        "labels": labels,
-        "level_params": {n: vectors[:, j].tolist() for j, n in enumerate(env.param_space.names)},
-        "seeds": num_seeds,
-        "episodes": args.episodes,
-        "max_steps": args.max_steps,
-        "deterministic": bool(args.deterministic),
-        "seed": args.seed,
-        "solved_threshold": threshold,
-        "cvar_alpha": CVAR_ALPHA,
-        "returns": returns.tolist(),
-        "per_level": [
-            {"label": lab, "mean": _json_num(table["mean"][j]), "se": _json_num(table["se"][j]),
-             "solved_rate": _json_num(table["solved_rate"][j]), "cvar": _json_num(table["cvar"][j])}
-            for j, lab in enumerate(labels)
-        ],
-        "overall": {k: _json_num(v) for k, v in table["overall"].items()},
-    }
-    out = pathlib.Path(args.out) if args.out else run_dir / f"eval_{name}.json"
+    print(text)
+    result = {"run": str(run_dir), "checkpoint_step": restored.step, **body, "levels_arg": args.levels}
+    out = pathlib.Path(args.out) if args.out else run_dir / f"eval_{body['levels']}.json"
     out.write_text(json.dumps(result, indent=2))
     print(f"[shed_jax] wrote {out}")
     return 0

@@ -26,6 +26,8 @@ import time
 
 import numpy as np
 
+from shed_jax.cli import eval as eval_cli
+
 TEST_SETS = ("lander-test", "walker-test-a", "walker-test-b")
 
 EXIT_CHECKPOINT = 2  # a checkpoint could not be used (missing, damaged, other configuration)
@@ -36,6 +38,8 @@ DEFAULT_ENV = "lander"
 DEFAULT_METHOD = "shed"
 DEFAULT_PRESET = "auto"
 DEFAULT_ROOT_SEED = 0
+# --final-eval when not given: the walker's DCD levels (SPEC 3.2 set A) with their solved rates
+DEFAULT_FINAL_EVAL = {"walker": "named"}
 
 
 def add_arguments(p) -> None:
@@ -57,12 +61,19 @@ def add_arguments(p) -> None:
     p.add_argument("--chunk", type=int, default=None,
                    help="budget steps per compiled call, i.e. between checkpoints (default: T)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                   help="override a field of the method's config (repeatable), e.g. --set eta=10")
+                   help="override a field of the method's config (repeatable), e.g. --set num_eval_levels=20 "
+                        "or --set 'reward={\"eta\": 10}'")
     p.add_argument("--ppo", action="append", default=[], metavar="KEY=VALUE",
                    help="override a field of the student's PPOConfig or PPOHyperparams (repeatable), "
                         "e.g. --ppo num_envs=8 --ppo num_steps=640")
     p.add_argument("--out", default=None, help="run directory (default runs/<env>-<method>-<preset>-<time>)")
     p.add_argument("--no-gif", action="store_true", help="skip the GIF of the final student")
+    p.add_argument("--final-eval", default=None, metavar="LEVELS",
+                   help="after the last budget step, evaluate the final students on level sets as `eval --levels` "
+                        "does (test | named | FILE.json, comma-separated, or none) and write final_eval_<set>.json; "
+                        f"default: {', '.join(f'{e} {v}' for e, v in DEFAULT_FINAL_EVAL.items())}, other envs none")
+    p.add_argument("--final-eval-episodes", type=int, default=10, metavar="N",
+                   help="episodes per level and seed of --final-eval (default 10); the episode cap is the test set's")
     g = p.add_argument_group("checkpoints and stopping")
     g.add_argument("--resume", default=None, metavar="DIR",
                    help="continue the run in DIR from its latest checkpoint (its saved configuration is used; "
@@ -205,6 +216,19 @@ def cpu_walker_hang_risk(env: str, backend: str, num_runs: int) -> bool:
     return backend == "cpu" and env == "walker" and num_runs > 1
 
 
+def final_eval_specs(arg: str | None, env: str) -> list[str]:
+    """``--final-eval`` -> the level-set specs to evaluate after the run (``eval --levels`` values)."""
+    text = DEFAULT_FINAL_EVAL.get(env, "none") if arg is None else arg
+    specs = [t.strip() for t in text.split(",") if t.strip()]
+    if "none" in specs:
+        if len(specs) > 1:
+            raise SystemExit(f"--final-eval: 'none' cannot be combined with level sets, got {arg!r}")
+        return []
+    if len(set(specs)) != len(specs):
+        raise SystemExit(f"--final-eval names a level set twice: {arg!r}")
+    return specs
+
+
 def default_seeds(exp, backend: str) -> int:
     """Seeds when --seeds is not given: paper 5, quick 2; the walker on a CPU 1.
 
@@ -341,6 +365,8 @@ def _main(args) -> int:
 
     if args.keep < 1:
         raise SystemExit("--keep must be >= 1")
+    if args.final_eval_episodes < 1:
+        raise SystemExit("--final-eval-episodes must be >= 1")
     if args.stop_after is not None and args.stop_after < 1:
         raise SystemExit("--stop-after must be >= 1")
     if args.chunk is not None and args.chunk < 1:
@@ -386,6 +412,11 @@ def _main(args) -> int:
                   "devices": [str(d) for d in jax.devices()], "chunk": chunk, "jax": jax.__version__}
 
     env, student, method, tests = build(exp)
+    # level sets of --final-eval are resolved now, so that a bad one fails before training, not after
+    try:
+        final_sets = [eval_cli.resolve_levels(spec, env, exp, tests) for spec in final_eval_specs(args.final_eval, exp.env)]
+    except eval_cli.LevelFileError as err:
+        raise SystemExit(f"--final-eval: {err}") from err
     init, run = make_run(student, method, tests, exp.loop)
     total = exp.loop.total_steps
     keys = seed_keys(root_seed, num_seeds)
@@ -479,6 +510,8 @@ def _main(args) -> int:
     summary = summarize(exp, hist, wall, num_seeds)
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
     make_plots(exp, env, hist, out)
+    for resolved in final_sets:
+        final_eval(exp, env, student, state.student, num_seeds, resolved, out, done, args.final_eval_episodes)
     if not args.no_gif:
         try:
             from shed_jax.visualize import student_gif
@@ -494,6 +527,27 @@ def _main(args) -> int:
     print(json.dumps({k: summary[k] for k in ("final_test_return_mean", "final_test_return_se", "wall_time_s")}, indent=2))
     print(f"[shed_jax] results in {out}")
     return 0
+
+
+def final_eval(exp, env, student, student_state, num_seeds: int, resolved, out: pathlib.Path, step: int,
+               episodes: int) -> None:
+    """Evaluate the final students on one level set (as ``eval`` does) and write final_eval_<set>.json.
+
+    The episode cap is the test set's (``LoopSpec.test_max_steps``). The run's results are already
+    written, so a failure here is reported and does not fail the run.
+    """
+    try:
+        body, text = eval_cli.evaluate_students(exp, env, student, student_state, num_seeds, resolved,
+                                                episodes=episodes, max_steps=exp.loop.test_max_steps)
+    except Exception as err:  # noqa: BLE001 - see the docstring
+        print(f"[shed_jax] final evaluation on {resolved[2]!r} failed: {type(err).__name__}: {err}", file=sys.stderr)
+        return
+    path = out / f"final_eval_{body['levels']}.json"
+    path.write_text(json.dumps({"run": str(out), "budget_step": step, **body}, indent=2))
+    solved = f"solved: return > {body['solved_threshold']:g}" if body["solved_threshold"] is not None else "no solved threshold"
+    print(f"[shed_jax] final students on {body['levels']!r} ({num_seeds} seed(s) x {episodes} episode(s) per level, {solved}):")
+    print(text)
+    print(f"[shed_jax] wrote {path}")
 
 
 def summarize(exp, hist: dict, wall: float, num_seeds: int) -> dict:
