@@ -38,7 +38,7 @@ DEFAULT_ENV = "lander"
 DEFAULT_METHOD = "shed"
 DEFAULT_PRESET = "auto"
 DEFAULT_ROOT_SEED = 0
-# --final-eval when not given: the walker's DCD levels (SPEC 3.2 set A) with their solved rates
+# --final-eval when not given: the walker's named levels (DCD's six of SPEC 3.2 set A first) with solved rates
 DEFAULT_FINAL_EVAL = {"walker": "named"}
 
 
