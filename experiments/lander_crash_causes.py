@@ -3,7 +3,7 @@
 For N episodes of Gymnasium's heuristic on each side (discrete, no wind, 1000-step limit) it prints
 the mean return and how the episodes end: landed (+100), out of bounds (|x| >= 1), hull contact,
 or truncated. It also prints the first step with a leg on the ground, and the vertical speed and
-the angle (observation units) at that step.
+the angle (observation units) at that step, and how many truncated episodes had touched down.
 
     python -m experiments.lander_crash_causes --episodes 1000 --gravity -1 --seed 1
 
@@ -28,7 +28,7 @@ MAX_STEPS = 1000
 def first_episode_summary(obs, rew, done) -> dict:
     """``obs [N, T, 8]`` (the observation after each step), ``rew [N, T]``, ``done [N, T]``: the
     statistics of every row's first episode."""
-    ends = dict(landed=0, out_of_bounds=0, hull=0, truncated=0)
+    ends = dict(landed=0, out_of_bounds=0, hull=0, truncated=0, truncated_after_contact=0)
     returns, first_contact, vy, angle = [], [], [], []
     for i in range(obs.shape[0]):
         d = np.flatnonzero(done[i])
@@ -45,6 +45,7 @@ def first_episode_summary(obs, rew, done) -> dict:
             ends["out_of_bounds" if abs(obs[i, e, 0]) >= 1 else "hull"] += 1
         else:
             ends["truncated"] += 1
+            ends["truncated_after_contact"] += bool(len(legs))  # touched down, but never came to rest
     n = obs.shape[0]
     fc = np.asarray(first_contact)
     r = np.asarray(returns)
