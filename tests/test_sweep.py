@@ -282,7 +282,8 @@ def test_end_to_end_sweep_writes_run_files(tmp_path):
     groups, notes = sweep.plan(space, sweep.parse_grid(["eta=0,10"]))
     assert len(groups) == 1 and not notes
     rows = sweep.run_sweep(groups, out=tmp_path, make_experiment=_tiny_experiment, build=_tiny_build, num_seeds=1,
-                           root_seed=3, chunk=1, mesh=sharding.batch_mesh(), plots=True, progress=False)
+                           root_seed=3, chunk=1, mesh=sharding.batch_mesh(), plots=True, progress=False,
+                           final_eval="test", final_eval_episodes=64)
     assert [r["point"] for r in rows] == ["eta=0", "eta=10"]
     assert (tmp_path / "sweep.md").read_text().count("| shed |") == 2
     result = json.loads((tmp_path / "sweep.json").read_text())
@@ -308,6 +309,14 @@ def test_end_to_end_sweep_writes_run_files(tmp_path):
         config = json.loads((d / "config.json").read_text())
         assert config["sweep_point"]["method_hparams"] == summary["values"] and config["root_seed"] == 3
         recs[r["point"]] = records
+        # --final-eval: this point's final student on the test set. The stub's return is
+        # 100 - 30 |level - skill|_1 + N(0, 1), and the last budget step tested the same student with
+        # one episode per level, so 64 episodes must land within a few noise SDs of that record.
+        final = json.loads((d / "final_eval_test.json").read_text())
+        returns = np.asarray(final["returns"])
+        assert returns.shape == (1, 2, 64) and final["budget_step"] == 3 and final["labels"] == ["test-0", "test-1"]
+        np.testing.assert_allclose(returns.mean(axis=(0, 2)), records[-1]["test_return_per_level"], atol=3.0)
+        assert [row["mean"] for row in final["per_level"]] == pytest.approx(returns.mean(axis=(0, 2)).tolist())
     # eta acts on the stored rewards: at step 1 (states s1 -> s2 of each run) R = L1 gain - eta * cv
     for name, eta in (("eta=0", 0.0), ("eta=10", 10.0)):
         s1, s2 = (np.asarray(recs[name][t]["info/extras/teacher_state"]) for t in (0, 1))
@@ -318,6 +327,16 @@ def test_end_to_end_sweep_writes_run_files(tmp_path):
     # a second sweep into the same directory refuses to overwrite
     with pytest.raises(ValueError, match="already holds a run"):
         sweep.run_sweep(groups, out=tmp_path, make_experiment=_tiny_experiment, build=_tiny_build, num_seeds=1, progress=False)
+
+
+def test_bad_final_eval_set_fails_before_any_compile(tmp_path):
+    exp = _tiny_experiment("shed", {}, {})
+    _, student, method, _ = _tiny_build(exp)
+    groups, _ = sweep.plan(sweep.key_space("shed", method, exp.ppo), sweep.parse_grid(["eta=0,10"]))
+    with pytest.raises(ValueError, match="--final-eval: .*'hard' is none of these"):
+        sweep.run_sweep(groups, out=tmp_path, make_experiment=_tiny_experiment, build=_tiny_build, num_seeds=1,
+                        progress=False, final_eval="hard")
+    assert not list(tmp_path.iterdir())  # nothing written
 
 
 def test_cli_rejects_unknown_keys(capsys):

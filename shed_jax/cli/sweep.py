@@ -66,6 +66,12 @@ def add_arguments(p) -> None:
     p.add_argument("--no-pad", action="store_true",
                    help="refuse (error) when a group's seeds x points does not divide by the device count, instead of padding")
     p.add_argument("--no-plots", action="store_true", help="skip the per-point plots")
+    p.add_argument("--final-eval", default=None, metavar="LEVELS",
+                   help="as for run: after the last budget step, evaluate every point's final students on level sets "
+                        "(test | named | FILE.json, comma-separated, or none) into <point>/final_eval_<set>.json; "
+                        "default: walker named, other envs none")
+    p.add_argument("--final-eval-episodes", type=int, default=10, metavar="N",
+                   help="episodes per level and seed of --final-eval (default 10)")
     p.add_argument("--out", default=None, help="sweep directory (default runs/sweep-<env>-<preset>-<time>)")
 
 
@@ -342,12 +348,17 @@ def _point_rows(flat: dict, p: int, num_seeds: int) -> dict:
 
 
 def run_group(built: BuiltGroup, *, out: pathlib.Path, num_seeds: int, root_seed: int, chunk: int | None, mesh,
-              pad: bool = True, plots: bool = True, bar=None, log: Callable = print) -> list[dict]:
-    """Run one group (all its points x seeds in one vmapped, sharded program); write each point's files."""
+              pad: bool = True, plots: bool = True, bar=None, log: Callable = print, final_sets=(),
+              final_episodes: int = 10) -> list[dict]:
+    """Run one group (all its points x seeds in one vmapped, sharded program); write each point's files.
+
+    ``final_sets``: level sets resolved by ``cli.eval.resolve_levels``; each point's final students
+    are evaluated on them as ``run --final-eval`` does (seed i with ``fold_in(PRNGKey(0), i)``).
+    """
     import jax
 
     from shed_jax import reporting, sharding
-    from shed_jax.cli.run import make_plots, summarize
+    from shed_jax.cli.run import final_eval, make_plots, summarize
     from shed_jax.loop import make_run
 
     exp, group = built.exp, built.group
@@ -406,6 +417,11 @@ def run_group(built: BuiltGroup, *, out: pathlib.Path, num_seeds: int, root_seed
             (d / "summary.json").write_text(json.dumps(summary, indent=2))
             if plots:
                 make_plots(exp, built.env, h, d)
+            if final_sets:
+                # the point's rows of the batch (point-major, padding at the end)
+                students = jax.tree_util.tree_map(lambda x: x[p * num_seeds:(p + 1) * num_seeds], state.student)
+                for resolved in final_sets:
+                    final_eval(exp, built.env, built.student, students, num_seeds, resolved, d, done, final_episodes)
         rows.append({"method": group.method, "group": group.label, "point": point.name, "values": point.values,
                      "final_test_return_mean": summary["final_test_return_mean"],
                      "final_test_return_se": summary["final_test_return_se"], "seeds": num_seeds,
@@ -424,20 +440,35 @@ def table(rows: list[dict]) -> str:
 
 def run_sweep(groups: list[Group], *, out: pathlib.Path, make_experiment: Callable,
               build: Callable, num_seeds: int, root_seed: int = 0, chunk: int | None = None, mesh=None,
-              pad: bool = True, plots: bool = True, progress: bool = True) -> list[dict]:
-    """Build every group first (all values validated before any compile), run them, write the sweep table."""
+              pad: bool = True, plots: bool = True, progress: bool = True, final_eval: str | None = "none",
+              final_eval_episodes: int = 10) -> list[dict]:
+    """Build every group first (all values validated before any compile), run them, write the sweep table.
+
+    ``final_eval``: level sets as for ``run --final-eval`` (None: the env's default there).
+    """
     import jax
     from tqdm import tqdm
 
     from shed_jax import sharding
-    from shed_jax.cli.run import cpu_walker_hang_risk
+    from shed_jax.cli import eval as eval_cli
+    from shed_jax.cli.run import cpu_walker_hang_risk, final_eval_specs
 
     if num_seeds < 1:
         raise ValueError("--seeds must be >= 1")
     if chunk is not None and chunk < 1:
         raise ValueError("--chunk must be >= 1")
     mesh = mesh or sharding.batch_mesh()
+    if final_eval_episodes < 1:
+        raise ValueError("--final-eval-episodes must be >= 1")
     built = [build_group(g, make_experiment, build) for g in groups]
+    finals = []  # per group: its resolved --final-eval level sets, so that a bad one fails before any compile
+    for b in built:
+        try:
+            finals.append([eval_cli.resolve_levels(spec, b.env, b.exp, b.tests) for spec in final_eval_specs(final_eval, b.exp.env)])
+        except eval_cli.LevelFileError as err:
+            raise ValueError(f"--final-eval: {err}") from err
+    if any(finals) and jax.process_count() > 1:
+        raise ValueError("--final-eval runs on one host only (the students of a multi-host batch are not all addressable here)")
     for b in built:
         for p in b.group.points:
             if (out / b.group.method / dir_name(p.name) / "metrics.jsonl").exists():
@@ -447,7 +478,7 @@ def run_sweep(groups: list[Group], *, out: pathlib.Path, make_experiment: Callab
     rows = []
     t0 = time.time()
     try:
-        for b in built:
+        for b, final_sets in zip(built, finals):
             B = len(b.group.points) * num_seeds
             bar.write(f"[shed_jax] {b.group.label}: {len(b.group.points)} point(s) x {num_seeds} seed(s) = {B} runs "
                       f"in one program over {mesh.size} device(s)"
@@ -456,7 +487,7 @@ def run_sweep(groups: list[Group], *, out: pathlib.Path, make_experiment: Callab
                 bar.write(f"[shed_jax] warning: {B} vmapped walker runs hung XLA:CPU (jax 0.10.2) in every try of 2 or "
                           "more; one runs. Sweep the walker on a GPU (docs/running.md).")
             rows += run_group(b, out=out, num_seeds=num_seeds, root_seed=root_seed, chunk=chunk, mesh=mesh, pad=pad,
-                              plots=plots, bar=bar)
+                              plots=plots, bar=bar, final_sets=final_sets, final_episodes=final_eval_episodes)
     finally:
         bar.close()
     result = {"rows": rows, "groups": [b.group.label for b in built], "seeds": num_seeds, "root_seed": root_seed,
@@ -524,7 +555,8 @@ def main(args) -> int:
           f"{mesh.size} device(s) -> {out}")
     try:
         rows = run_sweep(groups, out=out, make_experiment=make_experiment, build=build, num_seeds=num_seeds,
-                         root_seed=args.seed, chunk=args.chunk, mesh=mesh, pad=not args.no_pad, plots=not args.no_plots)
+                         root_seed=args.seed, chunk=args.chunk, mesh=mesh, pad=not args.no_pad, plots=not args.no_plots,
+                         final_eval=args.final_eval, final_eval_episodes=args.final_eval_episodes)
     except ValueError as err:
         raise SystemExit(f"sweep: {err}")
     print(table(rows))
