@@ -6,19 +6,32 @@ XLA:CPU's multi-threaded Eigen pool can wedge while a vmapped program runs: the 
 PyAutoLabs/PyAutoFit#1528/#1530: ``--xla_cpu_multi_thread_eigen=false`` (12 runs, no hang, against
 14 hangs in 16 runs). Our CPU programs are small, so Eigen's threads buy little; GPU runs are
 unaffected (the flag only touches the CPU backend).
+
+A second flag, ``--xla_cpu_use_xnnpack=false``, keeps XLA:CPU from handing dots to XNNPACK and its
+own thread pool. With the Eigen flag alone, ``python -m shed_jax run --env lander --method shed
+--preset quick`` (what ``make run ENV=lander`` runs on a CPU) hung in 4 of 4 tries on 2026-11-23 on
+the 2-core machine, each after its compile, with its CPU time frozen and the main thread in
+``BlockUntilReady``. One try had JAX's asynchronous CPU dispatch off as well, which did not help.
+With this flag added it finished (1 of 1, and again in the check after this change). The evidence
+is thin: a 2-seed walker run without the flag also finished in 2 of 3 tries that day, after
+hanging in every try the session before. The flag costs little, since our CPU programs are small.
 """
 from __future__ import annotations
 
 import os
 
 FLAG = "--xla_cpu_multi_thread_eigen=false"
+FLAGS = (FLAG, "--xla_cpu_use_xnnpack=false")
 
 
 def single_thread_eigen() -> None:
-    """Add ``FLAG`` to ``XLA_FLAGS`` unless the user already set that option either way.
+    """Add each of ``FLAGS`` to ``XLA_FLAGS`` unless the user already set that option either way.
 
     Call it before the first JAX computation; once the backend exists it has no effect.
     """
     flags = os.environ.get("XLA_FLAGS", "")
-    if "xla_cpu_multi_thread_eigen" not in flags:
-        os.environ["XLA_FLAGS"] = f"{flags} {FLAG}".strip()
+    for flag in FLAGS:
+        option = flag[2:].split("=")[0]
+        if option not in flags:
+            flags = f"{flags} {flag}".strip()
+    os.environ["XLA_FLAGS"] = flags
