@@ -3,6 +3,7 @@ included) for several batch sizes on whatever device JAX sees, plus Gymnasium Lu
 CPU core as the anchor.
 
     python -m experiments.bench_lander --batches 1024,16384,131072,1048576 --out $OUT
+    python -m experiments.bench_lander --batches 131072 --kernel-shapes 128x4,256x8   # fused kernel launch shapes
 Writes bench_lander.json into --out (or $OUT); prints a table.
 """
 from __future__ import annotations
@@ -15,6 +16,8 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+from envs.physics2d import fused
 
 
 def jax_throughput(batch: int, steps: int, continuous: bool, repeats: int = 3, unroll: int = 1) -> dict:
@@ -82,6 +85,17 @@ def peak_memory() -> dict:
     return out
 
 
+def _kernel_shape(text: str) -> tuple[int, int]:
+    """``'256x8'`` -> (256, 8); the block must be a power of two of at least 32 threads' worth."""
+    try:
+        block, warps = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise SystemExit(f"--kernel-shapes: {text!r} is not BLOCKxWARPS, e.g. 128x4") from None
+    if block < 1 or block & (block - 1) or warps < 1 or warps & (warps - 1):
+        raise SystemExit(f"--kernel-shapes: {text!r} needs powers of two for BLOCK and WARPS")
+    return block, warps
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description="lander env steps/s")
     p.add_argument("--batches", default="1024,16384,131072,1048576", help="comma-separated batch sizes")
@@ -89,8 +103,12 @@ def main(argv=None) -> int:
     p.add_argument("--continuous", action="store_true")
     p.add_argument("--gym-seconds", type=float, default=5.0)
     p.add_argument("--unroll", default="1", help="comma-separated solver-loop unroll factors to compare")
+    p.add_argument("--kernel-shapes", default="",
+                   help="comma-separated BLOCKxWARPS launch shapes of the fused solver kernel to compare, "
+                        "e.g. 128x4,256x8 (default: the module's, envs.physics2d.fused.BLOCK/NUM_WARPS)")
     p.add_argument("--out", default=os.environ.get("OUT"))
     args = p.parse_args(argv)
+    shapes = [_kernel_shape(s) for s in args.kernel_shapes.split(",") if s] or [(fused.BLOCK, fused.NUM_WARPS)]
     unrolls = [int(u) for u in args.unroll.split(",") if u]
     batches = [int(b) for b in args.batches.split(",") if b]
     if not batches or min(batches) < 1:
@@ -102,14 +120,22 @@ def main(argv=None) -> int:
         gym_sps = float("nan")
     rows = []
     print(f"device: {jax.devices()[0].device_kind} ({jax.default_backend()}); gymnasium 1 core: {gym_sps:,.0f} steps/s")
-    print(f"{'batch':>9} {'unroll':>6} {'steps/s':>14} {'x gym':>9} {'compile s':>10}")
-    for u in unrolls:
-        for b in batches:
-            r = jax_throughput(b, args.steps, args.continuous, unroll=u)
-            r["speedup_vs_gym_core"] = r["steps_per_s"] / gym_sps if gym_sps == gym_sps else None
-            rows.append(r)
-            print(f"{b:9d} {u:6d} {r['steps_per_s']:14,.0f} {r['speedup_vs_gym_core'] or float('nan'):9.1f} "
-                  f"{r['compile_s']:10.1f}", flush=True)
+    print(f"{'batch':>9} {'unroll':>6} {'kernel':>7} {'steps/s':>14} {'x gym':>9} {'compile s':>10}")
+    default_shape = (fused.BLOCK, fused.NUM_WARPS)
+    try:
+        for block, warps in shapes:
+            # read when the kernel is traced; each jax_throughput call builds and traces a fresh program
+            fused.BLOCK, fused.NUM_WARPS = block, warps
+            for u in unrolls:
+                for b in batches:
+                    r = jax_throughput(b, args.steps, args.continuous, unroll=u)
+                    r["speedup_vs_gym_core"] = r["steps_per_s"] / gym_sps if gym_sps == gym_sps else None
+                    r["kernel_block"], r["kernel_warps"] = block, warps
+                    rows.append(r)
+                    print(f"{b:9d} {u:6d} {block:>4}x{warps:<2} {r['steps_per_s']:14,.0f} "
+                          f"{r['speedup_vs_gym_core'] or float('nan'):9.1f} {r['compile_s']:10.1f}", flush=True)
+    finally:
+        fused.BLOCK, fused.NUM_WARPS = default_shape
     result = dict(device=str(jax.devices()[0]), backend=jax.default_backend(), gym_steps_per_s=gym_sps,
                   continuous=args.continuous, rows=rows, memory=peak_memory())
     if args.out:

@@ -26,6 +26,7 @@ from jax import lax
 
 MODES = ("auto", "xla", "pallas", "interpret")
 BLOCK = 128  # worlds per kernel instance (one per thread with 4 warps)
+NUM_WARPS = 4  # Triton warps per kernel instance (32 threads each)
 
 
 def resolve_mode(mode: str) -> str:
@@ -116,7 +117,7 @@ def _kernel(n, body, c_tree, s_tree, nc, leaves, interpret):
     if not interpret:
         from jax.experimental.pallas import triton as plt
 
-        kwargs["compiler_params"] = plt.CompilerParams(num_warps=4)
+        kwargs["compiler_params"] = plt.CompilerParams(num_warps=NUM_WARPS)
     out = pl.pallas_call(
         kernel,
         out_shape=jax.ShapeDtypeStruct((rows_out, wp), jnp.float32),
