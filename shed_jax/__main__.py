@@ -9,9 +9,9 @@ import argparse
 import importlib
 import sys
 
-from shed_jax.xla_cpu import single_thread_eigen
+from shed_jax.xla_cpu import apply_cpu_guard
 
-single_thread_eigen()  # before any JAX computation (shed_jax/xla_cpu.py says why)
+apply_cpu_guard()  # before any JAX computation (shed_jax/xla_cpu.py says why)
 
 COMMANDS = {
     "demo": "roll out a built-in controller on generated levels; print a table and write a GIF",

@@ -26,7 +26,7 @@ FLAG = "--xla_cpu_multi_thread_eigen=false"
 FLAGS = (FLAG, "--xla_cpu_use_xnnpack=false")
 
 
-def single_thread_eigen() -> None:
+def apply_cpu_guard() -> None:
     """Add each of ``FLAGS`` to ``XLA_FLAGS`` unless the user already set that option either way.
 
     Call it before the first JAX computation; once the backend exists it has no effect.

@@ -4,9 +4,9 @@ import pathlib
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
 os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
-from shed_jax.xla_cpu import single_thread_eigen  # noqa: E402
+from shed_jax.xla_cpu import apply_cpu_guard  # noqa: E402
 
-single_thread_eigen()  # XLA:CPU hang guard (see shed_jax/xla_cpu.py); two xdist workers on two cores lose nothing
+apply_cpu_guard()  # XLA:CPU hang guard (see shed_jax/xla_cpu.py); two xdist workers on two cores lose nothing
 
 import jax  # noqa: E402
 
