@@ -329,6 +329,62 @@ def test_end_to_end_sweep_writes_run_files(tmp_path):
         sweep.run_sweep(groups, out=tmp_path, make_experiment=_tiny_experiment, build=_tiny_build, num_seeds=1, progress=False)
 
 
+def test_stop_and_resume_equals_an_uninterrupted_sweep(tmp_path, capsys, monkeypatch):
+    from shed_jax.checkpoint import ConfigMismatchError
+
+    exp = _tiny_experiment("hmdp", {}, {})
+    _, student, method, _ = _tiny_build(exp)
+    groups, _ = sweep.plan(sweep.key_space("hmdp", method, exp.ppo), sweep.parse_grid(["eta=0,10"]))
+    kw = dict(make_experiment=_tiny_experiment, build=_tiny_build, num_seeds=2, root_seed=1, chunk=1,
+              mesh=sharding.batch_mesh(), plots=False, progress=False)
+    straight, split = tmp_path / "straight", tmp_path / "split"
+    rows = sweep.run_sweep(groups, out=straight, **kw)
+    # a time limit of 0 stops after the first chunk of 3, with a checkpoint at budget step 1
+    assert sweep.run_sweep(groups, out=split, time_limit=0.0, **kw) is None
+    ckpt_dir = sweep.group_checkpoint_dir(split, groups[0])
+    assert sorted(p.name for p in (ckpt_dir / "checkpoints").iterdir() if p.name.isdigit()) == ["1"]
+    first = split / "hmdp" / "eta=0" / "metrics.jsonl"
+    assert [json.loads(x)["step"] for x in first.read_text().splitlines()] == [0, 0]  # two seeds, step 0
+    assert not (split / "hmdp" / "eta=0" / "summary.json").exists()
+    # records written after the checkpoint (a chunk that ran but was not saved) are cut on resume
+    with first.open("a") as f:
+        f.write(json.dumps({"seed": 0, "step": 1, "test_return": 0.0}) + "\n")
+    with pytest.raises(ValueError, match="already holds a run.*--resume"):
+        sweep.run_sweep(groups, out=split, **kw)
+    with pytest.raises(ConfigMismatchError, match="root_seed"):
+        sweep.run_sweep(groups, out=split, resume=True, **{**kw, "root_seed": 2})
+    capsys.readouterr()
+    resumed = sweep.run_sweep(groups, out=split, resume=True, **kw)
+    log = capsys.readouterr().out
+    assert "resumed at budget step 1/3" in log and "step 1/3 " not in log  # it ran steps 2 and 3 only
+    for r, q in zip(rows, resumed):
+        assert r["final_test_return_mean"] == q["final_test_return_mean"] and r["point"] == q["point"]
+    for point in ("eta=0", "eta=10"):
+        a = (straight / "hmdp" / point / "metrics.jsonl").read_text()
+        b = (split / "hmdp" / point / "metrics.jsonl").read_text()
+        assert len(a.splitlines()) == 6 and a == b  # 2 seeds x 3 steps, every metric in the same digits
+    # resuming a finished sweep keeps its groups without running them
+    monkeypatch.setattr(sweep, "run_group", lambda *a, **k: pytest.fail("a finished group ran again"))
+    kept = sweep.run_sweep(groups, out=split, resume=True, **kw)
+    assert kept == resumed
+
+
+def test_resume_reads_the_saved_arguments(tmp_path):
+    import argparse
+
+    p = argparse.ArgumentParser()
+    sweep.add_arguments(p)
+    start = p.parse_args(["--env", "lander", "--methods", "shed", "--seeds", "3", "--grid", "eta=0,10", "--out", str(tmp_path)])
+    (tmp_path / sweep.ARGS_FILE).write_text(json.dumps({k: getattr(start, k) for k in sweep.SAVED_ARGS}))
+    later = sweep.resumed_args(p.parse_args(["--resume", str(tmp_path), "--time-limit", "60"]))
+    assert (later.env, later.methods, later.seeds, later.grid, later.out, later.time_limit) == (
+        "lander", "shed", 3, ["eta=0,10"], str(tmp_path), 60.0)
+    with pytest.raises(SystemExit, match="drop --out"):
+        sweep.resumed_args(p.parse_args(["--resume", str(tmp_path), "--out", str(tmp_path / "other")]))
+    with pytest.raises(SystemExit, match="no sweep_args.json"):
+        sweep.resumed_args(p.parse_args(["--resume", str(tmp_path / "nowhere")]))
+
+
 def test_bad_final_eval_set_fails_before_any_compile(tmp_path):
     exp = _tiny_experiment("shed", {}, {})
     _, student, method, _ = _tiny_build(exp)

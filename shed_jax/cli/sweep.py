@@ -20,7 +20,8 @@ Any other key is an error that names the method and the keys it knows. ``--set K
 key for every point (resolved the same way, not part of point names).
 
 Seeds are common random numbers: seed i of every point uses ``fold_in(PRNGKey(--seed), i)``, the
-keys ``python -m shed_jax run`` uses, so a point with the preset's values repeats that run. The
+keys ``python -m shed_jax run`` uses, so a point with the preset's values starts from that run's
+keys (on a GPU a program of another batch width may round differently; docs/sweeps.md). The
 batch of a group is laid out point-major (row = point * seeds + seed) and split over all visible
 devices (``shed_jax.sharding``; padded when it does not divide, or ``--no-pad`` to refuse).
 
@@ -28,6 +29,14 @@ Output, per point ``OUT/<method>/<point>/``: ``config.json``, ``metrics.jsonl`` 
 ``summary.json`` in the format of ``cli/run.py`` (its ``summarize``/``make_plots`` and
 ``shed_jax.reporting``), plus the point's values; and for the sweep ``OUT/sweep.json`` and
 ``OUT/sweep.md``: the table point -> final test return mean +- SE over seeds.
+
+Checkpoints: after every chunk the group in progress saves its whole batched state and metrics
+history (``shed_jax.checkpoint.RunCheckpointer``, the last one kept) under
+``OUT/checkpoints/<group>/``, and ``OUT/sweep_args.json`` holds the command's arguments.
+``--resume OUT`` re-plans from those arguments, keeps the groups whose points all have a
+``summary.json``, restores the group in progress (its configuration must match), cuts its points'
+``metrics.jsonl`` back to the checkpoint's step and continues; a group with no checkpoint starts
+over. The continued metrics equal those of an uninterrupted sweep (tests/test_sweep.py).
 """
 from __future__ import annotations
 
@@ -73,6 +82,14 @@ def add_arguments(p) -> None:
     p.add_argument("--final-eval-episodes", type=int, default=10, metavar="N",
                    help="episodes per level and seed of --final-eval (default 10)")
     p.add_argument("--out", default=None, help="sweep directory (default runs/sweep-<env>-<preset>-<time>)")
+    p.add_argument("--resume", default=None, metavar="DIR",
+                   help="continue the sweep in DIR with its saved arguments: finished groups are kept, the "
+                        "group in progress continues from its last checkpoint (other arguments are ignored)")
+    p.add_argument("--time-limit", type=float, default=None, metavar="SECONDS",
+                   help="after the chunk in which this many seconds have passed, save and stop (exit code 75); "
+                        "continue with --resume")
+    p.add_argument("--no-checkpoint", action="store_true",
+                   help="do not checkpoint the group in progress after each chunk (the sweep cannot be resumed)")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -347,17 +364,37 @@ def _point_rows(flat: dict, p: int, num_seeds: int) -> dict:
     return {k: v[p * num_seeds:(p + 1) * num_seeds] for k, v in flat.items()}
 
 
+#: configuration keys a resumed group must share with its checkpoint
+GROUP_KEYS = ("group", "points", "experiment", "seeds", "root_seed", "chunk", "batch")
+
+
+def group_checkpoint_dir(out: pathlib.Path, group) -> pathlib.Path:
+    return out / "checkpoints" / dir_name(group.label)
+
+
+def _cut_metrics(path: pathlib.Path, step: int) -> None:
+    """Keep only the records of budget steps before ``step`` (those a checkpoint at ``step`` holds)."""
+    if path.exists():
+        keep = [line for line in path.read_text().splitlines() if line and json.loads(line)["step"] < step]
+        path.write_text("".join(line + "\n" for line in keep))
+
+
 def run_group(built: BuiltGroup, *, out: pathlib.Path, num_seeds: int, root_seed: int, chunk: int | None, mesh,
               pad: bool = True, plots: bool = True, bar=None, log: Callable = print, final_sets=(),
-              final_episodes: int = 10) -> list[dict]:
+              final_episodes: int = 10, checkpoint: bool = True, resume: bool = False,
+              deadline: float | None = None) -> list[dict] | None:
     """Run one group (all its points x seeds in one vmapped, sharded program); write each point's files.
 
     ``final_sets``: level sets resolved by ``cli.eval.resolve_levels``; each point's final students
     are evaluated on them as ``run --final-eval`` does (seed i with ``fold_in(PRNGKey(0), i)``).
+    ``checkpoint``: save the state and history after every chunk (``group_checkpoint_dir``);
+    ``resume``: continue from the latest such checkpoint if there is one. ``deadline`` (a
+    ``time.time()`` value): stop after the chunk that passes it and return None (not finished).
     """
     import jax
 
     from shed_jax import reporting, sharding
+    from shed_jax.checkpoint import RunCheckpointer
     from shed_jax.cli.run import final_eval, make_plots, summarize
     from shed_jax.loop import make_run
 
@@ -386,25 +423,57 @@ def run_group(built: BuiltGroup, *, out: pathlib.Path, num_seeds: int, root_seed
     history: dict[str, list[np.ndarray]] = {}
     done = 0
     first_chunk_s = None
-    while done < total:
-        steps = min(chunk, total - done)
-        state, metrics = run_chunk(state, steps, done)
-        flat = reporting.flatten_tree(sharding.unpad(sharding.to_host(metrics), n))
-        if first_chunk_s is None:
-            first_chunk_s = time.time() - t0
-        for k, v in flat.items():
-            history.setdefault(k, []).append(v)
-        for p, d in enumerate(dirs if writer else ()):
-            reporting.append_jsonl(d / "metrics.jsonl", reporting.step_records(_point_rows(flat, p, num_seeds), range(num_seeds)))
-        done += steps
-        if bar is not None:
-            bar.update(1)
-        tr = flat["test_return"][:, -1].reshape(P, num_seeds)
-        means = np.nanmean(tr, axis=1) if np.any(np.isfinite(tr)) else np.full(P, math.nan)
-        msg = (f"{group.label}: step {done}/{total}  test return per point "
-               + " ".join(f"{m:.1f}" for m in means))
-        (bar.write if bar is not None else log)(msg)
-    wall = time.time() - t0
+    previous_wall = 0.0
+    group_config = {"group": group.label, "points": [p.name for p in group.points], "experiment": exp.to_dict(),
+                    "seeds": num_seeds, "root_seed": root_seed, "chunk": chunk, "batch": sharding.batch_size(inputs)}
+    ckpt = None
+    if checkpoint or resume:
+        if jax.process_count() > 1:
+            raise ValueError("sweep checkpoints are written by one host only; pass --no-checkpoint on several hosts")
+        ckpt = RunCheckpointer(group_checkpoint_dir(out, group), keep=1, create=True)
+    try:
+        if resume and ckpt.latest_step() is not None:
+            restored = ckpt.restore(state, config=group_config, keys=GROUP_KEYS)
+            state = jax.device_put(restored.state, sharding.batch_sharding(mesh))
+            done = restored.step
+            history = {k: [v] for k, v in restored.history.items()}
+            previous_wall = float(restored.extra.get("wall_time_s", 0.0))
+            first_chunk_s = restored.extra.get("first_chunk_s")
+            (bar.write if bar is not None else log)(f"[shed_jax] {group.label}: resumed at budget step {done}/{total}")
+            if bar is not None:
+                bar.update(math.ceil(done / chunk))
+        if resume:  # records after the checkpoint (or all of them, without one) are run again
+            for d in dirs if writer else ():
+                _cut_metrics(d / "metrics.jsonl", done)
+        while done < total:
+            steps = min(chunk, total - done)
+            state, metrics = run_chunk(state, steps, done)
+            flat = reporting.flatten_tree(sharding.unpad(sharding.to_host(metrics), n))
+            if first_chunk_s is None:
+                first_chunk_s = time.time() - t0
+            for k, v in flat.items():
+                history.setdefault(k, []).append(v)
+            for p, d in enumerate(dirs if writer else ()):
+                reporting.append_jsonl(d / "metrics.jsonl", reporting.step_records(_point_rows(flat, p, num_seeds), range(num_seeds)))
+            done += steps
+            if bar is not None:
+                bar.update(1)
+            tr = flat["test_return"][:, -1].reshape(P, num_seeds)
+            means = np.nanmean(tr, axis=1) if np.any(np.isfinite(tr)) else np.full(P, math.nan)
+            msg = (f"{group.label}: step {done}/{total}  test return per point "
+                   + " ".join(f"{m:.1f}" for m in means))
+            (bar.write if bar is not None else log)(msg)
+            if checkpoint:
+                ckpt.save(done, state, {k: np.concatenate(v, axis=1) for k, v in history.items()}, group_config,
+                          extra={"wall_time_s": previous_wall + time.time() - t0, "first_chunk_s": first_chunk_s})
+            if deadline is not None and done < total and time.time() >= deadline:
+                where = f"checkpoint at budget step {done}" if checkpoint else "no checkpoint (--no-checkpoint)"
+                (bar.write if bar is not None else log)(f"[shed_jax] {group.label}: stopped at the time limit; {where}")
+                return None
+    finally:
+        if ckpt is not None:
+            ckpt.close()
+    wall = previous_wall + time.time() - t0
     hist = {k: np.concatenate(v, axis=1) for k, v in history.items()}
     rows = []
     for p, (point, d) in enumerate(zip(group.points, dirs)):
@@ -429,6 +498,14 @@ def run_group(built: BuiltGroup, *, out: pathlib.Path, num_seeds: int, root_seed
     return rows
 
 
+def _row_from_summary(out: pathlib.Path, group, point, num_seeds: int) -> dict:
+    d = out / group.method / dir_name(point.name)
+    summary = json.loads((d / "summary.json").read_text())
+    return {"method": group.method, "group": group.label, "point": point.name, "values": point.values,
+            "final_test_return_mean": summary["final_test_return_mean"],
+            "final_test_return_se": summary["final_test_return_se"], "seeds": num_seeds, "dir": str(d.relative_to(out))}
+
+
 def table(rows: list[dict]) -> str:
     """A markdown table: method | point | final test return mean +- SE (n)."""
     lines = ["| method | point | final test return (mean ± SE) | seeds |", "|---|---|---|---|"]
@@ -441,10 +518,13 @@ def table(rows: list[dict]) -> str:
 def run_sweep(groups: list[Group], *, out: pathlib.Path, make_experiment: Callable,
               build: Callable, num_seeds: int, root_seed: int = 0, chunk: int | None = None, mesh=None,
               pad: bool = True, plots: bool = True, progress: bool = True, final_eval: str | None = "none",
-              final_eval_episodes: int = 10) -> list[dict]:
+              final_eval_episodes: int = 10, checkpoint: bool = True, resume: bool = False,
+              time_limit: float | None = None) -> list[dict] | None:
     """Build every group first (all values validated before any compile), run them, write the sweep table.
 
     ``final_eval``: level sets as for ``run --final-eval`` (None: the env's default there).
+    ``checkpoint``/``resume``: see the module docstring. ``time_limit`` (seconds): stop after the chunk
+    that passes it; returns None when the sweep stopped before its end.
     """
     import jax
     from tqdm import tqdm
@@ -469,16 +549,25 @@ def run_sweep(groups: list[Group], *, out: pathlib.Path, make_experiment: Callab
             raise ValueError(f"--final-eval: {err}") from err
     if any(finals) and jax.process_count() > 1:
         raise ValueError("--final-eval runs on one host only (the students of a multi-host batch are not all addressable here)")
-    for b in built:
+    finished = [all((out / b.group.method / dir_name(p.name) / "summary.json").exists() for p in b.group.points)
+                for b in built]
+    for b in built if not resume else ():
         for p in b.group.points:
             if (out / b.group.method / dir_name(p.name) / "metrics.jsonl").exists():
-                raise ValueError(f"{out / b.group.method / dir_name(p.name)} already holds a run (metrics.jsonl); choose another --out")
+                raise ValueError(f"{out / b.group.method / dir_name(p.name)} already holds a run (metrics.jsonl); "
+                                 f"continue it with --resume {out} or choose another --out")
     n_chunks = sum(math.ceil(b.exp.loop.total_steps / (chunk or b.exp.loop.steps_per_episode)) for b in built)
     bar = tqdm(total=n_chunks, unit="chunk", desc="sweep", dynamic_ncols=True, disable=not progress)
     rows = []
     t0 = time.time()
+    deadline = None if time_limit is None else t0 + time_limit
     try:
-        for b, final_sets in zip(built, finals):
+        for b, final_sets, done in zip(built, finals, finished):
+            if resume and done:  # finished before: its rows come from the points' summaries
+                rows += [_row_from_summary(out, b.group, p, num_seeds) for p in b.group.points]
+                bar.update(math.ceil(b.exp.loop.total_steps / (chunk or b.exp.loop.steps_per_episode)))
+                bar.write(f"[shed_jax] {b.group.label}: finished before, kept")
+                continue
             B = len(b.group.points) * num_seeds
             bar.write(f"[shed_jax] {b.group.label}: {len(b.group.points)} point(s) x {num_seeds} seed(s) = {B} runs "
                       f"in one program over {mesh.size} device(s)"
@@ -486,8 +575,12 @@ def run_sweep(groups: list[Group], *, out: pathlib.Path, make_experiment: Callab
             if cpu_walker_hang_risk(b.exp.env, jax.default_backend(), B):
                 bar.write(f"[shed_jax] warning: {B} vmapped walker runs hung XLA:CPU (jax 0.10.2) in every try of 2 or "
                           "more; one runs. Sweep the walker on a GPU (docs/running.md).")
-            rows += run_group(b, out=out, num_seeds=num_seeds, root_seed=root_seed, chunk=chunk, mesh=mesh, pad=pad,
-                              plots=plots, bar=bar, final_sets=final_sets, final_episodes=final_eval_episodes)
+            group_rows = run_group(b, out=out, num_seeds=num_seeds, root_seed=root_seed, chunk=chunk, mesh=mesh, pad=pad,
+                                   plots=plots, bar=bar, final_sets=final_sets, final_episodes=final_eval_episodes,
+                                   checkpoint=checkpoint, resume=resume, deadline=deadline)
+            if group_rows is None:
+                return None
+            rows += group_rows
     finally:
         bar.close()
     result = {"rows": rows, "groups": [b.group.label for b in built], "seeds": num_seeds, "root_seed": root_seed,
@@ -512,11 +605,40 @@ def preset_experiment(env: str, preset: str, episodes=None, steps_per_episode=No
     return make
 
 
+#: the arguments saved in OUT/sweep_args.json and read back by --resume
+SAVED_ARGS = ("env", "methods", "preset", "seeds", "seed", "grid", "set", "episodes", "steps_per_episode", "chunk",
+              "devices", "no_pad", "no_plots", "final_eval", "final_eval_episodes", "no_checkpoint")
+ARGS_FILE = "sweep_args.json"
+
+
+def resumed_args(args):
+    """``args`` with the saved arguments of the sweep in ``args.resume`` (its ``--time-limit`` kept)."""
+    out = pathlib.Path(args.resume)
+    path = out / ARGS_FILE
+    if not path.is_file():
+        raise SystemExit(f"--resume {out}: no {ARGS_FILE} there (not a sweep directory, or one from before sweeps "
+                         "could be resumed)")
+    saved = json.loads(path.read_text())
+    if saved.get("no_checkpoint"):
+        raise SystemExit(f"--resume {out}: that sweep ran with --no-checkpoint")
+    if args.out is not None and pathlib.Path(args.out) != out:
+        raise SystemExit(f"--resume continues the sweep in its own directory {out}; drop --out {args.out}")
+    merged = dict(vars(args))
+    merged.update({k: saved[k] for k in SAVED_ARGS if k in saved})
+    merged["out"] = str(out)
+    return type(args)(**merged)
+
+
 def main(args) -> int:
     import jax
 
     from shed_jax import sharding
-    from shed_jax.cli.run import build
+    from shed_jax.checkpoint import CheckpointError
+    from shed_jax.cli.run import EXIT_STOPPED, build
+
+    resume = getattr(args, "resume", None) is not None
+    if resume:
+        args = resumed_args(args)
 
     backend = jax.default_backend()
     preset = args.preset
@@ -548,7 +670,13 @@ def main(args) -> int:
     except ValueError as err:
         raise SystemExit(f"sweep: {err}")
     out = pathlib.Path(args.out or f"runs/sweep-{args.env}-{preset}-{time.strftime('%Y%m%d-%H%M%S')}")
+    if not resume and (out / ARGS_FILE).exists():
+        raise SystemExit(f"{out} already holds a sweep; continue it with --resume {out} or choose another --out")
     out.mkdir(parents=True, exist_ok=True)
+    if not resume and jax.process_index() == 0:
+        saved = {k: getattr(args, k) for k in SAVED_ARGS}
+        saved["preset"] = preset  # 'auto' resolved: a resumed sweep keeps the preset it started with
+        (out / ARGS_FILE).write_text(json.dumps(saved, indent=2))
     mesh = sharding.batch_mesh(devices)
     runs = sum(len(g.points) for g in groups) * num_seeds
     print(f"[shed_jax] sweep on {args.env} ({preset}): {len(groups)} compiled group(s), {runs} runs, "
@@ -556,9 +684,14 @@ def main(args) -> int:
     try:
         rows = run_sweep(groups, out=out, make_experiment=make_experiment, build=build, num_seeds=num_seeds,
                          root_seed=args.seed, chunk=args.chunk, mesh=mesh, pad=not args.no_pad, plots=not args.no_plots,
-                         final_eval=args.final_eval, final_eval_episodes=args.final_eval_episodes)
-    except ValueError as err:
+                         final_eval=args.final_eval, final_eval_episodes=args.final_eval_episodes,
+                         checkpoint=not args.no_checkpoint, resume=resume, time_limit=args.time_limit)
+    except (ValueError, CheckpointError) as err:
         raise SystemExit(f"sweep: {err}")
+    if rows is None:
+        print(f"[shed_jax] stopped at --time-limit {args.time_limit:g}s; continue with:\n"
+              f"  python -m shed_jax sweep --resume {out}")
+        return EXIT_STOPPED
     print(table(rows))
     print(f"[shed_jax] results in {out} (sweep.json, sweep.md, <method>/<point>/)")
     return 0
