@@ -491,19 +491,21 @@ def run_group(built: BuiltGroup, *, out: pathlib.Path, num_seeds: int, root_seed
                 students = jax.tree_util.tree_map(lambda x: x[p * num_seeds:(p + 1) * num_seeds], state.student)
                 for resolved in final_sets:
                     final_eval(exp, built.env, built.student, students, num_seeds, resolved, d, done, final_episodes)
-        rows.append({"method": group.method, "group": group.label, "point": point.name, "values": point.values,
-                     "final_test_return_mean": summary["final_test_return_mean"],
-                     "final_test_return_se": summary["final_test_return_se"], "seeds": num_seeds,
-                     "dir": str(d.relative_to(out))})
+        rows.append(_row(out, group, point, summary, num_seeds))
     return rows
 
 
-def _row_from_summary(out: pathlib.Path, group, point, num_seeds: int) -> dict:
-    d = out / group.method / dir_name(point.name)
-    summary = json.loads((d / "summary.json").read_text())
+def _row(out: pathlib.Path, group, point, summary: dict, num_seeds: int) -> dict:
+    """The sweep table's row of one point, from its summary."""
     return {"method": group.method, "group": group.label, "point": point.name, "values": point.values,
             "final_test_return_mean": summary["final_test_return_mean"],
-            "final_test_return_se": summary["final_test_return_se"], "seeds": num_seeds, "dir": str(d.relative_to(out))}
+            "final_test_return_se": summary["final_test_return_se"], "seeds": num_seeds,
+            "dir": str((out / group.method / dir_name(point.name)).relative_to(out))}
+
+
+def _row_from_summary(out: pathlib.Path, group, point, num_seeds: int) -> dict:
+    summary = json.loads((out / group.method / dir_name(point.name) / "summary.json").read_text())
+    return _row(out, group, point, summary, num_seeds)
 
 
 def table(rows: list[dict]) -> str:
