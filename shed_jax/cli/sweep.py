@@ -372,11 +372,13 @@ def group_checkpoint_dir(out: pathlib.Path, group) -> pathlib.Path:
     return out / "checkpoints" / dir_name(group.label)
 
 
-def _cut_metrics(path: pathlib.Path, step: int) -> None:
-    """Keep only the records of budget steps before ``step`` (those a checkpoint at ``step`` holds)."""
-    if path.exists():
-        keep = [line for line in path.read_text().splitlines() if line and json.loads(line)["step"] < step]
-        path.write_text("".join(line + "\n" for line in keep))
+def point_dir(out: pathlib.Path, group, point) -> pathlib.Path:
+    """``OUT/<method>/<point>/``: where one point's run files go."""
+    return out / group.method / dir_name(point.name)
+
+
+def _num_chunks(built: BuiltGroup, chunk: int | None) -> int:
+    return math.ceil(built.exp.loop.total_steps / (chunk or built.exp.loop.steps_per_episode))
 
 
 def run_group(built: BuiltGroup, *, out: pathlib.Path, num_seeds: int, root_seed: int, chunk: int | None, mesh,
@@ -395,7 +397,7 @@ def run_group(built: BuiltGroup, *, out: pathlib.Path, num_seeds: int, root_seed
 
     from shed_jax import reporting, sharding
     from shed_jax.checkpoint import RunCheckpointer
-    from shed_jax.cli.run import final_eval, make_plots, summarize
+    from shed_jax.cli.run import final_eval, make_plots, reconcile_metrics_jsonl, summarize
     from shed_jax.loop import make_run
 
     exp, group = built.exp, built.group
@@ -403,7 +405,7 @@ def run_group(built: BuiltGroup, *, out: pathlib.Path, num_seeds: int, root_seed
     init, run = make_run(built.student, built.method, built.tests, exp.loop)
     total = exp.loop.total_steps
     chunk = chunk or exp.loop.steps_per_episode
-    dirs = [out / group.method / dir_name(p.name) for p in group.points]
+    dirs = [point_dir(out, group, p) for p in group.points]
     writer = jax.process_index() == 0  # several hosts: every process computes, process 0 writes
     for d, p in zip(dirs, group.points):
         if not writer:
@@ -443,8 +445,10 @@ def run_group(built: BuiltGroup, *, out: pathlib.Path, num_seeds: int, root_seed
             if bar is not None:
                 bar.update(math.ceil(done / chunk))
         if resume:  # records after the checkpoint (or all of them, without one) are run again
-            for d in dirs if writer else ():
-                _cut_metrics(d / "metrics.jsonl", done)
+            saved = {k: np.concatenate(v, axis=1) for k, v in history.items()}
+            for p, d in enumerate(dirs if writer else ()):
+                note = reconcile_metrics_jsonl(d / "metrics.jsonl", _point_rows(saved, p, num_seeds), done, num_seeds)
+                (bar.write if bar is not None else log)(f"[shed_jax] {group.label} {group.points[p].name}: {note}")
         while done < total:
             steps = min(chunk, total - done)
             state, metrics = run_chunk(state, steps, done)
@@ -500,11 +504,11 @@ def _row(out: pathlib.Path, group, point, summary: dict, num_seeds: int) -> dict
     return {"method": group.method, "group": group.label, "point": point.name, "values": point.values,
             "final_test_return_mean": summary["final_test_return_mean"],
             "final_test_return_se": summary["final_test_return_se"], "seeds": num_seeds,
-            "dir": str((out / group.method / dir_name(point.name)).relative_to(out))}
+            "dir": str(point_dir(out, group, point).relative_to(out))}
 
 
 def _row_from_summary(out: pathlib.Path, group, point, num_seeds: int) -> dict:
-    summary = json.loads((out / group.method / dir_name(point.name) / "summary.json").read_text())
+    summary = json.loads((point_dir(out, group, point) / "summary.json").read_text())
     return _row(out, group, point, summary, num_seeds)
 
 
@@ -551,14 +555,13 @@ def run_sweep(groups: list[Group], *, out: pathlib.Path, make_experiment: Callab
             raise ValueError(f"--final-eval: {err}") from err
     if any(finals) and jax.process_count() > 1:
         raise ValueError("--final-eval runs on one host only (the students of a multi-host batch are not all addressable here)")
-    finished = [all((out / b.group.method / dir_name(p.name) / "summary.json").exists() for p in b.group.points)
-                for b in built]
+    finished = [all((point_dir(out, b.group, p) / "summary.json").exists() for p in b.group.points) for b in built]
     for b in built if not resume else ():
         for p in b.group.points:
-            if (out / b.group.method / dir_name(p.name) / "metrics.jsonl").exists():
-                raise ValueError(f"{out / b.group.method / dir_name(p.name)} already holds a run (metrics.jsonl); "
+            if (point_dir(out, b.group, p) / "metrics.jsonl").exists():
+                raise ValueError(f"{point_dir(out, b.group, p)} already holds a run (metrics.jsonl); "
                                  f"continue it with --resume {out} or choose another --out")
-    n_chunks = sum(math.ceil(b.exp.loop.total_steps / (chunk or b.exp.loop.steps_per_episode)) for b in built)
+    n_chunks = sum(_num_chunks(b, chunk) for b in built)
     bar = tqdm(total=n_chunks, unit="chunk", desc="sweep", dynamic_ncols=True, disable=not progress)
     rows = []
     t0 = time.time()
@@ -567,7 +570,7 @@ def run_sweep(groups: list[Group], *, out: pathlib.Path, make_experiment: Callab
         for b, final_sets, done in zip(built, finals, finished):
             if resume and done:  # finished before: its rows come from the points' summaries
                 rows += [_row_from_summary(out, b.group, p, num_seeds) for p in b.group.points]
-                bar.update(math.ceil(b.exp.loop.total_steps / (chunk or b.exp.loop.steps_per_episode)))
+                bar.update(_num_chunks(b, chunk))
                 bar.write(f"[shed_jax] {b.group.label}: finished before, kept")
                 continue
             B = len(b.group.points) * num_seeds
