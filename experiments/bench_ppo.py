@@ -102,8 +102,8 @@ def load_checkpoint(ckpt, meta_expected):
         return 0, None, []
 
     def restore(states):
-        # restore only after the fresh states are ready: the two XLA:CPU hangs seen in this path
-        # were in device transfers next to an in-flight computation
+        # restore only after the fresh states are ready (the XLA:CPU hangs once seen here were the
+        # batched-LAPACK deadlock of the vmapped init, shed_jax/xla_cpu.py; the wait costs nothing)
         states = jax.block_until_ready(states)
         with RunCheckpointer(ckpt, keep=1, create=False, async_save=False) as ck:
             saved = ck.restore(_learning_state(states), step=step, with_history=False).state

@@ -23,7 +23,8 @@ ENV=lander`` hangs of the same day were not caught with a native stack; they loo
 
 The remedy is more pool threads than a program has concurrent LAPACK calls. XLA sizes the pool
 from the environment variable ``NPROC`` when it is set (``xla::DefaultThreadPoolSize``), so the
-guard sets ``NPROC=max(64, cpu count)`` unless the user set it. Measured on the 2-core machine with
+guard sets ``NPROC=max(64, cpu count)`` unless the user set it; ``import shed_jax`` does so too,
+which protects library use as long as the import comes before JAX's first computation. Measured on the 2-core machine with
 a vmapped init of eight orthogonal Dense layers (16 seeds) in a loop: the default pool of 2 hung in
 5 of 5 tries within 300 calls and ``NPROC=4`` in 3 of 3; ``NPROC=8`` finished 3 of 3 tries of 500
 calls and ``NPROC=16`` 6 of 6 tries of 1,000 calls. ``tests/test_xla_cpu.py`` keeps a small version
@@ -54,13 +55,18 @@ def pool_threads() -> int:
     return max(MIN_POOL_THREADS, os.cpu_count() or 1)
 
 
+def size_cpu_pool() -> None:
+    """Set ``NPROC`` to :func:`pool_threads` unless the user set it (``import shed_jax`` does this)."""
+    os.environ.setdefault("NPROC", str(pool_threads()))
+
+
 def apply_cpu_guard() -> None:
-    """Set ``NPROC`` (the pool size) and add each of ``FLAGS`` to ``XLA_FLAGS``, each unless the
-    user already set it.
+    """:func:`size_cpu_pool`, and add each of ``FLAGS`` to ``XLA_FLAGS`` unless the user set that
+    option either way (the CLI and the tests do this).
 
     Call it before the first JAX computation; once the backend exists it has no effect.
     """
-    os.environ.setdefault("NPROC", str(pool_threads()))
+    size_cpu_pool()
     flags = os.environ.get("XLA_FLAGS", "")
     for flag in FLAGS:
         option = flag[2:].split("=")[0]

@@ -25,14 +25,6 @@ class _CountingCartPole(CartPole):
         return np.full((24, 32, 3), 20 * int(state.time), np.uint8)
 
 
-def _stacked_init(student, keys):
-    """A [seeds, ...] StudentState, as jax.vmap(student.init) gives, built one seed at a time: on this
-    2-core CPU the vmapped init (a batched QR for the orthogonal initialisers) can deadlock in XLA's
-    CPU thread pool."""
-    init = jax.jit(student.init)
-    return jax.tree_util.tree_map(lambda *x: jnp.stack(x), *[init(k) for k in keys])
-
-
 def _read_gif(path):
     with Image.open(path) as im:
         frames = [np.asarray(f.convert("RGB")) for f in ImageSequence.Iterator(im)]
@@ -48,7 +40,7 @@ def cartpole():
     level = env.default_params.replace(max_steps=jnp.int32(7), x_threshold=jnp.float32(1e6),
                                        theta_threshold=jnp.float32(1e6))
     levels = jax.tree_util.tree_map(lambda x: jnp.stack([x, x]), level)
-    states = _stacked_init(student, jax.random.split(jax.random.PRNGKey(0), 3))
+    states = jax.jit(jax.vmap(student.init))(jax.random.split(jax.random.PRNGKey(0), 3))
     return env, student, states, levels
 
 
@@ -104,7 +96,7 @@ def test_lander_gif_from_a_vmapped_run_state(tmp_path):
     env = envs.make("lander")
     student = make_student(env, PPOConfig.for_env("lander", num_envs=2, num_steps=8, update_epochs=1, num_minibatches=1))
     keys = jax.random.split(jax.random.PRNGKey(1), 2)
-    state = RunState(student=_stacked_init(student, keys), method=None, key=keys, step=jnp.zeros(2, jnp.int32))
+    state = RunState(student=jax.jit(jax.vmap(student.init))(keys), method=None, key=keys, step=jnp.zeros(2, jnp.int32))
     tests = eval_sets.lander_test_set().to_params(env.default_params)
     path = student_gif(env, student, state, tests, tmp_path / "lander.gif", seed_index=1, level_index=3, max_steps=10, fps=25)
     frames, size, duration = _read_gif(path)

@@ -211,11 +211,6 @@ def experiment_from_dict(d: dict):
         raise CheckpointError(f"cannot rebuild the experiment from the saved configuration: {type(err).__name__}: {err}") from err
 
 
-def cpu_walker_hang_risk(env: str, backend: str, num_runs: int) -> bool:
-    """Whether ``num_runs`` vmapped runs of ``env`` risk the XLA:CPU deadlock (see ``default_seeds``)."""
-    return backend == "cpu" and env == "walker" and num_runs > 1
-
-
 def final_eval_specs(arg: str | None, env: str) -> list[str]:
     """``--final-eval`` -> the level-set specs to evaluate after the run (``eval --levels`` values)."""
     text = DEFAULT_FINAL_EVAL.get(env, "none") if arg is None else arg
@@ -229,16 +224,10 @@ def final_eval_specs(arg: str | None, env: str) -> list[str]:
     return specs
 
 
-def default_seeds(exp, backend: str) -> int:
-    """Seeds when --seeds is not given: paper 5, quick 2; the walker on a CPU 1.
-
-    Two or more vmapped seeds of a walker run deadlock XLA:CPU (jax 0.10.2, 2026-11-23): after the
-    compile every thread waits and the chunk never returns, with or without multi-threaded Eigen
-    (shed_jax/xla_cpu.py). One seed runs, and GPU runs of 5 seeds do too.
-    """
-    if exp.preset == "paper":
-        return 5
-    return 1 if cpu_walker_hang_risk(exp.env, backend, 2) else 2
+def default_seeds(exp) -> int:
+    """Seeds when --seeds is not given: paper 5, quick 2 (on any backend: the walker's CPU
+    deadlock with two seeds was the batched-LAPACK one that shed_jax/xla_cpu.py guards against)."""
+    return 5 if exp.preset == "paper" else 2
 
 
 def seed_keys(root_seed: int, num_seeds: int):
@@ -395,13 +384,10 @@ def _main(args) -> int:
         chunk = args.chunk or int(config.get("chunk") or exp.loop.steps_per_episode)
     else:
         exp = experiment_from_args(args, backend)
-        num_seeds = args.seeds or default_seeds(exp, backend)
+        num_seeds = args.seeds or default_seeds(exp)
         root_seed = DEFAULT_ROOT_SEED if args.seed is None else args.seed
         if num_seeds < 1:
             raise SystemExit("--seeds must be >= 1")
-        if cpu_walker_hang_risk(exp.env, backend, num_seeds):
-            print(f"[shed_jax] warning: {num_seeds} vmapped walker seeds hung XLA:CPU (jax 0.10.2) in every run we tried;"
-                  " one seed runs. Use --seeds 1 on a CPU, or a GPU (docs/running.md).", file=sys.stderr)
         out = pathlib.Path(args.out or f"runs/{exp.env}-{exp.method}-{exp.preset}-{time.strftime('%Y%m%d-%H%M%S')}")
         out.mkdir(parents=True, exist_ok=True)
         for held in ("metrics.jsonl", "checkpoints"):

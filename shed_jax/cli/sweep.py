@@ -537,7 +537,7 @@ def run_sweep(groups: list[Group], *, out: pathlib.Path, make_experiment: Callab
 
     from shed_jax import sharding
     from shed_jax.cli import eval as eval_cli
-    from shed_jax.cli.run import cpu_walker_hang_risk, final_eval_specs
+    from shed_jax.cli.run import final_eval_specs
 
     if num_seeds < 1:
         raise ValueError("--seeds must be >= 1")
@@ -577,9 +577,6 @@ def run_sweep(groups: list[Group], *, out: pathlib.Path, make_experiment: Callab
             bar.write(f"[shed_jax] {b.group.label}: {len(b.group.points)} point(s) x {num_seeds} seed(s) = {B} runs "
                       f"in one program over {mesh.size} device(s)"
                       + (f" (+{sharding.padded_size(B, mesh.size) - B} padding)" if B % mesh.size else ""))
-            if cpu_walker_hang_risk(b.exp.env, jax.default_backend(), B):
-                bar.write(f"[shed_jax] warning: {B} vmapped walker runs hung XLA:CPU (jax 0.10.2) in every try of 2 or "
-                          "more; one runs. Sweep the walker on a GPU (docs/running.md).")
             group_rows = run_group(b, out=out, num_seeds=num_seeds, root_seed=root_seed, chunk=chunk, mesh=mesh, pad=pad,
                                    plots=plots, bar=bar, final_sets=final_sets, final_episodes=final_eval_episodes,
                                    checkpoint=checkpoint, resume=resume, deadline=deadline)
