@@ -103,7 +103,7 @@ def load_checkpoint(ckpt, meta_expected):
 
     def restore(states):
         # restore only after the fresh states are ready (the XLA:CPU hangs once seen here were the
-        # batched-LAPACK deadlock of the vmapped init, shed_jax/xla_cpu.py; the wait costs nothing)
+        # batched-LAPACK deadlock of the vmapped init, now avoided, shed_jax/xla_cpu.py)
         states = jax.block_until_ready(states)
         with RunCheckpointer(ckpt, keep=1, create=False, async_save=False) as ck:
             saved = ck.restore(_learning_state(states), step=step, with_history=False).state

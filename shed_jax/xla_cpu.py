@@ -1,4 +1,4 @@
-"""Guards against an XLA:CPU deadlock, applied before JAX initialises its CPU backend.
+"""An XLA:CPU deadlock, what avoids it, and older guards applied before JAX starts its CPU backend.
 
 The deadlock (found 2026-11-23 with ``gdb`` on a hung test, jax/jaxlib 0.10.2)
 -------------------------------------------------------------------------------
@@ -18,28 +18,33 @@ Cholesky factorisations in the walker's step. The pool has one thread per schedu
 2-core CI machine and the 2-core development machine have two: two concurrent QRs suffice. This
 explains the hangs seen on CPUs and never on the GPU: the failed CI run of 2026-11-23 (three tests
 killed at the 8-minute timeout, among them that resume test) and the walker's runs of two seeds
-(hung in every try before; with this guard a two-seed walker loop finishes). The ``make run
+(hung in every try before; ``gdb`` on one showed the same two QR threads). The ``make run
 ENV=lander`` hangs of the same day were not caught with a native stack; they looked the same.
 
-The remedy is more pool threads than a program has concurrent LAPACK calls. XLA sizes the pool
-from the environment variable ``NPROC`` when it is set (``xla::DefaultThreadPoolSize``), so the
-guard sets ``NPROC=max(64, cpu count)`` unless the user set it; ``import shed_jax`` does so too,
-which protects library use as long as the import comes before JAX's first computation. Measured on the 2-core machine with
-a vmapped init of eight orthogonal Dense layers (16 seeds) in a loop: the default pool of 2 hung in
-5 of 5 tries within 300 calls and ``NPROC=4`` in 3 of 3; ``NPROC=8`` finished 3 of 3 tries of 500
-calls and ``NPROC=16`` 6 of 6 tries of 1,000 calls. ``tests/test_xla_cpu.py`` keeps a small version
-of that loop (with ``NPROC=2`` it hung in 3 of 3 tries). The idle threads cost nothing we could
-measure: three test files took 24 s with ``NPROC=16``, 25 and 34 s with 64, and 28 s with the
-default in the try that did not hang. A public report (PyAutoLabs' PyAutoHeart diagnostics, the
-same stack with Cholesky) says jaxlib 0.11.2 no longer takes this parallel path in open-source
-builds; the newest CPU wheel here is 0.10.2.
+The remedy: our code makes no batched LAPACK call on a CPU. The student's orthogonal init computes
+its QR in ``jax.numpy`` there (shed_jax/student/orthogonal.py); nothing else of ours calls LAPACK.
+Measured on the 2-core machine with the pool forced to 2 threads (``NPROC=2``), 16 vmapped cartpole
+students initialised 1,000 times in a loop: with the library initializer 3 of 3 tries hung within
+60 s; with ours 3 of 3 finished, in about 9 s (tests/test_xla_cpu.py keeps a 300-call version).
+MJX's Cholesky in the walker's step is batched LAPACK too, but its calls are sequential within a
+step: 300 calls of 20 vmapped walker steps with auto-reset (16 envs) finished with ``NPROC=2``.
+
+A second way out, not taken: XLA sizes the pool from the environment variable ``NPROC`` when it is
+set (``xla::DefaultThreadPoolSize``). With ``NPROC=8`` a loop of eight concurrent batched QRs
+finished (3 of 3 tries, 500 calls) where ``NPROC=4`` hung (3 of 3). But idle pool threads cost
+CPU time on a small machine: the lander's heuristic parity test took 28-31 s with the default
+pool, 35 s with 4 threads, 38 s with 8, 47 s with 16 and 70 s with 64, and the whole test suite
+went from 12.0 to 13.9 minutes with 64 (one run each). Set it yourself if your own code vmaps LAPACK calls on a
+CPU. A public report (PyAutoLabs' PyAutoHeart diagnostics, the same stack with Cholesky) says
+jaxlib 0.11.2 no longer takes this parallel path in open-source builds; the newest CPU wheel here
+is 0.10.2.
 
 Two XLA flags are older guards, chosen before the cause was known:
 ``--xla_cpu_multi_thread_eigen=false`` (after PyAutoLabs/PyAutoFit#1528, whose hang looked the
 same) and ``--xla_cpu_use_xnnpack=false`` (``make run ENV=lander`` on a CPU hung in 4 of 4 tries
 without it, 0 of 1 with it). Neither touches the LAPACK path, which is why hangs went on. They stay
 because the CPU runs behind this project's numbers used them; whether they still help is untested.
-GPU runs are unaffected by all three settings, which touch only the CPU backend.
+GPU runs are unaffected by both flags, which touch only the CPU backend.
 """
 from __future__ import annotations
 
@@ -47,26 +52,13 @@ import os
 
 FLAG = "--xla_cpu_multi_thread_eigen=false"
 FLAGS = (FLAG, "--xla_cpu_use_xnnpack=false")
-MIN_POOL_THREADS = 64
-
-
-def pool_threads() -> int:
-    """The XLA:CPU intra-op pool size the guard asks for: ``max(64, cpu count)``."""
-    return max(MIN_POOL_THREADS, os.cpu_count() or 1)
-
-
-def size_cpu_pool() -> None:
-    """Set ``NPROC`` to :func:`pool_threads` unless the user set it (``import shed_jax`` does this)."""
-    os.environ.setdefault("NPROC", str(pool_threads()))
 
 
 def apply_cpu_guard() -> None:
-    """:func:`size_cpu_pool`, and add each of ``FLAGS`` to ``XLA_FLAGS`` unless the user set that
-    option either way (the CLI and the tests do this).
+    """Add each of ``FLAGS`` to ``XLA_FLAGS`` unless the user already set that option either way.
 
     Call it before the first JAX computation; once the backend exists it has no effect.
     """
-    size_cpu_pool()
     flags = os.environ.get("XLA_FLAGS", "")
     for flag in FLAGS:
         option = flag[2:].split("=")[0]

@@ -95,6 +95,6 @@ def test_saved_configs_round_trip_and_older_ones_record_every_level():
 def test_default_seeds_by_preset():
     from shed_jax.cli import run as run_cli
 
-    assert run_cli.default_seeds(build_experiment("walker", "dr", "quick")) == 2  # CPU too, now the deadlock is guarded
+    assert run_cli.default_seeds(build_experiment("walker", "dr", "quick")) == 2  # CPU too, now the deadlock is avoided
     assert run_cli.default_seeds(build_experiment("lander", "dr", "quick")) == 2
     assert run_cli.default_seeds(build_experiment("walker", "shed", "paper")) == 5

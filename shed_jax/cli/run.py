@@ -225,8 +225,8 @@ def final_eval_specs(arg: str | None, env: str) -> list[str]:
 
 
 def default_seeds(exp) -> int:
-    """Seeds when --seeds is not given: paper 5, quick 2 (on any backend: the walker's CPU
-    deadlock with two seeds was the batched-LAPACK one that shed_jax/xla_cpu.py guards against)."""
+    """Seeds when --seeds is not given: paper 5, quick 2 (on any backend: the walker's CPU deadlock
+    with two seeds was the batched-LAPACK one of shed_jax/xla_cpu.py, which the student init avoids)."""
     return 5 if exp.preset == "paper" else 2
 
 

@@ -2,7 +2,9 @@
 
 Separate actor and critic MLPs (SPEC 6.1: 64-64 tanh, orthogonal init). Hidden layers use
 orthogonal(sqrt 2) weights; the policy head uses orthogonal(0.01) so the initial policy is close
-to uniform / zero-mean, and the value head orthogonal(1), as in PureJaxRL/CleanRL.
+to uniform / zero-mean, and the value head orthogonal(1), as in PureJaxRL/CleanRL. The orthogonal
+initializer is ``jax.nn.initializers.orthogonal`` except on a CPU, where a LAPACK-free QR avoids
+an XLA:CPU deadlock (shed_jax/student/orthogonal.py).
 
 The distributions are hand-written (a few lines each) because distrax is not a dependency and
 we only need log-prob, entropy, sampling and the mode for a categorical and a diagonal Gaussian.
@@ -15,6 +17,8 @@ from typing import Callable, Sequence
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
+
+from shed_jax.student.orthogonal import orthogonal
 
 _ACT: dict[str, Callable] = {"tanh": jnp.tanh, "relu": nn.relu, "elu": nn.elu, "gelu": nn.gelu, "silu": nn.silu}
 
@@ -31,8 +35,8 @@ class MLP(nn.Module):
     def __call__(self, x):
         act = _ACT[self.activation]
         for h in self.hidden:
-            x = act(nn.Dense(h, kernel_init=nn.initializers.orthogonal(math.sqrt(2.0)), bias_init=nn.initializers.zeros)(x))
-        return nn.Dense(self.out_dim, kernel_init=nn.initializers.orthogonal(self.out_scale), bias_init=nn.initializers.zeros)(x)
+            x = act(nn.Dense(h, kernel_init=orthogonal(math.sqrt(2.0)), bias_init=nn.initializers.zeros)(x))
+        return nn.Dense(self.out_dim, kernel_init=orthogonal(self.out_scale), bias_init=nn.initializers.zeros)(x)
 
 
 class Actor(nn.Module):
