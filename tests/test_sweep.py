@@ -367,6 +367,10 @@ def test_stop_and_resume_equals_an_uninterrupted_sweep(tmp_path, capsys, monkeyp
     monkeypatch.setattr(sweep, "run_group", lambda *a, **k: pytest.fail("a finished group ran again"))
     kept = sweep.run_sweep(groups, out=split, resume=True, **kw)
     assert kept == resumed
+    # sweep.json: this process trained nothing, but the groups' wall time covers both earlier processes
+    result = json.loads((split / "sweep.json").read_text())
+    group_wall = json.loads((split / "hmdp" / "eta=0" / "summary.json").read_text())["wall_time_s"]
+    assert result["groups_wall_time_s"] == group_wall == kept[0]["group_wall_time_s"] > result["wall_time_s"]
 
 
 def test_resume_reads_the_saved_arguments(tmp_path):

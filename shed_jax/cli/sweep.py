@@ -504,7 +504,8 @@ def _row(out: pathlib.Path, group, point, summary: dict, num_seeds: int) -> dict
     return {"method": group.method, "group": group.label, "point": point.name, "values": point.values,
             "final_test_return_mean": summary["final_test_return_mean"],
             "final_test_return_se": summary["final_test_return_se"], "seeds": num_seeds,
-            "dir": str(point_dir(out, group, point).relative_to(out))}
+            "dir": str(point_dir(out, group, point).relative_to(out)),
+            "group_wall_time_s": summary["wall_time_s"]}  # the group's, over every process that ran it
 
 
 def _row_from_summary(out: pathlib.Path, group, point, num_seeds: int) -> dict:
@@ -585,8 +586,11 @@ def run_sweep(groups: list[Group], *, out: pathlib.Path, make_experiment: Callab
             rows += group_rows
     finally:
         bar.close()
+    group_walls = {r["group"]: r["group_wall_time_s"] for r in rows}
     result = {"rows": rows, "groups": [b.group.label for b in built], "seeds": num_seeds, "root_seed": root_seed,
-              "devices": mesh.size, "wall_time_s": time.time() - t0}
+              "devices": mesh.size,
+              "wall_time_s": time.time() - t0,  # this process only (a resumed sweep's earlier ones are not in it)
+              "groups_wall_time_s": sum(group_walls.values())}  # every group's run, earlier processes included
     if jax.process_index() == 0:
         (out / "sweep.json").write_text(json.dumps(result, indent=2))
         (out / "sweep.md").write_text(table(rows) + "\n")
