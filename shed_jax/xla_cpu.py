@@ -34,17 +34,19 @@ set (``xla::DefaultThreadPoolSize``). With ``NPROC=8`` a loop of eight concurren
 finished (3 of 3 tries, 500 calls) where ``NPROC=4`` hung (3 of 3). But idle pool threads cost
 CPU time on a small machine: the lander's heuristic parity test took 28-31 s with the default
 pool, 35 s with 4 threads, 38 s with 8, 47 s with 16 and 70 s with 64, and the whole test suite
-went from 12.0 to 13.9 minutes with 64 (one run each). Set it yourself if your own code vmaps LAPACK calls on a
-CPU. A public report (PyAutoLabs' PyAutoHeart diagnostics, the same stack with Cholesky) says
-jaxlib 0.11.2 no longer takes this parallel path in open-source builds; the newest CPU wheel here
-is 0.10.2.
+went from 12.0 to 13.9 minutes with 64 (one run each). Set it yourself if your own code vmaps
+LAPACK calls on a CPU. A public report (PyAutoLabs' PyAutoHeart diagnostics, the same stack with
+Cholesky) says jaxlib 0.11.2 no longer takes this parallel path in open-source builds; the newest
+CPU wheel here is 0.10.2.
 
 Two XLA flags are older guards, chosen before the cause was known:
 ``--xla_cpu_multi_thread_eigen=false`` (after PyAutoLabs/PyAutoFit#1528, whose hang looked the
 same) and ``--xla_cpu_use_xnnpack=false`` (``make run ENV=lander`` on a CPU hung in 4 of 4 tries
 without it, 0 of 1 with it). Neither touches the LAPACK path, which is why hangs went on. They stay
 because the CPU runs behind this project's numbers used them; whether they still help is untested.
-GPU runs are unaffected by both flags, which touch only the CPU backend.
+The XNNPACK one is not free: the test suite took 13 min 8 s with it against 10 min 14 s without
+(one run each, 2026-11-23), so it is the first to drop once it is shown not to matter. GPU runs are
+unaffected by both flags, which touch only the CPU backend.
 """
 from __future__ import annotations
 
