@@ -2,15 +2,13 @@
 set, and vmapped student inits -- which with the library's LAPACK QR hung a two-thread pool in 3
 of 3 tries -- finish with our orthogonal initializer."""
 import os
-import subprocess
-import sys
-import textwrap
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from experiments import cpu_deadlock
 from shed_jax import xla_cpu
 from shed_jax.student.orthogonal import householder_q, orthogonal
 
@@ -52,25 +50,16 @@ def test_householder_q_on_a_hand_case():
     np.testing.assert_allclose(q[:, 1], [-0.8, 0.6, 0.0], atol=1e-6)  # R[1, 1] = 3 > 0
 
 
-# 16 vmapped students, their six QRs each, on a pool forced to two threads (as on a 2-core machine)
-_STRESS = textwrap.dedent("""
-    import jax
-    import envs
-    from shed_jax.student import PPOConfig, make_student
-
-    student = make_student(envs.make("cartpole"), PPOConfig.for_env("cartpole"))
-    init = jax.jit(jax.vmap(student.init))
-    for i in range(300):
-        jax.block_until_ready(init(jax.random.split(jax.random.PRNGKey(i), 16)))
-    print("finished")
-""")
-
-
 def test_vmapped_student_inits_finish_on_a_two_thread_pool():
-    env = dict(os.environ, NPROC="2", JAX_PLATFORMS="cpu")
-    try:
-        out = subprocess.run([sys.executable, "-c", _STRESS], env=env, capture_output=True, text=True, timeout=150)
-    except subprocess.TimeoutExpired:
-        raise AssertionError("vmapped student inits deadlocked XLA:CPU (shed_jax/xla_cpu.py)")
-    assert out.returncode == 0, out.stderr[-2000:]
-    assert out.stdout.strip().endswith("finished")
+    # 16 vmapped students, six QRs each, 300 times on a pool forced to two threads (as on a 2-core
+    # machine); `python -m experiments.cpu_deadlock --init library` shows the library init hanging
+    finished, _ = cpu_deadlock.run_try("ours", nproc=2, calls=300, timeout=150)
+    assert finished, "vmapped student inits deadlocked XLA:CPU (shed_jax/xla_cpu.py)"
+
+
+def test_the_library_swap_reaches_the_student():
+    # the experiment's control arm really puts the LAPACK initializer into the student's networks
+    assert "networks.orthogonal = jax.nn.initializers.orthogonal" in cpu_deadlock.child_source("library", 5)
+    assert "networks.orthogonal" not in cpu_deadlock.child_source("ours", 5)
+    with pytest.raises(ValueError, match="--init"):
+        cpu_deadlock.child_source("lapack", 5)
