@@ -25,7 +25,8 @@ The remedy: our code makes no batched LAPACK call on a CPU. The student's orthog
 its QR in ``jax.numpy`` there (shed_jax/student/orthogonal.py); nothing else of ours calls LAPACK.
 Measured on the 2-core machine with the pool forced to 2 threads (``NPROC=2``), 16 vmapped cartpole
 students initialised 1,000 times in a loop: with the library initializer 3 of 3 tries hung within
-60 s; with ours 3 of 3 finished, in about 9 s (tests/test_xla_cpu.py keeps a 300-call version).
+60 s; with ours 3 of 3 finished, in about 9 s (``python -m experiments.cpu_deadlock`` repeats it;
+tests/test_xla_cpu.py keeps a 300-call version).
 MJX's Cholesky in the walker's step is batched LAPACK too, but its calls are sequential within a
 step: 300 calls of 20 vmapped walker steps with auto-reset (16 envs) finished with ``NPROC=2``.
 
@@ -45,7 +46,8 @@ same) and ``--xla_cpu_use_xnnpack=false`` (``make run ENV=lander`` on a CPU hung
 without it, 0 of 1 with it). Neither touches the LAPACK path, which is why hangs went on. They stay
 because the CPU runs behind this project's numbers used them; whether they still help is untested.
 The XNNPACK one is not free: the test suite took 13 min 8 s with it against 10 min 14 s without
-(one run each, 2026-11-23), so it is the first to drop once it is shown not to matter. GPU runs are
+(one run each, 2026-11-23), so it is the first to drop once it is shown not to matter: with the
+QR fix in place, that lander run finished with XNNPACK on (1 of 1, docs/benchmarks.md). GPU runs are
 unaffected by both flags, which touch only the CPU backend.
 """
 from __future__ import annotations
