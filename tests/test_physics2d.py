@@ -148,3 +148,57 @@ def test_vertex_segment_touching_ignores_far_points_below_steep_segment_lines():
     # near the flat one; clear of both; far right (below the steep line's extension, not touching);
     # under the steep segment itself (penetrating)
     np.testing.assert_array_equal(t, [[True, False], [False, False], [False, False], [False, True]])
+
+
+def test_free_flight_step_equals_full_step_for_the_landers_reset():
+    """The lander's reset step skips collision (free_flight); it must give exactly the full step's result.
+
+    Terrain from the lander's own generator, plus the worst case (every height at its maximum of
+    0.99 H/2); pushes up to Gymnasium's INITIAL_RANDOM, every gravity and wind in range.
+    """
+    from envs.lander import env as LE
+
+    m = LM.lander_model()
+    pos, ang = LM.initial_pose()
+    world = physics2d.init_world(m, physics2d.bodies_from_origin(m, pos, ang))
+    proj = LM.reset_projector()
+    n = 64
+    keys = jax.random.split(jax.random.PRNGKey(3), n)
+    heights = jax.vmap(LE.terrain)(keys).at[0].set(0.99 * LM.H / 2)
+    k1, k2, k3 = jax.random.split(jax.random.PRNGKey(4), 3)
+    push = jax.random.uniform(k1, (n, 2), jnp.float32, -LM.INITIAL_RANDOM, LM.INITIAL_RANDOM)
+    push = push.at[1].set(jnp.asarray([-LM.INITIAL_RANDOM, -LM.INITIAL_RANDOM]))
+    gravity = jax.random.uniform(k2, (n,), jnp.float32, -12.0, 0.0)
+    wind = jax.random.uniform(k3, (n, 2), jnp.float32, -20.0, 20.0)
+
+    def one(h, p, g, w, free):
+        ground = jnp.stack([jnp.asarray(LM.CHUNK_X), h], -1)
+        force = jnp.zeros((3, 2), jnp.float32).at[0].set(p + jnp.stack([w[0], 0.0]))
+        torque = jnp.zeros((3,), jnp.float32).at[0].set(w[1] / 10.0)
+        return physics2d.step(m, world, ground, g, force, torque, projector=proj,
+                              position_iterations=LM.RESET_POSITION_ITERATIONS, free_flight=free)
+
+    full = jax.jit(jax.vmap(lambda *a: one(*a, False)))(heights, push, gravity, wind)
+    free = jax.jit(jax.vmap(lambda *a: one(*a, True)))(heights, push, gravity, wind)
+    assert not np.any(np.asarray(full[1]["touching"]))  # the premise: nothing can touch at creation
+    for a, b in zip(jax.tree_util.tree_leaves(full), jax.tree_util.tree_leaves(free)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def test_vertex_vs_polyline_selects_the_segment_below_exactly():
+    """The masked-sum selection returns the very normal and start point of the segment below (no rounding)."""
+    from envs.physics2d.collision import segment_frames, vertex_vs_polyline
+
+    rng = np.random.default_rng(5)
+    xs = np.sort(rng.uniform(0.0, 20.0, 12)).astype(np.float32)
+    ground = jnp.asarray(np.stack([xs, rng.uniform(0.0, 7.0, 12).astype(np.float32)], -1))
+    pts = jnp.asarray(np.stack([rng.uniform(-1.0, 21.0, 200), rng.uniform(0.0, 9.0, 200)], -1).astype(np.float32))
+    sep, n, q, inside = vertex_vs_polyline(pts, ground)
+    p0, normal, _, _ = segment_frames(ground)
+    seg = np.clip(np.searchsorted(xs, np.asarray(pts[:, 0]), side="right") - 1, 0, len(xs) - 2)
+    ok = (np.asarray(pts[:, 0]) >= xs[0]) & (np.asarray(pts[:, 0]) <= xs[-1])
+    np.testing.assert_array_equal(np.asarray(inside), ok)
+    np.testing.assert_array_equal(np.asarray(n)[ok], np.asarray(normal)[seg[ok]])
+    np.testing.assert_array_equal(np.asarray(q)[ok], np.asarray(p0)[seg[ok]])
+    np.testing.assert_array_equal(np.asarray(n)[~ok], 0.0)
+    assert np.all(np.isinf(np.asarray(sep)[~ok]))

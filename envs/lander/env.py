@@ -195,10 +195,14 @@ class LunarLander(Environment):
         force = jnp.zeros((3, 2), jnp.float32).at[0].set(jnp.stack([wind, 0.0]) + extra_force)
         torque = jnp.zeros((3,), jnp.float32).at[0].set(turb)
         ground = jnp.stack([jnp.asarray(M.CHUNK_X), state.terrain_y], -1)
-        if reset:  # the no-op step after creation: exact locked-leg velocity solve (see model.py)
+        if reset:
+            # the no-op step after creation: exact locked-leg velocity solve (see model.py), in free
+            # flight: the lander starts at y = H, more than H/2 above the highest terrain point
+            # (0.99 H/2), so no contact is possible and collision is skipped (same result, less work;
+            # tests/test_physics2d.py checks this on random and worst-case terrain)
             world, info = physics2d.step(model, world.replace(bodies=bodies), ground, params.gravity, force, torque,
                                          projector=self._reset_projector,
-                                         position_iterations=M.RESET_POSITION_ITERATIONS)
+                                         position_iterations=M.RESET_POSITION_ITERATIONS, free_flight=True)
         else:
             world, info = physics2d.step(model, world.replace(bodies=bodies), ground, params.gravity, force, torque)
         # Gymnasium's ContactDetector: one Box2D contact per (leg, ground edge) pair; BeginContact
@@ -214,7 +218,7 @@ class LunarLander(Environment):
         return obs, state, game_over, info["asleep"]
 
     def reset_env(self, key, params):
-        k_terrain, k_push, k_wind, k_step = jax.random.split(key, 4)
+        k_terrain, k_push, k_wind, _ = jax.random.split(key, 4)  # 4: the streams of earlier versions
         pos, ang = self._start_bodies
         bodies = physics2d.bodies_from_origin(self.model, pos, ang)
         idx = jax.random.randint(k_wind, (2,), -9999, 9999, dtype=jnp.int32)
@@ -233,7 +237,9 @@ class LunarLander(Environment):
         )
         push = jax.random.uniform(k_push, (2,), jnp.float32, -M.INITIAL_RANDOM, M.INITIAL_RANDOM)
         zero = jnp.zeros((), jnp.float32)
-        obs, state, _, _ = self._advance(k_step, state, zero, zero, zero, params, push, reset=True)
+        # engines are off in the no-op step, so their dispersion draw would only be multiplied by zero
+        obs, state, _, _ = self._advance(None, state, zero, zero, zero, params, push, reset=True,
+                                         dispersion=jnp.zeros((2,), jnp.float32))
         return obs, state.replace(prev_shaping=shaping(obs))
 
     def step_env(self, key, state, action, params):

@@ -28,15 +28,18 @@ def vertex_vs_polyline(points, ground):
 
     ``inside`` is False for points outside the polyline's x-range (no contact possible there).
     The segment is selected with a one-hot mask over the (few) segments instead of a gather, which
-    keeps the batched program a pure elementwise fusion.
+    keeps the batched program a pure elementwise fusion. The selection is a masked sum, not a matrix
+    product: on GPUs a float32 dot may run in TF32 (JAX's default precision), which would round the
+    selected normal and plane point to 10 mantissa bits; the sum of one selected term and zeros is
+    exact on every backend.
     """
     p0, normal, x0, x1 = segment_frames(ground)
     x = points[:, 0:1]
     last = jnp.arange(x0.shape[0]) == x0.shape[0] - 1
     sel = (x >= x0[None]) & ((x < x1[None]) | (last[None] & (x <= x1[None])))  # (V, S)
     self_ = sel.astype(points.dtype)
-    n = jnp.einsum("vs,sk->vk", self_, normal)
-    q = jnp.einsum("vs,sk->vk", self_, p0)
+    n = jnp.sum(self_[:, :, None] * normal[None], axis=1)
+    q = jnp.sum(self_[:, :, None] * p0[None], axis=1)
     inside = jnp.any(sel, axis=1)
     sep = jnp.where(inside, dot(points - q, n), jnp.inf)
     return sep, n, q, inside
@@ -49,7 +52,8 @@ def polyline_points_in_polygon(ground, vertices, radius):
     e = v1 - v0
     out = jnp.stack([e[:, 1], -e[:, 0]], -1)
     out = out / jnp.sqrt(dot(out, out))[:, None]  # outward face normals (F, 2)
-    s = jnp.einsum("pk,fk->pf", ground, out) - dot(v0, out)[None]  # (P, F)
+    # elementwise, not a dot: an exact float32 product on every backend (no TF32 on GPUs)
+    s = ground[:, None, 0] * out[None, :, 0] + ground[:, None, 1] * out[None, :, 1] - dot(v0, out)[None]  # (P, F)
     return jnp.any(jnp.max(s, axis=1) <= radius)
 
 
