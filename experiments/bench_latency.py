@@ -90,6 +90,7 @@ def main(argv=None) -> int:
     p.add_argument("--skip-student", action="store_true")
     p.add_argument("--out", default=os.environ.get("OUT", "."))
     args = p.parse_args(argv)
+    os.makedirs(args.out, exist_ok=True)  # up front: a bad path fails before the work, not after it
     solver = {k: v for k, v in (("velocity_iterations", args.velocity_iterations),
                                 ("position_iterations", args.position_iterations)) if v is not None}
     if args.env.startswith("lander"):

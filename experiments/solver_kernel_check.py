@@ -47,6 +47,7 @@ def main(argv=None) -> int:
     p.add_argument("--episodes", type=int, default=1000, help="heuristic episodes per parity setting")
     p.add_argument("--out", default=os.environ.get("OUT", "."))
     args = p.parse_args(argv)
+    os.makedirs(args.out, exist_ok=True)  # up front: a bad path fails before the work, not after it
     ref_env = envs.make("lander", solver_kernel="xla")
     ker_env = envs.make("lander", solver_kernel=args.kernel)
     params = make_params(enable_wind=True)  # wind and turbulence on: every force path in play
