@@ -205,6 +205,8 @@ def test_validation():
         envs.make("walker", substeps=0)
     with pytest.raises(ValueError, match="no field"):
         make_params(rough=1.0)
+    with pytest.raises(ValueError, match="matmul_precision"):
+        envs.make("walker", matmul_precision="tf32")
     space = env.param_space
     assert space.names[0] == "roughness" and space.names[-1] == "stair_steps" and space.dim == 8
     v = space.from_vector(jnp.array([20.0, -1, 3, 1, 9, 0, 2, 0.0]))
@@ -239,3 +241,20 @@ def test_lidar_and_hull_contact_on_hand_made_terrain():
     touch = jax.jit(jax.vmap(lambda x, z, a: L.hull_touches_ground(jnp.zeros(grid.n), grid, x, z, a)))
     got = np.asarray(touch(jnp.full(4, 10.0), jnp.array([1.0, 0.2, 0.6, 0.6]), jnp.array([0.0, 0.0, 0.8, 0.1])))
     np.testing.assert_array_equal(got, [False, True, True, False])
+
+
+def _dot_precisions(env):
+    """The precision attribute of every dot in one lowered (traced, not compiled) walker step."""
+    import re
+
+    s = env.reset(jax.random.PRNGKey(0), env.default_params)[1]
+    text = jax.jit(env.step).lower(jax.random.PRNGKey(1), s, jnp.zeros(4), env.default_params).as_text()
+    return re.findall(r"dot_general.*?precision = \[(\w+), (\w+)\]", text)
+
+
+def test_mjx_matrix_products_run_at_highest_precision_unless_asked_otherwise(sim):
+    """On GPUs JAX's default float32 matmul is TF32, which changed walker contacts (docs/walker.md)."""
+    found = _dot_precisions(sim[0])
+    assert found and all(p == ("HIGHEST", "HIGHEST") for p in found), found[:5]
+    fast = _dot_precisions(envs.make("walker", matmul_precision="default"))
+    assert fast and all(p == ("DEFAULT", "DEFAULT") for p in fast), fast[:5]

@@ -152,11 +152,13 @@ class BipedalWalker(Environment):
             tau = jnp.clip(kv * (target - d.qvel[3:]), -limit, limit)
             return mjx.step(m, d.replace(ctrl=tau)), None
 
-        if self.options.unroll_substeps:
-            for _ in range(self.options.substeps):
-                d, _ = sub(d, None)
-        else:
-            d, _ = jax.lax.scan(sub, d, None, length=self.options.substeps)
+        # MJX's matrix products at the configured precision: on GPUs JAX's default is TF32
+        with jax.default_matmul_precision(self.options.matmul_precision):
+            if self.options.unroll_substeps:
+                for _ in range(self.options.substeps):
+                    d, _ = sub(d, None)
+            else:
+                d, _ = jax.lax.scan(sub, d, None, length=self.options.substeps)
         return d
 
     def step_env(self, key, state: WalkerState, action, params: P.WalkerParams):

@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import dataclasses
 
+PRECISIONS = ("highest", "high", "default")  # jax.default_matmul_precision names for float32
+
 
 @dataclasses.dataclass(frozen=True)
 class WalkerOptions:
@@ -20,6 +22,11 @@ class WalkerOptions:
     z_span:              vertical extent of the heightfield above its per-level base (m).
     contact_threshold:   a lower leg touches the ground if a contact's distance is <= this (m).
     unroll_substeps:     unroll the substep loop in Python (faster on GPU) instead of lax.scan.
+    matmul_precision:    float32 matmul precision of the MJX physics. "highest" (the default) keeps
+                         it float32 on GPUs; "default" lets recent NVIDIA GPUs use TF32 (10 mantissa
+                         bits), which changed observations on the first step of a batch by up to
+                         1.0 and saved a few percent of a step on an H200 (docs/walker.md). CPUs
+                         are float32 either way.
     """
 
     substeps: int = 5
@@ -32,6 +39,7 @@ class WalkerOptions:
     z_span: float = 100.0
     contact_threshold: float = 0.01
     unroll_substeps: bool = False
+    matmul_precision: str = "highest"
 
     def __post_init__(self):
         ints = dict(substeps=(1, 50), solver_iterations=(1, 100), ls_iterations=(0, 100), terrain_resolution=(1, 32), max_boxes=(8, 512))
@@ -46,6 +54,9 @@ class WalkerOptions:
         for name in ("collide_upper_legs", "unroll_substeps"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"WalkerOptions.{name} must be a bool, got {getattr(self, name)!r}")
+
+        if self.matmul_precision not in PRECISIONS:
+            raise ValueError(f"WalkerOptions.matmul_precision must be one of {PRECISIONS}, got {self.matmul_precision!r}")
 
     @property
     def timestep(self) -> float:
