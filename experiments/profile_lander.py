@@ -10,7 +10,7 @@ the whole parameter space, wind on in half the envs), each part of ``env.step`` 
   leaves the work outside the solver loops.
 
 ``--trace`` also records one ``step`` call with ``jax.profiler`` and sums the device time per
-kernel from its Perfetto trace (``kernels.json``: the top kernels by total time).
+kernel from its Perfetto trace (the ``kernels`` list of ``profile_lander.json``, top kernels first).
 
 ``--tf32-check`` runs ``experiments.tf32_check`` on the lander: the same rollout at JAX's default
 float32 matmul precision (TF32 on recent NVIDIA GPUs) and at ``highest``; bitwise equal means no
@@ -26,23 +26,12 @@ import gzip
 import json
 import os
 import shutil
-import time
 from collections import defaultdict
 
 import jax
 import jax.numpy as jnp
 
-
-def _best_of(fn, *args, repeats=3):
-    t = time.perf_counter()
-    jax.block_until_ready(fn(*args))
-    compile_s = time.perf_counter() - t
-    best = float("inf")
-    for _ in range(repeats):
-        t = time.perf_counter()
-        jax.block_until_ready(fn(*args))
-        best = min(best, time.perf_counter() - t)
-    return compile_s, best
+from experiments.bench_latency import _timed  # compile, then the best of 3 timed calls
 
 
 def _levels(env, batch):
@@ -94,7 +83,7 @@ def time_variant(name: str, batch: int, steps: int, continuous: bool) -> dict:
     env = envs.make("lander-continuous" if continuous else "lander", **kwargs)
     run, levels = make_variant(env, name, batch, steps)
     obs, state = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.PRNGKey(0), batch), levels)
-    compile_s, best = _best_of(run, jax.random.PRNGKey(2), obs, state)
+    compile_s, best = _timed(run, jax.random.PRNGKey(2), obs, state)
     return dict(variant=name, batch=batch, steps=steps, compile_s=compile_s, seconds=best,
                 ms_per_step=1e3 * best / steps, calls_per_s=batch * steps / best)
 
