@@ -164,11 +164,13 @@ def test_free_flight_step_equals_full_step_for_the_landers_reset():
     proj = LM.reset_projector()
     n = 64
     keys = jax.random.split(jax.random.PRNGKey(3), n)
-    heights = jax.vmap(LE.terrain)(keys).at[0].set(0.99 * LM.H / 2)
+    heights = jax.vmap(LE.terrain)(keys).at[:2].set(0.99 * LM.H / 2)
     k1, k2, k3 = jax.random.split(jax.random.PRNGKey(4), 3)
     push = jax.random.uniform(k1, (n, 2), jnp.float32, -LM.INITIAL_RANDOM, LM.INITIAL_RANDOM)
-    push = push.at[1].set(jnp.asarray([-LM.INITIAL_RANDOM, -LM.INITIAL_RANDOM]))
-    gravity = jax.random.uniform(k2, (n,), jnp.float32, -12.0, 0.0)
+    # worst cases: highest terrain with the strongest push down (and sideways), at the strongest gravity
+    push = push.at[0].set(jnp.asarray([-LM.INITIAL_RANDOM, -LM.INITIAL_RANDOM]))
+    push = push.at[1].set(jnp.asarray([LM.INITIAL_RANDOM, -LM.INITIAL_RANDOM]))
+    gravity = jax.random.uniform(k2, (n,), jnp.float32, -12.0, 0.0).at[:2].set(-12.0)
     wind = jax.random.uniform(k3, (n, 2), jnp.float32, -20.0, 20.0)
 
     def one(h, p, g, w, free):
@@ -202,3 +204,38 @@ def test_vertex_vs_polyline_selects_the_segment_below_exactly():
     np.testing.assert_array_equal(np.asarray(q)[ok], np.asarray(p0)[seg[ok]])
     np.testing.assert_array_equal(np.asarray(n)[~ok], 0.0)
     assert np.all(np.isinf(np.asarray(sep)[~ok]))
+
+
+def test_polyline_points_in_polygon_against_numpy():
+    """The hull-sensor test: a terrain point within ``radius`` of the inside of a convex polygon."""
+    from envs.physics2d.collision import polyline_points_in_polygon
+
+    square = np.asarray([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]], np.float32)  # CCW
+    rng = np.random.default_rng(6)
+    for _ in range(50):
+        ground = np.stack([np.sort(rng.uniform(-2, 3, 5)), rng.uniform(-1, 2, 5)], -1).astype(np.float32)
+        radius = 0.05
+        # numpy reference: signed distance to each face's outward normal; inside if every one <= radius
+        inside = np.all([(ground - square[f]) @ np.asarray([e[1], -e[0]]) / np.hypot(*e) <= radius
+                         for f, e in enumerate(np.roll(square, -1, 0) - square)], axis=0)
+        got = bool(polyline_points_in_polygon(jnp.asarray(ground), jnp.asarray(square), radius))
+        assert got == bool(inside.any())
+    hit = jnp.asarray([[-1.0, 0.0], [0.5, 0.5], [2.0, 0.0]], jnp.float32)  # a peak inside the square
+    miss = jnp.asarray([[-1.0, 0.0], [0.5, -0.2], [2.0, 0.0]], jnp.float32)
+    assert bool(polyline_points_in_polygon(hit, jnp.asarray(square), 0.01))
+    assert not bool(polyline_points_in_polygon(miss, jnp.asarray(square), 0.01))
+
+
+def test_lander_step_has_no_reduced_precision_matrix_product():
+    """On GPUs a float32 dot at default precision is TF32; the lander's only dot is the reset's
+    locked-joint projection, at HIGHEST (contact selection is masked sums, docs/benchmarks.md)."""
+    import re
+
+    import envs
+
+    env = envs.make("lander")
+    s = env.reset(jax.random.PRNGKey(0), env.default_params)[1]
+    text = jax.jit(env.step).lower(jax.random.PRNGKey(1), s, jnp.int32(2), env.default_params).as_text()
+    found = re.findall(r"dot_general.*?precision = \[(\w+), (\w+)\]", text)
+    assert found and all(p == ("HIGHEST", "HIGHEST") for p in found), found
+    assert len(re.findall(r"dot_general", text)) == len(found)  # every dot states its precision

@@ -33,7 +33,7 @@ def test_kernel_summary_sums_device_time_per_kernel_on_gpu_processes_only(tmp_pa
     assert profile_lander.kernel_summary(str(tmp_path / "nothing")) == []
 
 
-def test_variants_scan_the_part_they_name():
+def test_reset_env_variant_starts_a_fresh_episode_in_every_slot():
     env = envs.make("lander")
     batch, steps = 4, 3
     levels = env.param_space.sample(jax.random.PRNGKey(1), (batch,))

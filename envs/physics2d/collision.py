@@ -52,7 +52,7 @@ def polyline_points_in_polygon(ground, vertices, radius):
     e = v1 - v0
     out = jnp.stack([e[:, 1], -e[:, 0]], -1)
     out = out / jnp.sqrt(dot(out, out))[:, None]  # outward face normals (F, 2)
-    # elementwise, not a dot: an exact float32 product on every backend (no TF32 on GPUs)
+    # elementwise, not a dot: full float32 products on every backend (no TF32 on GPUs)
     s = ground[:, None, 0] * out[None, :, 0] + ground[:, None, 1] * out[None, :, 1] - dot(v0, out)[None]  # (P, F)
     return jnp.any(jnp.max(s, axis=1) <= radius)
 

@@ -75,7 +75,9 @@ def step(model: Model, world: WorldState, ground, gravity, force=None, torque=No
     ``force`` (B, 2) at the centres of mass and ``torque`` (B,), applied during this step only.
     ``free_flight`` (static): the caller guarantees that no polygon can reach the ground during
     this step (e.g. a body created high above it). Collision and time of impact are then skipped and
-    reported as no contact, which gives the same result as the full step at a fraction of its work.
+    reported as no contact: the same values as the full step (up to the sign of zero in unused
+    contact frames) at a fraction of its work. The lander's reset step (``projector`` given) is
+    checked bitwise in tests/test_physics2d.py.
     info: ``touching`` (V,) slots and ``polygon_touching`` (num_polygons,) at the start pose or
     by a time of impact during the step, ``pair_touching`` (num_polygons, S) per ground segment,
     ``position_solved`` (), ``asleep`` ().

@@ -23,7 +23,8 @@ class WalkerOptions:
     contact_threshold:   a lower leg touches the ground if a contact's distance is <= this (m).
     unroll_substeps:     unroll the substep loop in Python (faster on GPU) instead of lax.scan.
     matmul_precision:    float32 matmul precision of the MJX physics. "highest" (the default) keeps
-                         it float32 on GPUs; "default" lets recent NVIDIA GPUs use TF32 (10 mantissa
+                         it float32 on GPUs; "high" allows TF32-like multi-pass modes where the
+                         backend has them; "default" lets recent NVIDIA GPUs use TF32 (10 mantissa
                          bits), which changed observations on the first step of a batch by up to
                          1.0 and saved a few percent of a step on an H200 (docs/walker.md). CPUs
                          are float32 either way.
