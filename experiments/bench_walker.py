@@ -38,6 +38,8 @@ def parse(argv=None):
     ap.add_argument("--resolution", type=_ints, default=[4])
     ap.add_argument("--upper-legs", type=_bools, default=[False])
     ap.add_argument("--unroll", type=_bools, default=[False])
+    ap.add_argument("--precision", type=lambda s: s.split(","), default=["highest"],
+                    help="comma-separated WalkerOptions.matmul_precision values (highest | high | default)")
     ap.add_argument("--no-brax", action="store_true", help="skip the Brax walker2d anchor")
     ap.add_argument("--brax-substeps", type=int, default=4, help="Brax walker2d n_frames (4 = its default)")
     ap.add_argument("--wall-check", action="store_true", help="only run the heightfield face-as-wall check (MuJoCo C)")
@@ -182,9 +184,10 @@ def main(argv=None) -> int:
     out = pathlib.Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     grid = [
-        dict(substeps=s, solver_iterations=i, ls_iterations=ls, terrain_resolution=r, collide_upper_legs=u, unroll_substeps=un)
-        for s, i, ls, r, u, un in itertools.product(
-            args.substeps, args.iterations, args.ls_iterations, args.resolution, args.upper_legs, args.unroll
+        dict(substeps=s, solver_iterations=i, ls_iterations=ls, terrain_resolution=r, collide_upper_legs=u, unroll_substeps=un,
+             matmul_precision=pr)
+        for s, i, ls, r, u, un, pr in itertools.product(
+            args.substeps, args.iterations, args.ls_iterations, args.resolution, args.upper_legs, args.unroll, args.precision
         )
     ]
     results = dict(device=str(jax.devices()[0]), backend=jax.default_backend(), jax=jax.__version__, steps=args.steps, runs=[])
