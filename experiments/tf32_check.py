@@ -5,8 +5,8 @@ Ampere-or-newer GPUs that means TF32 (10 mantissa bits). A physics step that mul
 can then give different numbers on a GPU than on a CPU. This script rolls out the same batch of
 random levels with the same random actions twice, once at ``default`` and once at ``highest``
 precision, reports the largest difference (and the first step's), and times a step both ways.
-On a CPU both are float32 and the rollouts are equal. The walker pins its own physics precision
-(``WalkerOptions.matmul_precision``), so for it that option is set to the same value as well;
+On a CPU both are float32 and the rollouts are equal. An env that pins its own physics precision
+(the walker's ``WalkerOptions.matmul_precision``) gets that option set to the same value as well;
 otherwise both rollouts would run the same pinned program.
 
     python -m experiments.tf32_check --env walker --batch 256 --steps 200 --out $OUT
@@ -27,7 +27,10 @@ def check(env_name: str, batch: int = 256, steps: int = 200, seed: int = 11) -> 
     import envs
 
     def make(precision):
-        return envs.make(env_name, matmul_precision=precision) if env_name == "walker" else envs.make(env_name)
+        # an env that pins its own physics precision (the walker's options) gets it set as well
+        env = envs.make(env_name)
+        pinned = hasattr(getattr(env, "options", None), "matmul_precision")
+        return envs.make(env_name, matmul_precision=precision) if pinned else env
 
     def rollout(env, key):
         levels = env.param_space.sample(jax.random.PRNGKey(seed + 1), (batch,))
