@@ -24,6 +24,11 @@ Writes to OUT:
 * ``results.csv``: the raw numbers behind them, one row per (run, seed, budget step) where the test
   set ran: label, env, seed, teacher episode, step in it, the student env steps so far in that
   episode, the teacher reward, the test return and its per-level means.
+
+Walker runs whose directory holds ``final_eval_named.json`` (``run``'s default final evaluation)
+also get a table of DCD's six test levels: return ± SE over seeds with the solved rate (return > 230)
+in parentheses, and the mean over all named levels; with ``--paper walker`` DCD's own table (SPEC 3.2,
+Box2D at about 66x our budget) follows as reference rows.
 """
 from __future__ import annotations
 
@@ -64,6 +69,19 @@ PAPER = {
 # "one plotted step ≈ 1e4 env steps (inferred)").
 PAPER_STEPS_PER_UPDATE = {"lander": 1e3, "walker": 1e4}
 EPISODIC_METHODS = ("shed", "hmdp")
+
+# DCD's six standard BipedalWalker test levels (SPEC 5.5), in the column order of DCD's table, and
+# DCD's results on them (SPEC 3.2, from DCD's results files: 20k updates, about 6.6e8 Box2D steps,
+# 10 seeds): (mean return, SE, solved rate) per level. An ordering reference, not a parity target.
+NAMED_SET_A = ("BipedalWalker", "Hardcore", "Stairs", "PitGap", "Stump", "Roughness")
+DCD_NAMED = {
+    "ACCEL": ((317.9, 0.9, .998), (210.8, 10.7, .629), (91.6, 9.7, .206), (112.0, 24.0, .310), (165.8, 14.0, .491),
+              (253.3, 13.1, .764)),
+    "PLR⊥": ((304.8, 2.3, .992), (84.8, 12.8, .158), (51.0, 4.8, .045), (43.3, 11.3, .040), (6.5, 5.5, .006),
+             (129.7, 13.3, .244)),
+    "DR": ((266.8, 13.3, .836), (14.2, 3.9, .014), (18.6, 3.9, .007), (12.4, 3.7, .002), (-10.4, 3.9, .000),
+           (51.8, 6.3, .033)),
+}
 
 
 def paper_env(env: str) -> str:
@@ -301,6 +319,45 @@ def episode_table(runs: list[Run]) -> str | None:
                                     "l" + "r" * len(columns))
 
 
+def format_level_cell(mean: float, se: float, solved: float | None) -> str:
+    """``-17.3 ± 21.9 (.540)``: return ± SE with the solved rate as DCD prints it."""
+    from shed_jax import reporting
+
+    text = reporting.format_mean_se(mean, se)
+    if solved is not None and np.isfinite(solved):
+        text += " (" + f"{solved:.3f}".lstrip("0") + ")"
+    return text
+
+
+def named_table(runs: list[Run], paper: str | None = None) -> str | None:
+    """DCD's six walker test levels from each run's ``final_eval_named.json`` (one row per run that
+    has one; the last column pools every named level, DCD's six and the harder ones), with DCD's
+    reference rows when ``paper == "walker"``; None if no run has a named-level evaluation."""
+    from shed_jax import reporting
+
+    rows = []
+    for r in runs:
+        path = r.path / "final_eval_named.json"
+        if not path.exists():
+            continue
+        ev = json.loads(path.read_text())
+        by_label = {lv["label"]: lv for lv in ev["per_level"]}
+        missing = [name for name in NAMED_SET_A if name not in by_label]
+        if missing:
+            raise ValueError(f"{path} lacks the named levels {missing}")
+        cells = [format_level_cell(by_label[n]["mean"], by_label[n]["se"], by_label[n]["solved_rate"])
+                 for n in NAMED_SET_A]
+        o = ev["overall"]
+        rows.append([r.label, str(ev["seeds"])] + cells
+                    + [format_level_cell(o["mean"], o["se"], o["solved_rate"])])
+    if not rows:
+        return None
+    if paper == "walker":
+        for name, cells in DCD_NAMED.items():
+            rows.append([f"DCD {name} (SPEC 3.2)", "10"] + [format_level_cell(*c) for c in cells] + ["—"])
+    return reporting.markdown_table(["method", "seeds", *NAMED_SET_A, "all named levels"], rows, "lr" + "r" * 7)
+
+
 def write_csv(runs: list[Run], path: pathlib.Path) -> int:
     """One row per (run, seed, budget step) with a test-set result; returns the number of rows."""
     levels = max((r.hist["test_return_per_level"].shape[-1] for r in runs if "test_return_per_level" in r.hist),
@@ -337,6 +394,11 @@ def markdown(runs: list[Run], plots: list[pathlib.Path], out: pathlib.Path, pape
     episodes = episode_table(runs)
     if episodes is not None:
         lines += ["Test return at the end of each tested teacher episode (mean ± SE over seeds):", "", episodes, ""]
+    named = named_table(runs, paper)
+    if named is not None:
+        lines += ["DCD's test levels after the last budget step (`final_eval_named.json`): return, mean ± SE over "
+                  "seeds, and in parentheses the solved rate, the share of all episodes with return > 230:", "",
+                  named, ""]
     lines.append("Final test return: mean over the test levels of the per-level mean return at the last budget "
                  "step, mean ± SE over seeds (SE = sd/√n, ddof 1). Student env steps: those of the reported "
                  "student (for SHED/h-MDP its last teacher episode); \"all teacher episodes\" counts every "
