@@ -373,16 +373,31 @@ def test_stop_and_resume_equals_an_uninterrupted_sweep(tmp_path, capsys, monkeyp
     assert result["groups_wall_time_s"] == group_wall == kept[0]["group_wall_time_s"] > result["wall_time_s"]
 
 
+def test_preset_experiment_passes_the_episode_overrides():
+    make = sweep.preset_experiment("lander", "paper", episodes=12, steps_per_episode=60, test_episode_every=4)
+    loop = make("shed", {"eta": 10.0}, {}).loop
+    assert (loop.num_episodes, loop.steps_per_episode, loop.test_episode_every) == (12, 60, 4)
+    assert make("shed", {"eta": 10.0}, {}).method_config["eta"] == 10.0
+    default = sweep.preset_experiment("lander", "paper")
+    assert default("shed", {}, {}).loop.test_episode_every == 10  # the paper preset tests every 10th episode
+    assert default("dr", {}, {}).loop.test_episode_every == 1
+
+
 def test_resume_reads_the_saved_arguments(tmp_path):
     import argparse
 
     p = argparse.ArgumentParser()
     sweep.add_arguments(p)
-    start = p.parse_args(["--env", "lander", "--methods", "shed", "--seeds", "3", "--grid", "eta=0,10", "--out", str(tmp_path)])
+    start = p.parse_args(["--env", "lander", "--methods", "shed", "--seeds", "3", "--grid", "eta=0,10",
+                          "--test-episode-every", "4", "--out", str(tmp_path)])
     (tmp_path / sweep.ARGS_FILE).write_text(json.dumps({k: getattr(start, k) for k in sweep.SAVED_ARGS}))
     later = sweep.resumed_args(p.parse_args(["--resume", str(tmp_path), "--time-limit", "60"]))
-    assert (later.env, later.methods, later.seeds, later.grid, later.out, later.time_limit) == (
-        "lander", "shed", 3, ["eta=0,10"], str(tmp_path), 60.0)
+    assert (later.env, later.methods, later.seeds, later.grid, later.test_episode_every, later.out, later.time_limit) == (
+        "lander", "shed", 3, ["eta=0,10"], 4, str(tmp_path), 60.0)
+    # a sweep saved before --test-episode-every existed resumes with the preset's default (None)
+    (tmp_path / sweep.ARGS_FILE).write_text(json.dumps({k: getattr(start, k) for k in sweep.SAVED_ARGS
+                                                        if k != "test_episode_every"}))
+    assert sweep.resumed_args(p.parse_args(["--resume", str(tmp_path)])).test_episode_every is None
     with pytest.raises(SystemExit, match="drop --out"):
         sweep.resumed_args(p.parse_args(["--resume", str(tmp_path), "--out", str(tmp_path / "other")]))
     with pytest.raises(SystemExit, match="no sweep_args.json"):

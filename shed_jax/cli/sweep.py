@@ -70,6 +70,9 @@ def add_arguments(p) -> None:
                    help="fix a key for every point (repeatable), e.g. --set num_eval_levels=20")
     p.add_argument("--episodes", type=int, default=None, help="override the number of teacher episodes N_ep")
     p.add_argument("--steps-per-episode", type=int, default=None, help="override the budget steps per episode T")
+    p.add_argument("--test-episode-every", type=int, default=None, metavar="K",
+                   help="as for run: the test set runs only in teacher episodes 0, K, 2K, ... and the last "
+                        "(default: paper preset 10 for shed/hmdp, else 1 = every episode)")
     p.add_argument("--chunk", type=int, default=None, help="budget steps per compiled call (default: T)")
     p.add_argument("--devices", type=int, default=None, help="use the first N visible devices (default: all)")
     p.add_argument("--no-pad", action="store_true",
@@ -597,13 +600,14 @@ def run_sweep(groups: list[Group], *, out: pathlib.Path, make_experiment: Callab
     return rows
 
 
-def preset_experiment(env: str, preset: str, episodes=None, steps_per_episode=None) -> Callable:
+def preset_experiment(env: str, preset: str, episodes=None, steps_per_episode=None,
+                      test_episode_every=None) -> Callable:
     """``make_experiment(method, method_overrides, ppo_overrides)`` from the named preset."""
     from shed_jax.presets import build_experiment
 
     def make(method: str, method_overrides: dict, ppo_overrides: dict):
         exp = build_experiment(env, method, preset, episodes=episodes, steps_per_episode=steps_per_episode,
-                               method_overrides=method_overrides)
+                               test_episode_every=test_episode_every, method_overrides=method_overrides)
         if ppo_overrides:
             exp = dataclasses.replace(exp, ppo=exp.ppo.replace(**ppo_overrides))
         return exp
@@ -612,8 +616,9 @@ def preset_experiment(env: str, preset: str, episodes=None, steps_per_episode=No
 
 
 #: the arguments saved in OUT/sweep_args.json and read back by --resume
-SAVED_ARGS = ("env", "methods", "preset", "seeds", "seed", "grid", "set", "episodes", "steps_per_episode", "chunk",
-              "devices", "no_pad", "no_plots", "final_eval", "final_eval_episodes", "no_checkpoint")
+SAVED_ARGS = ("env", "methods", "preset", "seeds", "seed", "grid", "set", "episodes", "steps_per_episode",
+              "test_episode_every", "chunk", "devices", "no_pad", "no_plots", "final_eval", "final_eval_episodes",
+              "no_checkpoint")
 ARGS_FILE = "sweep_args.json"
 
 
@@ -662,7 +667,8 @@ def main(args) -> int:
         if not 1 <= args.devices <= len(devices):
             raise SystemExit(f"--devices must lie in [1, {len(devices)}] (visible devices), got {args.devices}")
         devices = devices[: args.devices]
-    make_experiment = preset_experiment(args.env, preset, args.episodes, args.steps_per_episode)
+    make_experiment = preset_experiment(args.env, preset, args.episodes, args.steps_per_episode,
+                                        args.test_episode_every)
     try:
         grid, fixed = parse_grid(args.grid), parse_fixed(args.set)
         groups = []
