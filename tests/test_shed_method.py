@@ -26,9 +26,10 @@ def _cartpole():
     return env, student, eval_levels
 
 
-def _run(name, steps=4):
+def _run(name, steps=4, **overrides):
     env, student, eval_levels = _cartpole()
-    method = SHED(env, student, SHEDConfig(**TINY), use_diffusion=name == "shed", name=name, eval_levels=eval_levels)
+    method = SHED(env, student, SHEDConfig(**{**TINY, **overrides}), use_diffusion=name == "shed", name=name,
+                  eval_levels=eval_levels)
 
     @jax.jit
     def run(key):
@@ -44,13 +45,13 @@ def _run(name, steps=4):
             return (m, s), info
 
         (m, s), infos = jax.lax.scan(body, (m, s), jax.random.split(k_run, steps))
-        return m, s0, infos
+        return m, s0, infos, s
 
     return method, run(jax.random.PRNGKey(0))
 
 
 def test_shed_schedule_rewards_and_accounting():
-    method, (m, s0, info) = _run("shed")
+    method, (m, s0, info, _) = _run("shed")
     ext = info.extras
     np.testing.assert_array_equal(ext["real_size"], [1, 2, 3, 4])
     # D trains and synthesises 2 once |B_real| > 1: after steps 2, 3, 4
@@ -83,11 +84,28 @@ def test_shed_schedule_rewards_and_accounting():
 
 
 def test_hmdp_has_no_diffusion_and_two_real_updates():
-    method, (m, s0, info) = _run("hmdp")
+    method, (m, s0, info, _) = _run("hmdp")
     assert m.diffusion is None and m.syn is None
     np.testing.assert_array_equal(info.extras["ddpg_branch"], [0, 1, 1, 1])
     assert int(m.ddpg.num_updates) == 6
     assert method.capacity == 16
+
+
+def test_shed_and_hmdp_are_one_process_until_the_teacher_learns():
+    """With the thresholds out of reach (no DDPG update, no diffusion), SHED and h-MDP must draw the
+    same keys for the same things: equal levels, teacher states, rewards and students, bit for bit
+    on one backend. Paired seeds across the two methods rely on this."""
+    far = dict(ddpg_threshold=100, diffusion_threshold=100, syn_threshold=100)
+    _, (m_a, s0_a, info_a, student_a) = _run("shed", **far)
+    _, (m_b, s0_b, info_b, student_b) = _run("hmdp", **far)
+    np.testing.assert_array_equal(info_a.extras["ddpg_branch"], [0, 0, 0, 0])
+    np.testing.assert_array_equal(info_a.extras["syn_size"], [0, 0, 0, 0])
+    np.testing.assert_array_equal(s0_a, s0_b)
+    for field in ("levels", "teacher_reward", "env_steps_train", "env_steps_eval"):
+        np.testing.assert_array_equal(getattr(info_a, field), getattr(info_b, field), err_msg=field)
+    np.testing.assert_array_equal(info_a.extras["teacher_state"], info_b.extras["teacher_state"])
+    jax.tree.map(np.testing.assert_array_equal, student_a.params, student_b.params)
+    assert len(np.unique(np.asarray(info_a.levels).reshape(4, -1), axis=0)) == 4  # the levels do change per step
 
 
 def test_config_errors():
