@@ -74,6 +74,7 @@ EPISODIC_METHODS = ("shed", "hmdp")
 # DCD's results on them (SPEC 3.2, from DCD's results files: 20k updates, about 6.6e8 Box2D steps,
 # 10 seeds): (mean return, SE, solved rate) per level. An ordering reference, not a parity target.
 NAMED_SET_A = ("BipedalWalker", "Hardcore", "Stairs", "PitGap", "Stump", "Roughness")
+DCD_SOLVED_THRESHOLD = 230.0  # an episode is solved when its return is above this (SPEC 3.3)
 DCD_NAMED = {
     "ACCEL": ((317.9, 0.9, .998), (210.8, 10.7, .629), (91.6, 9.7, .206), (112.0, 24.0, .310), (165.8, 14.0, .491),
               (253.3, 13.1, .764)),
@@ -332,10 +333,14 @@ def format_level_cell(mean: float, se: float, solved: float | None) -> str:
 def named_table(runs: list[Run], paper: str | None = None) -> str | None:
     """DCD's six walker test levels from each run's ``final_eval_named.json`` (one row per run that
     has one; the last column pools every named level, DCD's six and the harder ones), with DCD's
-    reference rows when ``paper == "walker"``; None if no run has a named-level evaluation."""
+    reference rows when ``paper == "walker"``; None if no run has a named-level evaluation.
+
+    Levels are looked up by label, not position. Runs whose named sets differ in size (an older
+    level list) say so in their pooled cell, since those pools are not comparable; a solved
+    threshold other than DCD's 230 is an error, since the reference rows and the caption use it."""
     from shed_jax import reporting
 
-    rows = []
+    rows, sizes = [], []
     for r in runs:
         path = r.path / "final_eval_named.json"
         if not path.exists():
@@ -345,17 +350,26 @@ def named_table(runs: list[Run], paper: str | None = None) -> str | None:
         missing = [name for name in NAMED_SET_A if name not in by_label]
         if missing:
             raise ValueError(f"{path} lacks the named levels {missing}")
+        threshold = ev.get("solved_threshold", DCD_SOLVED_THRESHOLD)
+        if threshold != DCD_SOLVED_THRESHOLD:
+            raise ValueError(f"{path} counts returns above {threshold} as solved; DCD's table uses "
+                             f"{DCD_SOLVED_THRESHOLD:g}")
         cells = [format_level_cell(by_label[n]["mean"], by_label[n]["se"], by_label[n]["solved_rate"])
                  for n in NAMED_SET_A]
         o = ev["overall"]
-        rows.append([r.label, str(ev["seeds"])] + cells
-                    + [format_level_cell(o["mean"], o["se"], o["solved_rate"])])
+        rows.append([r.label, str(ev["seeds"])] + cells + [format_level_cell(o["mean"], o["se"], o["solved_rate"])])
+        sizes.append(len(ev["per_level"]))
     if not rows:
         return None
+    pooled = f"all {sizes[0]} named levels"
+    if len(set(sizes)) > 1:
+        pooled = "all named levels"
+        for row, n in zip(rows, sizes):
+            row[-1] += f" [{n} levels]"
     if paper == "walker":
         for name, cells in DCD_NAMED.items():
             rows.append([f"DCD {name} (SPEC 3.2)", "10"] + [format_level_cell(*c) for c in cells] + ["—"])
-    return reporting.markdown_table(["method", "seeds", *NAMED_SET_A, "all named levels"], rows, "lr" + "r" * 7)
+    return reporting.markdown_table(["method", "seeds", *NAMED_SET_A, pooled], rows, "lr" + "r" * 7)
 
 
 def write_csv(runs: list[Run], path: pathlib.Path) -> int:

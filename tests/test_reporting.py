@@ -200,43 +200,59 @@ def test_compare_partial_run_and_duplicate_methods(runs):
             compare.main([str(runs / "shed"), str(runs / "shed-b"), "--labels", bad, "--out", str(out3)])
 
 
-def _write_named_eval(run_dir: pathlib.Path, returns: np.ndarray, labels: list[str]) -> None:
+def _write_named_eval(run_dir: pathlib.Path, returns: np.ndarray, labels: list[str], threshold: float = 230.0) -> None:
     """``final_eval_named.json`` with the per-level statistics of ``eval.level_table`` (the numbers
     ``run --final-eval named`` writes), for hand-made returns [seeds, levels, episodes]."""
     from shed_jax.cli import eval as eval_cli
 
-    t = eval_cli.level_table(returns, threshold=230.0)
+    t = eval_cli.level_table(returns, threshold=threshold)
     (run_dir / "final_eval_named.json").write_text(json.dumps({
-        "levels": "named", "labels": labels, "seeds": returns.shape[0], "returns": returns.tolist(),
+        "levels": "named", "labels": labels, "seeds": returns.shape[0], "solved_threshold": threshold,
+        "returns": returns.tolist(),
         "per_level": [{"label": lab, "mean": t["mean"][j], "se": t["se"][j], "solved_rate": t["solved_rate"][j],
                        "cvar": t["cvar"][j]} for j, lab in enumerate(labels)],
         "overall": t["overall"]}))
 
 
 def test_compare_named_level_table_with_dcd_reference(runs):
-    labels = list(compare.NAMED_SET_A) + ["Insane"]
-    returns = np.full((2, 7, 2), -100.0)
-    returns[:, 0] = [[240.0, 220.0], [100.0, 300.0]]  # seed means 230, 200: 215 ± 15; 2 of 4 above 230
-    returns[:, 6] = [[-300.0, -300.0], [-100.0, -100.0]]  # the extra level only enters the pooled column
+    # the levels in another order than DCD's table, plus one extra level: lookup must be by label
+    labels = ["Stump", "BipedalWalker", "Roughness", "Insane", "Hardcore", "PitGap", "Stairs"]
+    returns = np.empty((2, 7, 2))
+    for j, v in enumerate([-10.0, 0.0, -20.0, -300.0, -30.0, -40.0, -50.0]):  # a distinct value per level
+        returns[:, j] = v
+    # BipedalWalker: seed means 230 and 200 -> 215 ± 15; solved means > 230, so 230.0 itself is not
+    returns[:, 1] = [[230.0, 230.0], [100.0, 300.0]]
     _write_named_eval(runs / "shed", returns, labels)
     out = runs / "report_named"
     assert compare.main([str(runs / "dr"), str(runs / "shed"), "--out", str(out), "--paper", "walker"]) == 0
     lines = (out / "results.md").read_text().splitlines()
-    at = lines.index("| method | seeds | BipedalWalker | Hardcore | Stairs | PitGap | Stump | Roughness | all named levels |")
-    # each seed's mean over its 7 x 2 episodes; 2 of the 28 episodes above 230
-    s0, s1 = (460 - 1000 - 600) / 14, (400 - 1000 - 200) / 14
-    pooled = f"{(s0 + s1) / 2:.1f} ± {abs(s0 - s1) / 2:.1f} (.071)"
-    assert lines[at + 2] == ("| shed | 2 | 215.0 ± 15.0 (.500) | -100.0 ± 0.0 (.000) | -100.0 ± 0.0 (.000) | "
-                             f"-100.0 ± 0.0 (.000) | -100.0 ± 0.0 (.000) | -100.0 ± 0.0 (.000) | {pooled} |")
+    at = lines.index("| method | seeds | BipedalWalker | Hardcore | Stairs | PitGap | Stump | Roughness | all 7 named levels |")
+    # each seed's mean over its 7 x 2 episodes; 1 of the 28 episodes (300) above 230
+    s0 = (460 - 20 - 40 - 600 - 60 - 80 - 100) / 14
+    s1 = (400 - 20 - 40 - 600 - 60 - 80 - 100) / 14
+    pooled = f"{(s0 + s1) / 2:.1f} ± {abs(s0 - s1) / 2:.1f} (.036)"
+    assert lines[at + 2] == ("| shed | 2 | 215.0 ± 15.0 (.250) | -30.0 ± 0.0 (.000) | -50.0 ± 0.0 (.000) | "
+                             f"-40.0 ± 0.0 (.000) | -10.0 ± 0.0 (.000) | -20.0 ± 0.0 (.000) | {pooled} |")
     # the run without a named evaluation (dr) has no row; DCD's three methods follow as reference rows
     assert lines[at + 3] == ("| DCD ACCEL (SPEC 3.2) | 10 | 317.9 ± 0.9 (.998) | 210.8 ± 10.7 (.629) | 91.6 ± 9.7 (.206) | "
                              "112.0 ± 24.0 (.310) | 165.8 ± 14.0 (.491) | 253.3 ± 13.1 (.764) | — |")
+    assert lines[at + 4] == ("| DCD PLR⊥ (SPEC 3.2) | 10 | 304.8 ± 2.3 (.992) | 84.8 ± 12.8 (.158) | 51.0 ± 4.8 (.045) | "
+                             "43.3 ± 11.3 (.040) | 6.5 ± 5.5 (.006) | 129.7 ± 13.3 (.244) | — |")
     assert lines[at + 5].startswith("| DCD DR (SPEC 3.2) | 10 | 266.8 ± 13.3 (.836) |") and not lines[at + 6].startswith("|")
-    # without --paper walker: no reference rows; a named set without DCD's levels is an error
+    # without --paper walker: no reference rows; no named evaluation: no table
     assert compare.named_table([compare.load_run(runs / "shed")]).count("\n") == 3
     assert compare.named_table([compare.load_run(runs / "dr")]) is None
-    _write_named_eval(runs / "shed", returns[:, 1:], labels[1:])
+    # named sets of different sizes: the pooled cells say how many levels each pools
+    _write_run(runs / "shed-b", "shed", [-50.0, -70.0], episodes=1, T=3, wall=10.0)
+    _write_named_eval(runs / "shed-b", np.delete(returns, 3, axis=1), [x for x in labels if x != "Insane"])
+    text = compare.named_table([compare.load_run(runs / "shed"), compare.load_run(runs / "shed-b")])
+    assert "| all named levels |" in text and " [7 levels] |" in text and " [6 levels] |" in text
+    # a set without one of DCD's levels, or another solved threshold, is an error
+    _write_named_eval(runs / "shed", np.delete(returns, 1, axis=1), [x for x in labels if x != "BipedalWalker"])
     with pytest.raises(ValueError, match=r"lacks the named levels \['BipedalWalker'\]"):
+        compare.named_table([compare.load_run(runs / "shed")])
+    _write_named_eval(runs / "shed", returns, labels, threshold=200.0)
+    with pytest.raises(ValueError, match="above 200.0 as solved"):
         compare.named_table([compare.load_run(runs / "shed")])
 
 
