@@ -145,6 +145,8 @@ def test_run_final_eval_equals_eval_on_the_saved_students(run_dir, tmp_path):
     same seed, episodes and cap (the test set's 20 steps), must return the very same episodes."""
     final = json.loads((run_dir / "final_eval_test.json").read_text())
     assert final["budget_step"] == 4 and final["episodes"] == 3 and final["max_steps"] == 20
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert 0 < final["wall_time_s"] < summary["wall_time_s"]  # its own time, not in the run's wall time
     out = tmp_path / "again.json"
     assert eval_cli.main(parse(eval_cli, ["--run", str(run_dir), "--levels", "test", "--episodes", "3", "--max-steps", "20",
                                           "--out", str(out)])) == 0

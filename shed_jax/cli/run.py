@@ -520,8 +520,10 @@ def final_eval(exp, env, student, student_state, num_seeds: int, resolved, out: 
     """Evaluate the final students on one level set (as ``eval`` does) and write final_eval_<set>.json.
 
     The episode cap is the test set's (``LoopSpec.test_max_steps``). The run's results are already
-    written, so a failure here is reported and does not fail the run.
+    written, so a failure here is reported and does not fail the run. The JSON's ``wall_time_s`` is
+    the evaluation's own time, compile included; the run's ``summary.json`` wall time stops before it.
     """
+    t0 = time.time()
     try:
         body, text = eval_cli.evaluate_students(exp, env, student, student_state, num_seeds, resolved,
                                                 episodes=episodes, max_steps=exp.loop.test_max_steps)
@@ -529,7 +531,8 @@ def final_eval(exp, env, student, student_state, num_seeds: int, resolved, out: 
         print(f"[shed_jax] final evaluation on {resolved[2]!r} failed: {type(err).__name__}: {err}", file=sys.stderr)
         return
     path = out / f"final_eval_{body['levels']}.json"
-    path.write_text(json.dumps({"run": str(out), "budget_step": step, **body}, indent=2))
+    path.write_text(json.dumps({"run": str(out), "budget_step": step, "wall_time_s": time.time() - t0, **body},
+                               indent=2))
     solved = f"solved: return > {body['solved_threshold']:g}" if body["solved_threshold"] is not None else "no solved threshold"
     print(f"[shed_jax] final students on {body['levels']!r} ({num_seeds} seed(s) x {episodes} episode(s) per level, {solved}):")
     print(text)
