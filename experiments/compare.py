@@ -28,7 +28,8 @@ Writes to OUT:
 Walker runs whose directory holds ``final_eval_named.json`` (``run``'s default final evaluation)
 also get a table of DCD's six test levels: return ± SE over seeds with the solved rate (return > 230)
 in parentheses, and the mean over all named levels; with ``--paper walker`` DCD's own table (SPEC 3.2,
-Box2D at about 66x our budget) follows as reference rows.
+Box2D at about 66x our budget) follows as reference rows. ``named_levels.png`` shows the same six
+levels as bars, with DCD's means as markers under ``--paper walker``.
 """
 from __future__ import annotations
 
@@ -330,37 +331,50 @@ def format_level_cell(mean: float, se: float, solved: float | None) -> str:
     return text
 
 
-def named_table(runs: list[Run], paper: str | None = None) -> str | None:
-    """DCD's six walker test levels from each run's ``final_eval_named.json`` (one row per run that
-    has one; the last column pools every named level, DCD's six and the harder ones), with DCD's
-    reference rows when ``paper == "walker"``; None if no run has a named-level evaluation.
-
-    Levels are looked up by label, not position. Runs whose named sets differ in size (an older
-    level list) say so in their pooled cell, since those pools are not comparable; a solved
-    threshold other than DCD's 230 is an error, since the reference rows and the caption use it."""
-    from shed_jax import reporting
-
-    rows, sizes = [], []
+def named_results(runs: list[Run]) -> list[tuple[Run, dict]]:
+    """(run, its ``final_eval_named.json``) for each run that has one, checked: DCD's six levels
+    present (looked up by label, not position) and DCD's solved threshold (230)."""
+    found = []
     for r in runs:
         path = r.path / "final_eval_named.json"
         if not path.exists():
             continue
         ev = json.loads(path.read_text())
-        by_label = {lv["label"]: lv for lv in ev["per_level"]}
-        missing = [name for name in NAMED_SET_A if name not in by_label]
+        labels = {lv["label"] for lv in ev["per_level"]}
+        missing = [name for name in NAMED_SET_A if name not in labels]
         if missing:
             raise ValueError(f"{path} lacks the named levels {missing}")
         threshold = ev.get("solved_threshold", DCD_SOLVED_THRESHOLD)
         if threshold != DCD_SOLVED_THRESHOLD:
             raise ValueError(f"{path} counts returns above {threshold} as solved; DCD's table uses "
                              f"{DCD_SOLVED_THRESHOLD:g}")
-        cells = [format_level_cell(by_label[n]["mean"], by_label[n]["se"], by_label[n]["solved_rate"])
-                 for n in NAMED_SET_A]
+        found.append((r, ev))
+    return found
+
+
+def _set_a(ev: dict, field: str) -> list[float]:
+    by_label = {lv["label"]: lv for lv in ev["per_level"]}
+    return [by_label[name][field] for name in NAMED_SET_A]
+
+
+def named_table(runs: list[Run], paper: str | None = None) -> str | None:
+    """DCD's six walker test levels from each run's ``final_eval_named.json`` (one row per run that
+    has one; the last column pools every named level, DCD's six and the harder ones), with DCD's
+    reference rows when ``paper == "walker"``; None if no run has a named-level evaluation.
+
+    Runs whose named sets differ in size (an older level list) say so in their pooled cell, since
+    those pools are not comparable."""
+    from shed_jax import reporting
+
+    found = named_results(runs)
+    if not found:
+        return None
+    rows, sizes = [], []
+    for r, ev in found:
+        cells = [format_level_cell(*c) for c in zip(_set_a(ev, "mean"), _set_a(ev, "se"), _set_a(ev, "solved_rate"))]
         o = ev["overall"]
         rows.append([r.label, str(ev["seeds"])] + cells + [format_level_cell(o["mean"], o["se"], o["solved_rate"])])
         sizes.append(len(ev["per_level"]))
-    if not rows:
-        return None
     pooled = f"all {sizes[0]} named levels"
     if len(set(sizes)) > 1:
         pooled = "all named levels"
@@ -370,6 +384,22 @@ def named_table(runs: list[Run], paper: str | None = None) -> str | None:
         for name, cells in DCD_NAMED.items():
             rows.append([f"DCD {name} (SPEC 3.2)", "10"] + [format_level_cell(*c) for c in cells] + ["—"])
     return reporting.markdown_table(["method", "seeds", *NAMED_SET_A, pooled], rows, "lr" + "r" * 7)
+
+
+def plot_named(runs: list[Run], out: pathlib.Path, paper: str | None = None) -> pathlib.Path | None:
+    """named_levels.png: the runs' returns on DCD's six levels as bars (± SE over seeds), the solved
+    line, and DCD's numbers as markers under ``--paper walker``; None without named evaluations."""
+    from shed_jax import reporting
+
+    found = named_results(runs)
+    if not found:
+        return None
+    refs = {f"DCD {name}": [c[0] for c in cells] for name, cells in DCD_NAMED.items()} if paper == "walker" else None
+    path = out / "named_levels.png"
+    reporting.plot_level_bars(NAMED_SET_A, {r.label: (_set_a(ev, "mean"), _set_a(ev, "se")) for r, ev in found}, path,
+                              title="DCD's test levels: final return (mean ± SE over seeds)",
+                              threshold=DCD_SOLVED_THRESHOLD, references=refs)
+    return path
 
 
 def write_csv(runs: list[Run], path: pathlib.Path) -> int:
@@ -447,6 +477,9 @@ def main(argv=None) -> int:
     out = pathlib.Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     plots = write_plots(runs, out, args.paper)
+    named = plot_named(runs, out, args.paper)
+    if named is not None:
+        plots.append(named)
     rows = write_csv(runs, out / "results.csv")
     text = markdown(runs, plots, out, args.paper)
     (out / "results.md").write_text(text)

@@ -12,7 +12,9 @@ Plots (matplotlib, Agg backend, one PNG each):
                        paper's digitised curves as dashed references);
 * ``plot_per_level``   one small panel per test level, mean ± SE over seeds;
 * ``plot_parameters``  the teacher's generated parameters per budget step, one panel per parameter;
-* ``plot_eval_vector`` SHED/h-MDP's performance vector over budget steps (heatmap + its mean).
+* ``plot_eval_vector`` SHED/h-MDP's performance vector over budget steps (heatmap + its mean);
+* ``plot_level_bars``  final returns on named levels, one bar per method per level, ± SE, with a
+                       solved threshold and reference markers (e.g. DCD's published numbers).
 """
 from __future__ import annotations
 
@@ -452,4 +454,50 @@ def plot_eval_vector(x: np.ndarray, vectors: np.ndarray, path: pathlib.Path, *, 
     ax_l.grid(alpha=0.3)
     ax_l.legend(fontsize=7)
     fig.savefig(path, bbox_inches="tight")
+    plt.close(fig)
+
+
+def plot_level_bars(levels: Sequence[str], bars: dict[str, tuple[Sequence[float], Sequence[float]]],
+                    path: pathlib.Path, *, title: str, ylabel: str = "return", threshold: float | None = None,
+                    references: dict[str, Sequence[float]] | None = None) -> None:
+    """Grouped bars: for each level, one bar per method with its SE as an error bar.
+
+    ``bars[label] = (mean [L], se [L])`` in the order of ``levels``. ``threshold`` draws a dashed
+    line (e.g. the solved return); ``references[label] = values [L]`` draws one marker per level and
+    reference (e.g. a paper's table), so published numbers sit next to ours without being bars.
+    """
+    plt = _pyplot()
+    L = len(levels)
+    if not bars:
+        raise ValueError("plot_level_bars: no bars to draw")
+    for label, (mean, se) in bars.items():
+        if len(mean) != L or len(se) != L:
+            raise ValueError(f"plot_level_bars: {label!r} has {len(mean)} means and {len(se)} SEs for {L} levels")
+    for label, values in (references or {}).items():
+        if len(values) != L:
+            raise ValueError(f"plot_level_bars: reference {label!r} has {len(values)} values for {L} levels")
+    n = len(bars)
+    width = 0.8 / n
+    x = np.arange(L, dtype=np.float64)
+    fig, ax = plt.subplots(figsize=(max(7.0, 1.3 * L + 2.0), 4.2), dpi=120)
+    for i, (label, (mean, se)) in enumerate(bars.items()):
+        ax.bar(x - 0.4 + width * (i + 0.5), np.asarray(mean, np.float64), width, yerr=np.asarray(se, np.float64),
+               capsize=2, label=label, alpha=0.85)
+    markers = "D^sv<>po"
+    for j, (label, values) in enumerate((references or {}).items()):
+        ax.scatter(x, np.asarray(values, np.float64), marker=markers[j % len(markers)], s=28, color="black",
+                   facecolors="none" if j % 2 else "black", zorder=3, label=label)
+    if threshold is not None:
+        ax.axhline(threshold, linestyle="--", linewidth=1, color="grey")
+        ax.annotate(f"solved > {threshold:g}", (x[-1] + 0.4, threshold), fontsize=7, color="grey", ha="right",
+                    va="bottom")
+    ax.axhline(0.0, color="black", linewidth=0.6)
+    ax.set_xticks(x)
+    ax.set_xticklabels(levels, fontsize=8)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title, fontsize=10)
+    ax.grid(alpha=0.3, axis="y")
+    ax.legend(fontsize=7, loc="best")
+    fig.tight_layout()
+    fig.savefig(path)
     plt.close(fig)

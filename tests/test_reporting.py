@@ -239,6 +239,9 @@ def test_compare_named_level_table_with_dcd_reference(runs):
     assert lines[at + 4] == ("| DCD PLR⊥ (SPEC 3.2) | 10 | 304.8 ± 2.3 (.992) | 84.8 ± 12.8 (.158) | 51.0 ± 4.8 (.045) | "
                              "43.3 ± 11.3 (.040) | 6.5 ± 5.5 (.006) | 129.7 ± 13.3 (.244) | — |")
     assert lines[at + 5].startswith("| DCD DR (SPEC 3.2) | 10 | 266.8 ± 13.3 (.836) |") and not lines[at + 6].startswith("|")
+    _png(out / "named_levels.png")  # the same six levels as bars, linked from results.md
+    assert "](named_levels.png)" in (out / "results.md").read_text()
+    assert compare.plot_named([compare.load_run(runs / "dr")], out) is None
     # without --paper walker: no reference rows; no named evaluation: no table
     assert compare.named_table([compare.load_run(runs / "shed")]).count("\n") == 3
     assert compare.named_table([compare.load_run(runs / "dr")]) is None
@@ -282,3 +285,15 @@ def test_plots_direct(tmp_path):
         _png(tmp_path / name)
     with pytest.raises(ValueError, match="curve has 5 x values"):
         reporting.plot_curves({"a": (x[:5], y)}, tmp_path / "bad.png", xlabel="", ylabel="", title="")
+    levels = ["flat", "stairs", "pits"]
+    reporting.plot_level_bars(levels, {"a": ([120.0, -30.0, -60.0], [40.0, 5.0, 8.0]), "b": ([10.0, 20.0, -5.0], [1, 2, 3])},
+                              tmp_path / "bars.png", title="bars", threshold=230.0,
+                              references={"paper": [300.0, 90.0, 110.0]})
+    w, h = _png(tmp_path / "bars.png")
+    assert w > h
+    with pytest.raises(ValueError, match="'b' has 2 means and 3 SEs for 3 levels"):
+        reporting.plot_level_bars(levels, {"b": ([1.0, 2.0], [1.0, 1.0, 1.0])}, tmp_path / "bad.png", title="")
+    with pytest.raises(ValueError, match="reference 'paper' has 2 values"):
+        reporting.plot_level_bars(levels, {"a": ([0.0] * 3, [0.0] * 3)}, tmp_path / "bad.png", title="",
+                                  references={"paper": [1.0, 2.0]})
+    assert not (tmp_path / "bad.png").exists()
