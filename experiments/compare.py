@@ -30,6 +30,10 @@ also get a table of DCD's six test levels: return ± SE over seeds with the solv
 in parentheses, and the mean over all named levels; with ``--paper walker`` DCD's own table (SPEC 3.2,
 Box2D at about 66x our budget) follows as reference rows. ``named_levels.png`` shows the same six
 levels as bars, with DCD's means as markers under ``--paper walker``.
+
+Runs given the same ``--labels`` entry are pooled into one row: their seeds side by side (numbered
+in the order of the RUN_DIRs), e.g. two 5-seed runs with root seeds 0 and 1 as one 10-seed row. They
+must share the whole experiment config and differ in root seed, else the tool stops with an error.
 """
 from __future__ import annotations
 
@@ -111,6 +115,7 @@ class Run:
     summary: dict | None
     hist: dict  # {key: [seeds, steps, ...]} from metrics.jsonl
     label: str = ""
+    parts: list[Run] = dataclasses.field(default_factory=list)  # the runs pooled into this one, if any
 
     @property
     def experiment(self) -> dict:
@@ -176,6 +181,59 @@ def assign_labels(runs: list[Run]) -> None:
         for r in runs:
             if seen[(r.env, r.label)] > 1:
                 r.label = extra(r)
+
+
+def pool_runs(runs: list[Run], labels: list[str]) -> list[Run]:
+    """Label the runs; runs sharing a label become one run with their seeds side by side.
+
+    A pooled run keeps the first run's path and config; its summary (final return, wall time) is
+    recomputed over all seeds, or None when a part has none (it did not finish). Raises
+    ``ValueError`` when the runs of one label differ in their experiment or in the steps their
+    metrics hold, or share a root seed (the same root seed gives the same seeds)."""
+    from shed_jax import reporting
+
+    groups: dict[str, list[Run]] = {}
+    for r, label in zip(runs, labels, strict=True):
+        r.label = label
+        groups.setdefault(label, []).append(r)
+    pooled = []
+    for label, group in groups.items():
+        if len(group) == 1:
+            pooled.append(group[0])
+            continue
+        first = group[0]
+        for r in group[1:]:
+            differ = sorted(k for k in set(r.experiment) | set(first.experiment)
+                            if r.experiment.get(k) != first.experiment.get(k))
+            if differ:
+                raise ValueError(f"cannot pool {r.path} with {first.path} as {label!r}: their experiments "
+                                 f"differ in {differ}")
+            if set(r.hist) != set(first.hist) or any(r.hist[k].shape[1:] != v.shape[1:] for k, v in first.hist.items()):
+                raise ValueError(f"cannot pool {r.path} with {first.path} as {label!r}: their metrics.jsonl "
+                                 "differ in keys or budget steps (did one stop early?)")
+        roots = [r.config.get("root_seed") for r in group]
+        if None in roots or len(set(roots)) != len(roots):
+            raise ValueError(f"cannot pool the runs labelled {label!r}: their root seeds {roots} must be known "
+                             "and distinct (the same root seed gives the same seeds)")
+        hist = {k: np.concatenate([r.hist[k] for r in group], axis=0) for k in first.hist}
+        summary = None
+        if all(r.summary is not None for r in group):
+            m, se = reporting.mean_se(np.asarray(hist["test_return"], np.float64)[:, -1])
+            wall = sum(float(r.summary["wall_time_s"]) for r in group)
+            summary = {"final_test_return_mean": float(m), "final_test_return_se": float(se), "wall_time_s": wall,
+                       "wall_time_per_seed_s": wall / hist["test_return"].shape[0]}
+        pooled.append(Run(first.path, first.config, summary, hist, label, parts=list(group)))
+    return pooled
+
+
+def pooled_note(runs: list[Run]) -> str | None:
+    """One line naming the runs behind each pooled row (directory, root seed, seeds), or None."""
+    notes = []
+    for r in runs:
+        if r.parts:
+            parts = ", ".join(f"{p.path.name} (root seed {p.config['root_seed']}, {p.seeds} seeds)" for p in r.parts)
+            notes.append(f"**{r.label}** = {parts}")
+    return ("Pooled rows, seeds numbered in this order: " + "; ".join(notes) + ".") if notes else None
 
 
 def final_return(run: Run) -> tuple[float, float]:
@@ -336,10 +394,10 @@ def named_results(runs: list[Run]) -> list[tuple[Run, dict]]:
     present (looked up by label, not position) and DCD's solved threshold (230)."""
     found = []
     for r in runs:
-        path = r.path / "final_eval_named.json"
-        if not path.exists():
+        ev = _named_eval(r)
+        if ev is None:
             continue
-        ev = json.loads(path.read_text())
+        path = r.path / "final_eval_named.json"
         labels = {lv["label"] for lv in ev["per_level"]}
         missing = [name for name in NAMED_SET_A if name not in labels]
         if missing:
@@ -350,6 +408,33 @@ def named_results(runs: list[Run]) -> list[tuple[Run, dict]]:
                              f"{DCD_SOLVED_THRESHOLD:g}")
         found.append((r, ev))
     return found
+
+
+def _named_eval(r: Run) -> dict | None:
+    """The run's ``final_eval_named.json`` (None without one). For a pooled run, its parts' files
+    with the returns of all seeds side by side and the statistics recomputed over them."""
+    from shed_jax.cli import eval as eval_cli
+
+    def read(run):
+        path = run.path / "final_eval_named.json"
+        return json.loads(path.read_text()) if path.exists() else None
+
+    if not r.parts:
+        return read(r)
+    evs = [read(p) for p in r.parts]
+    if all(ev is None for ev in evs):
+        return None
+    same = ("labels", "episodes", "max_steps", "deterministic", "solved_threshold")
+    for p, ev in zip(r.parts, evs):
+        if ev is None:
+            raise ValueError(f"{p.path} has no final_eval_named.json, but the runs pooled with it as {r.label!r} do")
+        if any(ev.get(k) != evs[0].get(k) for k in same):
+            raise ValueError(f"{p.path / 'final_eval_named.json'} differs from {r.parts[0].path / 'final_eval_named.json'} "
+                             f"in one of {list(same)}: their named evaluations cannot be pooled")
+    returns = np.concatenate([np.asarray(ev["returns"], np.float64) for ev in evs], axis=0)
+    table = eval_cli.level_table(returns, evs[0].get("solved_threshold"), evs[0].get("cvar_alpha", eval_cli.CVAR_ALPHA))
+    return {**evs[0], "seeds": int(returns.shape[0]), "returns": returns.tolist(),
+            **eval_cli.table_json(evs[0]["labels"], table)}
 
 
 def _set_a(ev: dict, field: str) -> list[float]:
@@ -435,6 +520,9 @@ def write_csv(runs: list[Run], path: pathlib.Path) -> int:
 
 def markdown(runs: list[Run], plots: list[pathlib.Path], out: pathlib.Path, paper: str | None) -> str:
     lines = [table(runs, paper), ""]
+    note = pooled_note(runs)
+    if note is not None:
+        lines += [note, ""]
     episodes = episode_table(runs)
     if episodes is not None:
         lines += ["Test return at the end of each tested teacher episode (mean ± SE over seeds):", "", episodes, ""]
@@ -462,7 +550,8 @@ def main(argv=None) -> int:
     p.add_argument("--out", required=True, help="output directory (results.md, results.csv and PNGs)")
     p.add_argument("--labels", default=None,
                    help="comma-separated labels, one per RUN_DIR, for the table and the plots "
-                        "(default: the method, disambiguated by preset, then directory name)")
+                        "(default: the method, disambiguated by preset, then directory name); RUN_DIRs "
+                        "with the same label are pooled into one row (same experiment, other root seeds)")
     p.add_argument("--paper", choices=sorted(PAPER), default=None,
                    help="add the paper's digitised numbers (SPEC 3.4) for this environment")
     args = p.parse_args(argv)
@@ -470,10 +559,12 @@ def main(argv=None) -> int:
     assign_labels(runs)
     if args.labels is not None:
         labels = [x.strip() for x in args.labels.split(",")]
-        if len(labels) != len(runs) or not all(labels) or len(set(labels)) != len(labels):
-            p.error(f"--labels needs {len(runs)} distinct non-empty labels (one per RUN_DIR), got {args.labels!r}")
-        for r, label in zip(runs, labels):
-            r.label = label
+        if len(labels) != len(runs) or not all(labels):
+            p.error(f"--labels needs {len(runs)} non-empty labels (one per RUN_DIR), got {args.labels!r}")
+        try:
+            runs = pool_runs(runs, labels)
+        except ValueError as err:
+            p.error(str(err))
     out = pathlib.Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     plots = write_plots(runs, out, args.paper)

@@ -78,7 +78,7 @@ LANDER_HIGH = np.array([-0.01, 20.0, 2.0])
 
 
 def _write_run(out: pathlib.Path, method: str, final: list[float], *, episodes: int, T: int, wall: float,
-               m_eval: int = 10, chunk: int = 2, with_summary: bool = True) -> None:
+               m_eval: int = 10, chunk: int = 2, with_summary: bool = True, root_seed: int = 0) -> None:
     """A fake lander run: test return rises linearly from -600 to ``final`` (per seed) in every
     teacher episode; 1000 student env steps per budget step; levels drift inside the box."""
     exp = build_experiment("lander", method, "quick", episodes=episodes, steps_per_episode=T)
@@ -102,7 +102,7 @@ def _write_run(out: pathlib.Path, method: str, final: list[float], *, episodes: 
                "step_in_episode": np.broadcast_to(t % T, (S, total)), "test_return_per_level": per_level.astype(np.float32),
                "test_return": test_return.astype(np.float32), "info": info}
     out.mkdir(parents=True)
-    config = {"experiment": exp.to_dict(), "seeds": S, "root_seed": 0, "backend": "cpu", "devices": ["cpu"],
+    config = {"experiment": exp.to_dict(), "seeds": S, "root_seed": root_seed, "backend": "cpu", "devices": ["cpu"],
               "chunk": chunk, "jax": "test"}
     (out / "config.json").write_text(json.dumps(config, indent=2, default=str))
     history = {}
@@ -195,7 +195,7 @@ def test_compare_partial_run_and_duplicate_methods(runs):
     assert lines[2].startswith("| SHED short | lander |") and lines[3].startswith("| SHED L1 | lander |")
     _png(out3 / "params_lander_SHED_short.png")
     assert (out3 / "results.csv").read_text().splitlines()[1].startswith("SHED L1,lander,0,0,0,1000,")
-    for bad in ("a", "a,a", "a,"):  # one distinct, non-empty label per run directory
+    for bad in ("a", "a,a", "a,"):  # one non-empty label per run directory; "a,a" would pool runs of other configs
         with pytest.raises(SystemExit):
             compare.main([str(runs / "shed"), str(runs / "shed-b"), "--labels", bad, "--out", str(out3)])
 
@@ -257,6 +257,45 @@ def test_compare_named_level_table_with_dcd_reference(runs):
     _write_named_eval(runs / "shed", returns, labels, threshold=200.0)
     with pytest.raises(ValueError, match="above 200.0 as solved"):
         compare.named_table([compare.load_run(runs / "shed")])
+
+
+def test_compare_pools_runs_that_share_a_label(runs):
+    # a second SHED run with the same experiment and another root seed: one row of 3 + 2 seeds
+    _write_run(runs / "shed-r1", "shed", [-50.0, -70.0], episodes=2, T=3, wall=30.0, root_seed=1)
+    labels = ["BipedalWalker", "Hardcore", "Stairs", "PitGap", "Stump", "Roughness", "Insane"]
+    a, b = np.full((3, 7, 2), -100.0), np.full((2, 7, 2), -100.0)
+    a[:, 0] = [[10.0, 10.0], [20.0, 20.0], [30.0, 30.0]]
+    b[:, 0] = [[40.0, 40.0], [-150.0, 250.0]]  # seed means 40 and 50; one episode of the ten > 230
+    _write_named_eval(runs / "shed", a, labels)
+    _write_named_eval(runs / "shed-r1", b, labels)
+    out = runs / "pooled"
+    assert compare.main([str(runs / "shed"), str(runs / "dr"), str(runs / "shed-r1"),
+                         "--labels", "SHED,DR,SHED", "--out", str(out)]) == 0
+    lines = (out / "results.md").read_text().splitlines()
+    # finals -100, -110, -120, -50, -70: mean -90, sd sqrt(3400 / 4); wall (120 + 30) s / 5 seeds
+    assert lines[2] == f"| SHED | lander | quick | 5 | -90.0 ± {math.sqrt(850 / 5):.1f} | 3k | 6k (2 ep.) | 30 s |"
+    assert lines[3].startswith("| DR | lander | quick | 2 |") and not lines[4].startswith("|")
+    assert ("Pooled rows, seeds numbered in this order: **SHED** = shed (root seed 0, 3 seeds), "
+            "shed-r1 (root seed 1, 2 seeds).") in lines
+    # the named levels pooled over the five seeds: BipedalWalker seed means 10..50 -> 30 ± sd/sqrt 5
+    named = next(x for x in lines if x.startswith("| SHED | 5 |"))
+    assert named.split(" | ")[2] == f"30.0 ± {math.sqrt(250 / 5):.1f} (.100)"
+    # CSV: seeds 0-2 from the first run, 3-4 from the second, in the order of the RUN_DIRs
+    rows = [r for r in csv.DictReader(open(out / "results.csv")) if r["method"] == "SHED"]
+    last = {int(r["seed"]): float(r["test_return"]) for r in rows if r["episode"] == "1" and r["step_in_episode"] == "2"}
+    assert last == pytest.approx({0: -100.0, 1: -110.0, 2: -120.0, 3: -50.0, 4: -70.0})
+    # what cannot be pooled: the same root seed, another experiment, a named evaluation on one side only
+    sd = compare.load_run
+    with pytest.raises(ValueError, match=r"root seeds \[0, 0\] must be known and distinct"):
+        compare.pool_runs([sd(runs / "shed"), sd(runs / "shed")], ["x", "x"])
+    _write_run(runs / "shed-t4", "shed", [-50.0, -70.0], episodes=2, T=4, wall=30.0, root_seed=2)
+    with pytest.raises(ValueError, match=r"experiments differ in \['loop', 'method_config'\]"):
+        compare.pool_runs([sd(runs / "shed"), sd(runs / "shed-t4")], ["x", "x"])
+    with pytest.raises(SystemExit):
+        compare.main([str(runs / "shed"), str(runs / "dr"), "--labels", "x,x", "--out", str(out)])
+    (runs / "shed-r1" / "final_eval_named.json").unlink()
+    with pytest.raises(ValueError, match="has no final_eval_named.json"):
+        compare.named_table(compare.pool_runs([sd(runs / "shed"), sd(runs / "shed-r1")], ["x", "x"]))
 
 
 def test_compare_rejects_a_directory_that_is_not_a_run(tmp_path):

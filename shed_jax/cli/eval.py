@@ -68,6 +68,19 @@ def cvar(x, alpha: float = CVAR_ALPHA) -> float:
     return float(x[:k].mean())
 
 
+def table_json(labels: list[str], table: dict) -> dict:
+    """``per_level`` (one record per label) and ``overall`` of a ``level_table``, as the JSON of
+    ``eval`` and ``run --final-eval`` holds them (NaN as null)."""
+    return {
+        "per_level": [
+            {"label": lab, "mean": _json_num(table["mean"][j]), "se": _json_num(table["se"][j]),
+             "solved_rate": _json_num(table["solved_rate"][j]), "cvar": _json_num(table["cvar"][j])}
+            for j, lab in enumerate(labels)
+        ],
+        "overall": {k: _json_num(v) for k, v in table["overall"].items()},
+    }
+
+
 def level_table(returns, threshold: float | None, alpha: float = CVAR_ALPHA) -> dict:
     """Per-level and overall statistics of ``returns [seeds, levels, episodes]``.
 
@@ -293,12 +306,7 @@ def evaluate_students(exp, env, student, student_state, num_seeds: int, resolved
         "solved_threshold": threshold,
         "cvar_alpha": CVAR_ALPHA,
         "returns": returns.tolist(),
-        "per_level": [
-            {"label": lab, "mean": _json_num(table["mean"][j]), "se": _json_num(table["se"][j]),
-             "solved_rate": _json_num(table["solved_rate"][j]), "cvar": _json_num(table["cvar"][j])}
-            for j, lab in enumerate(labels)
-        ],
-        "overall": {k: _json_num(v) for k, v in table["overall"].items()},
+        **table_json(labels, table),
     }
     return result, format_table(labels, table)
 
