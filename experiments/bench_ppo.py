@@ -35,6 +35,7 @@ import functools
 import json
 import os
 import pathlib
+import sys
 import time
 import traceback
 import warnings
@@ -116,7 +117,8 @@ def load_checkpoint(ckpt, meta_expected):
 
 
 def bench_student(env_name, total_steps, seeds, out, level_name=None, chunks=20, eval_episodes=16, seed=0,
-                  overrides=None, stop_at=None, log_path=None, ckpt=None, time_limit=None, eval_only=False):
+                  overrides=None, stop_at=None, log_path=None, ckpt=None, time_limit=None, eval_only=False,
+                  eval_every=None):
     """Train `seeds` vmapped students; ``stop_at``: stop after the first chunk at whose end the
     median over seeds of the training return (whole chunk) is >= stop_at.
     ``log_path``: one JSON line per chunk (env steps, per-seed return, elapsed seconds).
@@ -124,7 +126,11 @@ def bench_student(env_name, total_steps, seeds, out, level_name=None, chunks=20,
     finds a checkpoint there continues from it (with freshly reset env slots: episodes running at
     the save are cut, which is the only difference from an uninterrupted run).
     ``time_limit``: seconds; stop after the chunk after which another chunk would not fit.
-    ``eval_only``: restore the checkpoint and only evaluate it (curve from the saved metrics)."""
+    ``eval_only``: restore the checkpoint and only evaluate it (curve from the saved metrics).
+    ``eval_every``: env steps per seed; after each chunk that crosses a multiple of it, the
+    stochastic policy plays ``eval_episodes`` episodes per seed on the level (``evals`` in the
+    result, with the first env step at which the median over seeds, and each seed, reaches the
+    target)."""
     import envs
     from shed_jax import reporting
     from shed_jax.cli.ppo import resolve_level, smoothed, train_seeds
@@ -152,8 +158,17 @@ def bench_student(env_name, total_steps, seeds, out, level_name=None, chunks=20,
         print(f"resuming from {ckpt} after chunk {start_chunk} of {chunks}", flush=True)
 
     stop = {}
+    evals = []
+    levels = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[None], level)
+    evaluate = jax.jit(jax.vmap(lambda s, k: student.evaluate(s, k, levels, eval_episodes, None, False)))
 
     def on_chunk(c, states, m):
+        steps = (c + 1) * per_chunk * student.env_steps_per_update
+        if eval_every and steps // eval_every > c * per_chunk * student.env_steps_per_update // eval_every:
+            r = np.asarray(evaluate(states, jax.vmap(lambda k: jax.random.fold_in(k, 1000 + c))(keys)))[:, 0]
+            evals.append({"env_steps_per_seed": steps, "per_seed": r.mean(1).tolist()})
+            print(f"eval at {steps:,} steps: median {np.median(r.mean(1)):.1f}, per seed "
+                  f"{np.round(r.mean(1), 1).tolist()}", flush=True)
         # mean over the whole chunk of the training episodes that ended in it (NaN: none ended;
         # long episodes on a synchronised batch, e.g. the walker's 2000 steps, can skip a chunk)
         with np.errstate(invalid="ignore"), warnings.catch_warnings():
@@ -187,7 +202,6 @@ def bench_student(env_name, total_steps, seeds, out, level_name=None, chunks=20,
                 "env_steps_per_seed": timing["env_steps_per_seed"], "compile_s": timing["compile_s"],
                 "train_s": timing["train_s"], "env_steps_per_s": timing["env_steps_per_s"]}
 
-    levels = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[None], level)
     final = {}
     for det in (False, True):
         ev = jax.jit(jax.vmap(lambda s, k: student.evaluate(s, k, levels, eval_episodes, None, det)))
@@ -202,6 +216,8 @@ def bench_student(env_name, total_steps, seeds, out, level_name=None, chunks=20,
                           references={str(target): target})
     crossings = [first_crossing(x, c, target) for c in curve]
     stride = max(1, len(x) // 300)
+    eval_steps = np.array([e["env_steps_per_seed"] for e in evals])
+    eval_returns = np.array([e["per_seed"] for e in evals]).reshape(len(evals), seeds)  # [evals, seeds]
     return {
         "env": env_name, "level": level_name, "seeds": seeds,
         "config": {k: v for k, v in dataclasses.asdict(config).items() if k != "hparams"},
@@ -218,6 +234,9 @@ def bench_student(env_name, total_steps, seeds, out, level_name=None, chunks=20,
         "final_eval_deterministic": final["deterministic"].mean(1).tolist(),
         "final_eval_median_stochastic": float(np.median(final["stochastic"].mean(1))),
         "final_train_return": np.nanmean(curve[:, -10:], axis=1).tolist(),
+        "evals": evals,
+        "eval_median_reaches_target_at": first_crossing(eval_steps, np.median(eval_returns, 1), target) if evals else None,
+        "eval_seed_reaches_target_at": [first_crossing(eval_steps, eval_returns[:, i], target) for i in range(seeds)] if evals else None,
         "curve_env_steps": x[::stride].tolist(),
         "curve_median": median[::stride].tolist(),
         "curve_mean": np.nanmean(curve, axis=0)[::stride].tolist(),
@@ -364,6 +383,8 @@ def main(argv=None) -> int:
     p.add_argument("--walker-steps", type=int, default=1_000_000, help="per seed; keep a run under the 10-minute device limit")
     p.add_argument("--walker-seeds", type=int, default=4)
     p.add_argument("--walker-level", default="BipedalWalker")
+    p.add_argument("--eval-every", type=int, default=None,
+                   help="env steps per seed between evaluations of the stochastic policy (16 episodes per seed)")
     p.add_argument("--brax-seeds", type=int, default=3)
     p.add_argument("--brax-env", default="lander-continuous", help="a registered env with a Box action space")
     p.add_argument("--brax-level", default=None, help="a named level of --brax-env (default: its default level)")
@@ -385,7 +406,10 @@ def main(argv=None) -> int:
     overrides = parse_overrides(args.ppo)
     out = pathlib.Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    results = {"device": str(jax.devices()[0]), "jax": jax.__version__, "sections": {}}
+    results = {"device": jax.devices()[0].device_kind, "jax": jax.__version__,
+               "date": time.strftime("%Y-%m-%d", time.gmtime()),
+               "command": "python -m experiments.bench_ppo " + " ".join(argv if argv is not None else sys.argv[1:]),
+               "sections": {}}
 
     def save():
         (out / "results.json").write_text(json.dumps(results, indent=2, default=float))
@@ -396,14 +420,14 @@ def main(argv=None) -> int:
             if section == "walker":
                 r = bench_student("walker", args.walker_steps, args.walker_seeds, out, args.walker_level, args.chunks,
                                   overrides=overrides, stop_at=args.stop_at, log_path=args.log, ckpt=args.ckpt,
-                                  time_limit=args.time_limit, eval_only=args.eval_only)
+                                  time_limit=args.time_limit, eval_only=args.eval_only, eval_every=args.eval_every)
             elif section == "brax":
                 r = bench_brax(args.brax_env, args.total_steps, args.brax_seeds, results["sections"].get(args.brax_env),
                                args.brax_level, overrides, args.brax_seed0)
             else:
                 r = bench_student(section, args.total_steps, args.seeds, out, None, args.chunks,
                                   overrides=overrides, stop_at=args.stop_at, log_path=args.log, ckpt=args.ckpt,
-                                  time_limit=args.time_limit, eval_only=args.eval_only)
+                                  time_limit=args.time_limit, eval_only=args.eval_only, eval_every=args.eval_every)
         except Exception as err:  # record and go on with the other sections
             r = {"error": f"{type(err).__name__}: {err}", "traceback": traceback.format_exc()[-4000:]}
         r["section_wall_s"] = time.perf_counter() - t0

@@ -6,8 +6,8 @@
   envs with 8 episodes each, the official 10 test landers (10 episodes, 500 steps). SHED and h-MDP
   run N_ep = 50 teacher episodes (the student is re-initialised each episode; the test set runs in
   episodes 0, 10, 20, 30, 40 and 49); the baselines train
-  one student over the same T budget steps. Walker: C = 25 updates of 256 x 32 = 204,800 steps,
-  T = 50 (1e7 student steps), n = 4, E_eval = 4, N_ep = 20, test set B (10 ladder levels, 2000
+  one student over the same T budget steps. Walker: C = 3 updates of 1,024 x 64 = 196,608 steps,
+  T = 50 (9.83e6 student steps, the paper's 1e7 to 2 %), n = 4, E_eval = 4, N_ep = 20, test set B (10 ladder levels, 2000
   steps).
 
 ``build_experiment(env, method, preset, **overrides)`` returns an :class:`Experiment`; the CLI and
@@ -76,7 +76,7 @@ def build_experiment(env: str, method: str, preset: str, *, episodes: int | None
                 mcfg["num_levels"] = 5
         else:
             ppo = PPOConfig.for_env("walker")
-            mcfg = {"updates_per_step": 25}
+            mcfg = {"updates_per_step": 3}  # 3 x 1,024 x 64 = 196,608 steps; x 50 = 9.83e6
             T, n_ep = 50, (20 if episodic else 1)
             test = dict(test_episodes=10, test_max_steps=2000)
             test_set = "walker-test-b"

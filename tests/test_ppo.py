@@ -400,8 +400,9 @@ def test_config_and_hparam_validation():
     assert (lander.num_envs, lander.num_steps, lander.update_epochs, lander.num_minibatches) == (40, 128, 4, 8)
     assert (lander.hparams.gamma, lander.hparams.gae_lambda, lander.hparams.ent_coef) == (0.999, 0.98, 0.01)
     walker = PPOConfig.for_env("walker")
-    assert (walker.num_envs, walker.num_steps, walker.update_epochs, walker.num_minibatches) == (256, 32, 5, 8)
-    assert (walker.hparams.gamma, walker.hparams.gae_lambda, walker.hparams.ent_coef) == (0.99, 0.9, 1e-3)
+    assert (walker.num_envs, walker.num_steps, walker.update_epochs, walker.num_minibatches) == (1024, 64, 10, 64)
+    assert (walker.hparams.gamma, walker.hparams.gae_lambda, walker.hparams.ent_coef) == (0.999, 0.95, 0.0)
+    assert walker.normalize_observations and walker.normalize_returns
     cont = PPOConfig.for_env("lander-continuous")  # the discrete preset, tuned for a Gaussian policy
     assert (cont.num_envs, cont.num_steps, cont.num_minibatches, cont.init_log_std, cont.hparams.ent_coef) == (40, 128, 32, -0.5, 0.0)
     assert cont.hparams.replace(ent_coef=0.01) == lander.hparams

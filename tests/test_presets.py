@@ -28,7 +28,7 @@ def test_paper_lander_budget_matches_spec():
 
 def test_walker_paper_budget_is_1e7_steps():
     e = build_experiment("walker", "accel", "paper")
-    assert e.env_steps_per_budget_step * e.loop.steps_per_episode == 256 * 32 * 25 * 50  # 1.02e7
+    assert e.env_steps_per_budget_step * e.loop.steps_per_episode == 1024 * 64 * 3 * 50  # 9.83e6
     shed = build_experiment("walker", "shed", "paper")  # SPEC 6.3: n = 4, E_eval = 4, N_ep = 20
     assert shed.method_config["num_levels"] == 4 and shed.method_config["num_eval_episodes"] == 4
     assert shed.loop.num_episodes == 20 and build_experiment("lander", "shed", "paper").method_config.get(
