@@ -2,7 +2,18 @@
 PYTHON ?= python3
 VENV   := .venv
 BIN    := $(VENV)/bin
-STAMP  := $(VENV)/.installed-stamp
+# JAX build: auto (nvidia-smi picks cpu, cuda12 or cuda13; shed_jax/_backend_select.py says why) or
+# one of those three. The stamp names the build, so a different choice reinstalls.
+JAX_BACKEND ?= auto
+ifneq ($(MAKECMDGOALS),clean)
+BACKEND := $(shell $(PYTHON) shed_jax/_backend_select.py --name "$(JAX_BACKEND)" 2>&1)
+ifneq ($(words $(BACKEND)) $(filter $(BACKEND),cpu cuda12 cuda13),1 $(BACKEND))
+$(error $(or $(BACKEND),$(PYTHON) shed_jax/_backend_select.py printed nothing))
+endif
+endif
+comma  := ,
+STAMP  := $(VENV)/.installed-$(BACKEND)
+EXTRAS := test$(if $(filter cuda%,$(BACKEND)),$(comma)$(BACKEND),)
 
 ENV    ?= lander
 METHOD ?= shed
@@ -15,9 +26,13 @@ ARGS   ?=
 
 $(STAMP): pyproject.toml
 	@$(PYTHON) -c 'import sys; assert sys.version_info >= (3, 11), "shed_jax needs Python >= 3.11, found " + sys.version.split()[0]'
+	@$(PYTHON) shed_jax/_backend_select.py "$(JAX_BACKEND)"
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	@rm -f $(VENV)/.installed-*
 	$(BIN)/python -m pip install -q --upgrade pip
-	$(BIN)/python -m pip install -q -e ".[test]"
+	@stale="$$($(BIN)/python shed_jax/_backend_select.py --stale $(BACKEND))"; \
+	if [ -n "$$stale" ]; then echo "removing JAX plugins of another build: $$stale"; $(BIN)/python -m pip uninstall -q -y $$stale; fi
+	$(BIN)/python -m pip install -q -e ".[$(EXTRAS)]"
 	@touch $(STAMP)
 
 setup: $(STAMP)

@@ -40,6 +40,9 @@ def main(argv=None) -> int:
     if args.command is None:
         parser.print_help()
         return 2
+    from shed_jax.runtime import start_up
+
+    start_up()  # compilation cache, backend line, GPU-unused warning (shed_jax/runtime.py)
     return int(available[args.command].main(args) or 0)
 
 

@@ -1,0 +1,92 @@
+"""What every ``python -m shed_jax`` command does before its own work (``start_up``).
+
+* Turns on JAX's persistent compilation cache in ``cache_root()/jax`` and caches every compile,
+  however short or small (CPU programs too), so a second run of the same program skips XLA's
+  compile. A cache the caller configured already (``JAX_COMPILATION_CACHE_DIR``, or
+  ``jax.config`` as tests/conftest.py sets it) is left as it is; ``JAX_ENABLE_COMPILATION_CACHE=false``
+  turns caching off.
+* Prints one line naming the JAX version, backend and devices, and warns in one line when
+  ``nvidia-smi`` sees an NVIDIA GPU but JAX runs on the CPU, naming the ``make setup`` that fixes it.
+"""
+from __future__ import annotations
+
+import os
+import pathlib
+import sys
+from collections import Counter
+
+CACHE_VARIABLE = "SHED_JAX_CACHE"
+
+
+def cache_root() -> pathlib.Path:
+    """``$SHED_JAX_CACHE``, else ``.cache/`` in the source checkout, else ``~/.cache/shed_jax``."""
+    if os.environ.get(CACHE_VARIABLE):
+        return pathlib.Path(os.environ[CACHE_VARIABLE]).expanduser()
+    repo = pathlib.Path(__file__).resolve().parents[1]
+    if (repo / "pyproject.toml").is_file():  # an editable install: the checkout the Makefile made
+        return repo / ".cache"
+    return pathlib.Path.home() / ".cache" / "shed_jax"
+
+
+def enable_compilation_cache() -> str | None:
+    """Point JAX's persistent cache at ``cache_root()/jax`` unless one is set; return the folder in use."""
+    import jax
+
+    if not jax.config.jax_enable_compilation_cache:
+        return None
+    current = jax.config.jax_compilation_cache_dir
+    if current:
+        return current
+    folder = cache_root() / "jax"
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        print(f"[shed_jax] no compilation cache: cannot create {folder} ({err.strerror})", file=sys.stderr)
+        return None
+    jax.config.update("jax_compilation_cache_dir", str(folder))
+    # JAX's defaults store only compiles of >= 1 s; an explicit environment setting still wins.
+    if "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS" not in os.environ:
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    if "JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES" not in os.environ:
+        jax.config.update("jax_persistent_cache_min_entry_size_bytes", -1)  # -1: no size floor
+    return str(folder)
+
+
+def describe_devices(devices) -> str:
+    """``'2 x NVIDIA H200'``-style summary, one group per device kind, in first-seen order."""
+    kinds = Counter(getattr(d, "device_kind", d.platform) for d in devices)
+    return ", ".join(f"{n} x {kind}" for kind, n in kinds.items())
+
+
+def gpu_unused_warning(backend: str, platforms: str, probe=None) -> str | None:
+    """The one-line warning when ``nvidia-smi`` sees a usable GPU but JAX runs on ``backend`` 'cpu'.
+
+    ``platforms`` is ``JAX_PLATFORMS``: a user who asked for the CPU only gets no warning.
+    """
+    from shed_jax import _backend_select as select
+
+    wanted = {p.strip() for p in platforms.split(",") if p.strip()}
+    if backend != "cpu" or (wanted and not wanted & {"cuda", "gpu"}):
+        return None
+    cuda, driver, why = (probe or select.probe_gpu)()
+    fix = select.backend_for(cuda)
+    if fix == "cpu":
+        return None
+    if select.PLUGINS[fix][0] in select.installed_plugins():
+        return (f"[shed_jax] warning: {why}, but JAX's {fix} plugin did not start and JAX runs on the CPU "
+                f"(JAX's own warning above says why)")
+    return (f"[shed_jax] warning: {why}, but JAX has no CUDA build and runs on the CPU; "
+            f"install it with: make setup {select.VARIABLE}={fix}")
+
+
+def start_up() -> None:
+    """Enable the compilation cache, then print the backend line (and the GPU warning if due)."""
+    import jax
+
+    cache = enable_compilation_cache()
+    backend = jax.default_backend()
+    print(f"[shed_jax] jax {jax.__version__}, backend {backend}: {describe_devices(jax.devices())}; "
+          f"compilation cache {cache or 'off'}", flush=True)
+    warning = gpu_unused_warning(backend, os.environ.get("JAX_PLATFORMS", ""))
+    if warning:
+        print(warning, file=sys.stderr, flush=True)

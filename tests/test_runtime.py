@@ -1,0 +1,75 @@
+"""shed_jax/runtime.py (the CLI's start-up: compilation cache, backend line, GPU-unused warning) and the
+walker's quiet MJX import."""
+import os
+import pathlib
+import subprocess
+import sys
+from types import SimpleNamespace
+
+from shed_jax import _backend_select as select
+from shed_jax import runtime
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+
+
+def _python(code, **env):
+    base = {k: v for k, v in os.environ.items() if not k.startswith(("JAX_COMPILATION_CACHE", "JAX_PERSISTENT", "SHED_JAX"))}
+    return subprocess.run([sys.executable, "-c", code], cwd=ROOT, env={**base, "PYTHONPATH": str(ROOT), **env},
+                          capture_output=True, text=True, timeout=300)
+
+
+def test_describe_devices_groups_by_kind():
+    gpus = [SimpleNamespace(platform="gpu", device_kind="NVIDIA H200") for _ in range(2)]
+    assert runtime.describe_devices(gpus) == "2 x NVIDIA H200"
+    assert runtime.describe_devices([SimpleNamespace(platform="cpu", device_kind="cpu")]) == "1 x cpu"
+    mixed = [SimpleNamespace(platform="gpu", device_kind=k) for k in ("A", "B", "A")]
+    assert runtime.describe_devices(mixed) == "2 x A, 1 x B"
+
+
+def test_gpu_unused_warning(monkeypatch):
+    def probe(cuda):
+        return lambda: (cuda, "570.124.06", "nvidia-smi: driver 570.124.06, CUDA " + ".".join(map(str, cuda or ())))
+
+    monkeypatch.setattr(select, "installed_plugins", lambda: set())
+    assert runtime.gpu_unused_warning("cpu", "", probe((12, 8))) == (
+        "[shed_jax] warning: nvidia-smi: driver 570.124.06, CUDA 12.8, but JAX has no CUDA build and runs on "
+        "the CPU; install it with: make setup JAX_BACKEND=cuda12")
+    assert runtime.gpu_unused_warning("cpu", "cuda,cpu", probe((13, 0))).endswith("make setup JAX_BACKEND=cuda13")
+    assert runtime.gpu_unused_warning("gpu", "", probe((12, 8))) is None  # JAX found the GPU
+    assert runtime.gpu_unused_warning("cpu", "cpu", probe((12, 8))) is None  # the user asked for the CPU
+    assert runtime.gpu_unused_warning("cpu", "", probe(None)) is None  # no GPU
+    assert runtime.gpu_unused_warning("cpu", "", probe((11, 4))) is None  # too old for any CUDA build
+
+    monkeypatch.setattr(select, "installed_plugins", lambda: {"jax-cuda12-plugin", "jax-cuda12-pjrt"})
+    assert "JAX's cuda12 plugin did not start" in runtime.gpu_unused_warning("cpu", "", probe((12, 8)))
+
+
+def test_start_up_caches_even_short_cpu_compiles(tmp_path):
+    """A fresh process: the backend line names the cache folder, and a tiny jit (far under JAX's 1 s default
+    floor) is written there."""
+    code = ("from shed_jax.runtime import start_up; start_up()\n"
+            "import jax, jax.numpy as jnp\n"
+            "print(float(jax.jit(lambda x: (x * 2 + 1).sum())(jnp.arange(3.0))))\n")
+    proc = _python(code, SHED_JAX_CACHE=str(tmp_path), JAX_PLATFORMS="cpu")
+    assert proc.returncode == 0, proc.stderr
+    line, value = proc.stdout.splitlines()
+    assert line.startswith("[shed_jax] jax ") and ", backend cpu: 1 x cpu;" in line
+    assert line.endswith(f"; compilation cache {tmp_path / 'jax'}")
+    assert value == "9.0"
+    assert "warning" not in proc.stderr  # JAX_PLATFORMS=cpu: no GPU hint
+    assert [p for p in (tmp_path / "jax").iterdir() if p.name.startswith("jit_")]  # the entry of the jit
+
+    off = _python(code, SHED_JAX_CACHE=str(tmp_path / "off"), JAX_PLATFORMS="cpu", JAX_ENABLE_COMPILATION_CACHE="false")
+    assert off.stdout.splitlines()[0].endswith("; compilation cache off") and not (tmp_path / "off").exists()
+
+
+def test_walker_import_drops_only_the_warp_missing_lines():
+    from envs.walker import mjx_import
+
+    proc = _python("import envs.walker; print('ok')", JAX_PLATFORMS="cpu")
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout == "ok\n" and "warp" not in proc.stderr.lower()
+    drop = mjx_import._WARP_MISSING.fullmatch
+    assert drop("Failed to import warp: No module named 'warp'")
+    assert drop("Failed to import mujoco_warp: No module named 'warp'")
+    assert not drop("Failed to import warp: CUDA driver version is insufficient")  # a broken Warp still shows
