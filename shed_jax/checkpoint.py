@@ -137,6 +137,46 @@ def brief(err: BaseException, limit: int = 300) -> str:
     return text if len(text) <= limit else text[: limit - 1] + "…"
 
 
+def _is_closed_loop_callback(unraisable) -> bool:
+    exc = unraisable.exc_value
+    return isinstance(exc, RuntimeError) and str(exc) == "Event loop is closed"
+
+
+class _AbandonedReadFilter:
+    """Drops asyncio's "Task exception was never retrieved" records of TensorStore reads."""
+
+    def filter(self, record) -> bool:
+        exc = record.exc_info[1] if record.exc_info else None
+        exc = exc or (record.args.get("exception") if isinstance(record.args, dict) else None)
+        text = f"{record.getMessage()} {exc}"
+        return not ("exception was never retrieved" in text and "tensorstore_spec" in text)
+
+
+def quiet_closed_loop_callbacks() -> None:
+    """Silence the late echoes of a failed orbax read (the checkpoint error itself says what failed).
+
+    When one array of a restore cannot be read, orbax returns the error and closes its event loop
+    while TensorStore still completes the other reads: each completion posts to the closed loop
+    (Python prints the RuntimeError as unraisable) and the abandoned tasks' errors are logged by
+    asyncio when collected, dozens of tracebacks in all, nothing lost. Installed once, after a
+    failed read; every other unraisable error goes to the previous hook, other records through.
+    """
+    import logging
+    import sys
+
+    previous = sys.unraisablehook
+    if getattr(previous, "_shed_jax_quiet", False):
+        return
+
+    def hook(unraisable):
+        if not _is_closed_loop_callback(unraisable):
+            previous(unraisable)
+
+    hook._shed_jax_quiet = True
+    sys.unraisablehook = hook
+    logging.getLogger("asyncio").addFilter(_AbandonedReadFilter())
+
+
 def structure_digest(leaves: dict[str, Any]) -> str:
     """SHA-256 over ``{dotted name: array-like}`` names, dtypes and shapes (no values)."""
     h = hashlib.sha256()
@@ -321,6 +361,7 @@ class RunCheckpointer:
         try:
             meta = self.manager.restore(step, args=self._ocp.args.Composite(meta=self._ocp.args.JsonRestore())).meta
         except Exception as err:  # noqa: BLE001 - any failure to read is a damaged checkpoint
+            quiet_closed_loop_callbacks()
             raise CheckpointCorruptError(f"checkpoint {self.directory / str(step)} is damaged: cannot read its metadata "
                                          f"({brief(err)})") from err
         if not isinstance(meta, dict) or meta.get("format") != FORMAT or meta.get("step") != step:
@@ -341,6 +382,7 @@ class RunCheckpointer:
         try:
             out = self.manager.restore(step, args=self._ocp.args.Composite(history=self._ocp.args.StandardRestore()))
         except Exception as err:  # noqa: BLE001
+            quiet_closed_loop_callbacks()
             raise CheckpointCorruptError(f"checkpoint {where} is damaged: cannot read its metrics history ({brief(err)})") from err
         return _checked_history(out.history, meta, where)
 
@@ -408,6 +450,7 @@ class RunCheckpointer:
             saved_meta = self.manager.item_metadata(step)
             saved_leaves = _metadata_leaves(saved_meta["state"])
         except Exception as err:  # noqa: BLE001
+            quiet_closed_loop_callbacks()
             raise CheckpointCorruptError(f"checkpoint {where} is damaged: cannot read the array metadata of its state "
                                          f"({brief(err)})") from err
         recorded = meta.get("state_structure_sha256")  # absent in checkpoints written before it existed
@@ -439,6 +482,7 @@ class RunCheckpointer:
         try:
             out = self.manager.restore(step, args=ocp.args.Composite(**items))
         except Exception as err:  # noqa: BLE001
+            quiet_closed_loop_callbacks()
             raise CheckpointCorruptError(f"checkpoint {where} is damaged: cannot read its arrays ({brief(err)})") from err
         # back through the host: orbax's arrays are committed to a device, and a jitted call on
         # committed arguments is a different executable (and persistent-cache entry) than on fresh ones
