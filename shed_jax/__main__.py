@@ -47,7 +47,10 @@ def main(argv=None) -> int:
         # SUPPRESS: the subcommand's default must not overwrite a --debug given before it
         p.add_argument("--debug", action="store_true", default=argparse.SUPPRESS, help=DEBUG_HELP)
         available[name] = module
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as err:  # --help (0) or a usage error argparse has printed as one line (2)
+        return err.code if isinstance(err.code, int) else errors.EXIT_USAGE
     if args.command is None:
         parser.print_help()
         return 2
