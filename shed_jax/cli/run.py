@@ -580,8 +580,8 @@ def _clear_run(out: pathlib.Path) -> list[str]:
     removed = []
     for path in sorted(out.iterdir()):
         if path.name in RUN_FILES or path.name.startswith("metrics.jsonl.bak-"):
-            shutil.rmtree(path) if path.is_dir() else path.unlink()
             removed.append(path.name + ("/" if path.is_dir() else ""))
+            shutil.rmtree(path) if path.is_dir() else path.unlink()
     return removed
 
 
