@@ -1042,15 +1042,18 @@ def _train_and_report(args, plan: _Plan, s: dict, stop) -> int:
         return code
 
     wall = previous_wall + time.time() - t0
-    stage = "writing summary.json and the plots"
+    stage = "writing the plots"
     try:
-        print(f"[shed_jax] training done ({done}/{total} budget steps); writing summary.json and the plots...", flush=True)
+        print(f"[shed_jax] training done ({done}/{total} budget steps); writing the plots and summary.json...", flush=True)
         summary = summarize(exp, hist, wall, num_seeds)
-        (out / "summary.json").write_text(json.dumps(summary, indent=2))
         make_plots(exp, env, hist, out)
         for resolved in s["final_sets"]:
             stage = f"writing the final evaluation on {resolved[2]!r}"
             final_eval(exp, env, student, state.student, num_seeds, resolved, out, done, args.final_eval_episodes)
+        # written after the plots and evaluations: a run with summary.json is finished (--resume leaves
+        # it alone), one without it gets them all again from --resume
+        stage = "writing summary.json"
+        (out / "summary.json").write_text(json.dumps(summary, indent=2))
         if not args.no_gif:
             stage = "writing final_student.gif"
             _gif(env, student, state, tests, out)
