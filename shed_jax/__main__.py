@@ -64,6 +64,11 @@ def main(argv=None) -> int:
             raise
         errors.report(err, args)
         return errors.EXIT_USAGE
+    except KeyboardInterrupt:  # Ctrl-C where a command does not handle it itself
+        if errors.debug_enabled(args):
+            raise
+        print("\n[shed_jax] interrupted (SIGINT)", file=sys.stderr)
+        return 130
 
 
 def _exit(code: int) -> None:

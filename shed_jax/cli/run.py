@@ -591,6 +591,7 @@ def _plan_resume(args, backend: str) -> _Plan:
                                      check_config, complete_steps)
 
     out = pathlib.Path(args.resume)
+    from_step = getattr(args, "from_step", None)
     if args.out is not None and pathlib.Path(args.out).resolve() != out.resolve():
         raise UsageError(f"--resume continues the run in its own directory {out}; drop --out {args.out}")
     if not out.is_dir():
@@ -602,11 +603,11 @@ def _plan_resume(args, backend: str) -> _Plan:
         raise CheckpointNotFoundError(
             f"{out} holds no complete checkpoint: the run stopped before its first one was saved, or ran with "
             f"--no-checkpoint; start it over with: python -m shed_jax run --out {out} --restart (and its flags)")
-    if args.from_step is not None:
-        if args.from_step not in complete:
-            raise CheckpointNotFoundError(f"--from-step {args.from_step}: {ck_dir} has no complete checkpoint "
-                                          f"{args.from_step}; complete: {', '.join(map(str, complete)) or 'none'}")
-        step = args.from_step
+    if from_step is not None:
+        if from_step not in complete:
+            raise CheckpointNotFoundError(f"--from-step {from_step}: {ck_dir} has no complete checkpoint "
+                                          f"{from_step}; complete: {', '.join(map(str, complete)) or 'none'}")
+        step = from_step
     else:
         step = max(complete + on_disk)
     damaged = None
@@ -630,7 +631,7 @@ def _plan_resume(args, backend: str) -> _Plan:
     total = exp.loop.total_steps
     if step > total:
         raise CheckpointNotFoundError(f"checkpoint step {step} is beyond the run's {total} budget steps")
-    finished = damaged is None and args.from_step is None and step == total and (out / "summary.json").exists()
+    finished = damaged is None and from_step is None and step == total and (out / "summary.json").exists()
     return _Plan(out, exp, num_seeds, root_seed, chunk, config, resume_step=step, complete=tuple(complete),
                  damaged=damaged, newer=tuple(s for s in on_disk if s > step), finished=finished)
 
