@@ -2,12 +2,17 @@
 
 Each command lives in ``shed_jax/cli/<command>.py`` and defines ``add_arguments(parser)`` and
 ``main(args) -> int``; they are imported only when used, so ``--help`` stays fast.
+
+User errors are one line on stderr with exit code 2, bugs keep their traceback; ``--debug`` or
+``SHED_JAX_DEBUG=1`` shows tracebacks for everything (shed_jax/cli/errors.py).
 """
 from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
+import threading
 
 from shed_jax.xla_cpu import apply_cpu_guard
 
@@ -20,10 +25,14 @@ COMMANDS = {
     "eval": "evaluate a saved student on a level set",
     "sweep": "vmapped sweep over seeds x hyperparameters x methods",
 }
+DEBUG_HELP = "print the traceback of every error, user errors included (or set SHED_JAX_DEBUG=1)"
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m shed_jax", description=__doc__.splitlines()[0])
+    from shed_jax.cli import errors
+
+    parser = errors.Parser(prog="python -m shed_jax", description=__doc__.splitlines()[0])
+    parser.add_argument("--debug", action="store_true", help=DEBUG_HELP)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     available = {}
     for name, help_text in COMMANDS.items():
@@ -35,16 +44,45 @@ def main(argv=None) -> int:
             continue
         p = sub.add_parser(name, help=help_text, description=help_text)
         module.add_arguments(p)
+        # SUPPRESS: the subcommand's default must not overwrite a --debug given before it
+        p.add_argument("--debug", action="store_true", default=argparse.SUPPRESS, help=DEBUG_HELP)
         available[name] = module
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as err:  # --help (0) or a usage error argparse has printed as one line (2)
+        return err.code if isinstance(err.code, int) else errors.EXIT_USAGE
     if args.command is None:
         parser.print_help()
         return 2
     from shed_jax.runtime import start_up
 
     start_up()  # compilation cache, backend line, GPU-unused warning (shed_jax/runtime.py)
-    return int(available[args.command].main(args) or 0)
+    try:
+        return int(available[args.command].main(args) or 0)
+    except errors.UsageError as err:
+        errors.report(err, args)
+        return int(err.code)
+    except SystemExit as err:  # a command's SystemExit("message"): a user error as well
+        if err.code is None or isinstance(err.code, int):
+            raise
+        errors.report(err, args)
+        return errors.EXIT_USAGE
+    except KeyboardInterrupt:  # Ctrl-C where a command does not handle it itself
+        if errors.debug_enabled(args):
+            raise
+        print("\n[shed_jax] interrupted (SIGINT)", file=sys.stderr)
+        return 130
+
+
+def _exit(code: int) -> None:
+    """Exit; at once (``os._exit``) while a compile of ``run`` still runs in its worker thread, which a
+    normal interpreter shutdown would race (``shed_jax/cli/run.py``, start-up interruptions)."""
+    if any(t.name.startswith("shed_jax-") and t.is_alive() for t in threading.enumerate()):
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    sys.exit(code)
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    _exit(main())

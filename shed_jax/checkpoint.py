@@ -19,9 +19,14 @@ read, and the digests after, so a restore is either bitwise exact or a :class:`C
 that says what is wrong, never a silent restart:
 
 * :class:`CheckpointNotFoundError`: no run directory / no complete checkpoint in it;
-* :class:`CheckpointCorruptError`: unreadable files, wrong digest, a state of another structure, an
-  unfinished newer step directory;
+* :class:`CheckpointCorruptError`: a damaged checkpoint (unreadable or missing files, a wrong digest,
+  array metadata that is not what was saved, an unfinished newer step directory) or a state of
+  another structure;
 * :class:`ConfigMismatchError`: the checkpoint belongs to another configuration (names the keys).
+
+Messages are one line (library errors quoted inside them are shortened: TensorStore's specs run to
+kilobytes); the full error stays in ``__cause__``. ``verify`` says whether one checkpoint is intact,
+so a caller can list the intact ones when the newest is damaged.
 
 ``find_nonfinite`` is the guard the run CLI applies after every chunk, before saving.
 """
@@ -107,22 +112,78 @@ def config_differences(saved: dict, current: dict, keys: Iterable[str] = COMPARE
     return diffs
 
 
+def describe_differences(diffs: list[tuple[str, Any, Any]], limit: int = 20) -> str:
+    """``'seeds: saved 2, now 3; root_seed: saved 0, now 1'`` (one line; at most ``limit`` keys)."""
+    text = "; ".join(f"{k}: saved {a!r}, now {b!r}" for k, a, b in diffs[:limit])
+    return text + (f"; ... and {len(diffs) - limit} more" if len(diffs) > limit else "")
+
+
 def check_config(saved: dict, current: dict, keys: Iterable[str] = COMPARED_KEYS, where: str = "checkpoint") -> None:
-    """Raise :class:`ConfigMismatchError` naming every differing key."""
+    """Raise :class:`ConfigMismatchError` naming every differing key (one line)."""
     diffs = config_differences(saved, current, keys)
     if diffs:
-        lines = "\n".join(f"  {k}: saved {a!r}, now {b!r}" for k, a, b in diffs[:20])
-        more = f"\n  ... and {len(diffs) - 20} more" if len(diffs) > 20 else ""
-        raise ConfigMismatchError(
-            f"the {where} was written with another configuration; differing key(s): "
-            f"{', '.join(k for k, _, _ in diffs)}\n{lines}{more}",
-            diffs,
-        )
+        raise ConfigMismatchError(f"the {where} was written with another configuration: {describe_differences(diffs)}", diffs)
 
 
 # --------------------------------------------------------------------------------------------
 # tree helpers
 # --------------------------------------------------------------------------------------------
+
+
+def brief(err: BaseException, limit: int = 300) -> str:
+    """``'Type: message'`` on one line, without TensorStore's spec dump, at most ``limit`` characters."""
+    text = " ".join(str(err).split("[tensorstore_spec=")[0].split())
+    text = f"{type(err).__name__}: {text}" if text else type(err).__name__
+    return text if len(text) <= limit else text[: limit - 1] + "…"
+
+
+def _is_closed_loop_callback(unraisable) -> bool:
+    exc = unraisable.exc_value
+    return isinstance(exc, RuntimeError) and str(exc) == "Event loop is closed"
+
+
+class _AbandonedReadFilter:
+    """Drops asyncio's "Task exception was never retrieved" records of TensorStore reads."""
+
+    def filter(self, record) -> bool:
+        exc = record.exc_info[1] if record.exc_info else None
+        exc = exc or (record.args.get("exception") if isinstance(record.args, dict) else None)
+        text = f"{record.getMessage()} {exc}"
+        return not ("exception was never retrieved" in text and "tensorstore_spec" in text)
+
+
+def quiet_closed_loop_callbacks() -> None:
+    """Silence the late echoes of a failed orbax read (the checkpoint error itself says what failed).
+
+    When one array of a restore cannot be read, orbax returns the error and closes its event loop
+    while TensorStore still completes the other reads: each completion posts to the closed loop
+    (Python prints the RuntimeError as unraisable) and the abandoned tasks' errors are logged by
+    asyncio when collected, dozens of tracebacks in all, nothing lost. Installed once, after a
+    failed read; every other unraisable error goes to the previous hook, other records through.
+    """
+    import logging
+    import sys
+
+    previous = sys.unraisablehook
+    if getattr(previous, "_shed_jax_quiet", False):
+        return
+
+    def hook(unraisable):
+        if not _is_closed_loop_callback(unraisable):
+            previous(unraisable)
+
+    hook._shed_jax_quiet = True
+    sys.unraisablehook = hook
+    logging.getLogger("asyncio").addFilter(_AbandonedReadFilter())
+
+
+def structure_digest(leaves: dict[str, Any]) -> str:
+    """SHA-256 over ``{dotted name: array-like}`` names, dtypes and shapes (no values)."""
+    h = hashlib.sha256()
+    for name in sorted(leaves):
+        x = leaves[name]
+        h.update(f"{name}|{np.dtype(x.dtype).str}|{tuple(x.shape)}\n".encode())
+    return h.hexdigest()
 
 
 def _key_name(k) -> str:
@@ -267,20 +328,32 @@ class RunCheckpointer:
             if unlisted:
                 raise CheckpointCorruptError(
                     f"{self.directory}: step director{'y' if len(unlisted) == 1 else 'ies'} {unlisted} "
-                    f"{'is' if len(unlisted) == 1 else 'are'} not a complete checkpoint"
+                    f"{'is' if len(unlisted) == 1 else 'are'} damaged (not a complete checkpoint)"
                 )
             raise CheckpointNotFoundError(f"no complete checkpoint in {self.directory}")
         if step is None:
             newer = [s for s in unlisted if s > steps[-1]]
             if newer:
                 raise CheckpointCorruptError(
-                    f"{self.directory}: the newest step directory {newer[-1]} is not a complete checkpoint "
-                    f"(the last complete one is step {steps[-1]}); move {self.directory / str(newer[-1])} away to use it"
+                    f"checkpoint {self.directory / str(newer[-1])} is damaged (not a complete checkpoint; "
+                    f"the last complete one is step {steps[-1]})"
                 )
             return steps[-1]
         if step not in steps:
             raise CheckpointNotFoundError(f"no checkpoint for step {step} in {self.directory}; available: {steps}")
         return step
+
+    def step_directories(self) -> list[int]:
+        """Steps with a ``<step>/`` directory, complete or not (interrupted saves' temporary ones excluded)."""
+        return sorted(int(p.name) for p in self.directory.iterdir() if p.is_dir() and p.name.isdigit())
+
+    def verify(self, target, step: int) -> str | None:
+        """None if checkpoint ``step`` restores exactly into ``target`` (a full read), else why not (one line)."""
+        try:
+            self.restore(target, step=step)
+        except CheckpointError as err:
+            return str(err)
+        return None
 
     def read_meta(self, step: int | None = None) -> dict:
         """The JSON item of a checkpoint (step, config, digests, extras) without reading any array."""
@@ -288,11 +361,13 @@ class RunCheckpointer:
         try:
             meta = self.manager.restore(step, args=self._ocp.args.Composite(meta=self._ocp.args.JsonRestore())).meta
         except Exception as err:  # noqa: BLE001 - any failure to read is a damaged checkpoint
-            raise CheckpointCorruptError(f"cannot read the metadata of checkpoint {self.directory / str(step)}: {err}") from err
+            quiet_closed_loop_callbacks()
+            raise CheckpointCorruptError(f"checkpoint {self.directory / str(step)} is damaged: cannot read its metadata "
+                                         f"({brief(err)})") from err
         if not isinstance(meta, dict) or meta.get("format") != FORMAT or meta.get("step") != step:
             raise CheckpointCorruptError(
-                f"checkpoint {self.directory / str(step)} has unexpected metadata (format {FORMAT} and step {step} expected): "
-                f"{str(meta)[:200]}"
+                f"checkpoint {self.directory / str(step)} is damaged: unexpected metadata (format {FORMAT} and step {step} "
+                f"expected): {' '.join(str(meta)[:200].split())}"
             )
         return meta
 
@@ -307,7 +382,8 @@ class RunCheckpointer:
         try:
             out = self.manager.restore(step, args=self._ocp.args.Composite(history=self._ocp.args.StandardRestore()))
         except Exception as err:  # noqa: BLE001
-            raise CheckpointCorruptError(f"cannot read the metrics history of checkpoint {where}: {type(err).__name__}: {err}") from err
+            quiet_closed_loop_callbacks()
+            raise CheckpointCorruptError(f"checkpoint {where} is damaged: cannot read its metrics history ({brief(err)})") from err
         return _checked_history(out.history, meta, where)
 
     # ---------------------------------------------------------------- save
@@ -325,6 +401,8 @@ class RunCheckpointer:
             "step": step,
             "config": jsonable(config),
             "state_sha256": tree_digest(jax.device_get(storable)),
+            # names, dtypes and shapes: tells a damaged array metadata from a state of another structure
+            "state_structure_sha256": structure_digest(_leaf_dict(storable)),
             "history_sha256": tree_digest(dict(sorted(history.items()))),
             "extra": jsonable(extra or {}),
         }
@@ -372,8 +450,16 @@ class RunCheckpointer:
             saved_meta = self.manager.item_metadata(step)
             saved_leaves = _metadata_leaves(saved_meta["state"])
         except Exception as err:  # noqa: BLE001
-            raise CheckpointCorruptError(f"cannot read the array metadata of checkpoint {where}: {err}") from err
-        target_leaves = {path_name(p): x for p, x in jax.tree_util.tree_flatten_with_path(storable_target)[0]}
+            quiet_closed_loop_callbacks()
+            raise CheckpointCorruptError(f"checkpoint {where} is damaged: cannot read the array metadata of its state "
+                                         f"({brief(err)})") from err
+        recorded = meta.get("state_structure_sha256")  # absent in checkpoints written before it existed
+        if not saved_leaves or (recorded is not None and structure_digest(saved_leaves) != recorded):
+            raise CheckpointCorruptError(
+                f"checkpoint {where} is damaged: the array metadata of its state "
+                f"{'is missing or unreadable' if not saved_leaves else 'is not what was saved'} (state/_METADATA)"
+            )
+        target_leaves = _leaf_dict(storable_target)
         problems = []
         for name in sorted(set(saved_leaves) | set(target_leaves)):
             if name not in saved_leaves:
@@ -385,9 +471,10 @@ class RunCheckpointer:
                 if tuple(s.shape) != tuple(t.shape) or np.dtype(s.dtype) != np.dtype(t.dtype):
                     problems.append(f"{name}: saved {np.dtype(s.dtype).name}{list(s.shape)}, expected {np.dtype(t.dtype).name}{list(t.shape)}")
         if problems:
+            more = f"; ... and {len(problems) - 20} more" if len(problems) > 20 else ""
             raise CheckpointCorruptError(
                 f"checkpoint {where} does not match the run state this configuration builds "
-                f"({len(problems)} leaf/leaves):\n  " + "\n  ".join(problems[:20])
+                f"({len(problems)} leaf/leaves): " + "; ".join(problems[:20]) + more
             )
         items = {"state": ocp.args.StandardRestore(storable_target)}
         if with_history:
@@ -395,13 +482,15 @@ class RunCheckpointer:
         try:
             out = self.manager.restore(step, args=ocp.args.Composite(**items))
         except Exception as err:  # noqa: BLE001
-            raise CheckpointCorruptError(f"cannot read checkpoint {where}: {type(err).__name__}: {err}") from err
+            quiet_closed_loop_callbacks()
+            raise CheckpointCorruptError(f"checkpoint {where} is damaged: cannot read its arrays ({brief(err)})") from err
         # back through the host: orbax's arrays are committed to a device, and a jitted call on
         # committed arguments is a different executable (and persistent-cache entry) than on fresh ones
         host_state = jax.device_get(out.state)
         state = jax.tree_util.tree_map(jax.numpy.asarray, host_state)
         if tree_digest(host_state) != meta["state_sha256"]:
-            raise CheckpointCorruptError(f"checkpoint {where}: the run state read back differs from what was saved (digest mismatch)")
+            raise CheckpointCorruptError(f"checkpoint {where} is damaged: the run state read back differs from what was saved "
+                                         "(digest mismatch)")
         history = _checked_history(out.history, meta, where) if with_history else None
         state = _unstorable(state, target)
         if jax.tree_util.tree_structure(state) != jax.tree_util.tree_structure(target):
@@ -409,11 +498,24 @@ class RunCheckpointer:
         return Restored(step=step, state=state, history=history, config=meta["config"], extra=meta.get("extra", {}))
 
 
+def _leaf_dict(tree) -> dict[str, Any]:
+    return {path_name(p): x for p, x in jax.tree_util.tree_flatten_with_path(tree)[0]}
+
+
+def complete_steps(run_dir) -> list[int]:
+    """The steps of the complete checkpoints in ``run_dir`` (empty without a ``checkpoints/`` directory)."""
+    if not (pathlib.Path(run_dir) / CHECKPOINT_SUBDIR).is_dir():
+        return []
+    with RunCheckpointer(run_dir, create=False) as reader:
+        return reader.steps()
+
+
 def _checked_history(saved_tree, meta: dict, where) -> dict[str, np.ndarray]:
     """The flat metrics history of a checkpoint item, after checking it against the saved digest."""
     history = unnest(saved_tree)
     if tree_digest(dict(sorted(history.items()))) != meta["history_sha256"]:
-        raise CheckpointCorruptError(f"checkpoint {where}: the metrics history read back differs from what was saved (digest mismatch)")
+        raise CheckpointCorruptError(f"checkpoint {where} is damaged: the metrics history read back differs from what was "
+                                     "saved (digest mismatch)")
     return history
 
 

@@ -99,7 +99,9 @@ def build_experiment(env: str, method: str, preset: str, *, episodes: int | None
             mcfg["num_levels"] = 4
         if episodic:  # a cheap teacher state: one short evaluation episode per eval level
             mcfg.update(num_eval_episodes=1, eval_max_steps=test["test_max_steps"])
-    T = steps_per_episode or T
+    # None means "the preset's value"; 0 or a negative count is an error (LoopSpec names the field),
+    # never silently the default
+    T = T if steps_per_episode is None else steps_per_episode
     # SHED/h-MDP paper runs: test the students of teacher episodes 0, 10, 20, ... and the last
     # (SPEC 3.3 reports the first and last episodes); by step counts this saves about a fifth
     test_ep = 10 if (preset == "paper" and episodic) else 1
@@ -113,7 +115,7 @@ def build_experiment(env: str, method: str, preset: str, *, episodes: int | None
         ppo = ppo.with_overrides(ppo_overrides)
     loop = LoopSpec(
         steps_per_episode=T,
-        num_episodes=episodes or n_ep,
+        num_episodes=n_ep if episodes is None else episodes,
         test_episode_every=test_ep,
         **test,
     )

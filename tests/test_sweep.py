@@ -414,10 +414,18 @@ def test_bad_final_eval_set_fails_before_any_compile(tmp_path):
     assert not list(tmp_path.iterdir())  # nothing written
 
 
-def test_cli_rejects_unknown_keys(capsys):
+def test_cli_rejects_unknown_keys(capsys, tmp_path):
     from shed_jax.__main__ import main
 
-    with pytest.raises(SystemExit, match=r"sweep: method 'dr' has no hyperparameter or config field 'eta'"):
-        main(["sweep", "--env", "lander", "--methods", "shed,dr", "--preset", "quick", "--grid", "eta=0,10"])
-    with pytest.raises(SystemExit, match=r"--grid key 'eta' given twice"):
-        main(["sweep", "--env", "lander", "--methods", "shed", "--grid", "eta=0", "--grid", "eta=1"])
+    # one line on stderr, exit 2 (a usage error), nothing written
+    out = tmp_path / "sweep"
+    assert main(["sweep", "--env", "lander", "--methods", "shed,dr", "--preset", "quick", "--grid", "eta=0,10",
+                 "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert err.startswith("shed_jax: error: sweep: method 'dr' has no hyperparameter or config field 'eta'")
+    assert main(["sweep", "--env", "lander", "--methods", "shed", "--grid", "eta=0", "--grid", "eta=1",
+                 "--out", str(out)]) == 2
+    assert "--grid key 'eta' given twice" in capsys.readouterr().err
+    assert main(["sweep", "--methods", "shed,bogus", "--out", str(out)]) == 2
+    assert "--methods: unknown method(s) 'bogus'; known: dr, plr" in capsys.readouterr().err
+    assert not out.exists()

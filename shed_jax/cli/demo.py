@@ -19,7 +19,9 @@ def add_arguments(parser) -> None:
 
 def main(args) -> int:
     if args.levels < 1:
-        raise SystemExit(f"--levels must be >= 1, got {args.levels}")
+        from shed_jax.cli.errors import UsageError
+
+        raise UsageError(f"--levels must be >= 1, got {args.levels}")
     module_name = DEMOS[args.env]
     try:
         module = importlib.import_module(module_name)

@@ -25,7 +25,6 @@ import json
 import math
 import pathlib
 import re
-import sys
 
 import numpy as np
 
@@ -254,17 +253,19 @@ def _json_num(x):
 def main(args) -> int:
     from shed_jax.checkpoint import CheckpointError
 
+    from shed_jax.cli import errors
+
     if args.episodes < 1:
-        raise SystemExit("--episodes must be >= 1")
+        raise errors.UsageError(f"--episodes must be an integer >= 1, got {args.episodes}")
     if args.max_steps is not None and args.max_steps < 1:
-        raise SystemExit("--max-steps must be >= 1")
+        raise errors.UsageError(f"--max-steps must be an integer >= 1, got {args.max_steps}")
     try:
         return _main(args)
     except CheckpointError as err:
-        print(f"[shed_jax] checkpoint error: {err}", file=sys.stderr)
+        errors.report(err, args)
         return EXIT_BAD_INPUT
     except LevelFileError as err:
-        print(f"[shed_jax] levels: {err}", file=sys.stderr)
+        errors.report(err, args, prefix=f"{errors.PREFIX} --levels:")
         return EXIT_BAD_INPUT
 
 

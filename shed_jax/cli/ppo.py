@@ -147,7 +147,9 @@ def main(args) -> int:
     from shed_jax.student import PPOConfig, PPOHyperparams, make_student
 
     if args.total_steps < 1 or args.seeds < 1:
-        raise SystemExit("--total-steps and --seeds must be positive")
+        from shed_jax.cli.errors import UsageError
+
+        raise UsageError(f"--total-steps and --seeds must be >= 1, got {args.total_steps} and {args.seeds}")
     env = envs.make(args.env)
     config = PPOConfig.for_env(args.env)
     if args.num_envs is not None:

@@ -51,30 +51,35 @@ from typing import Any, Callable
 
 import numpy as np
 
+from shed_jax.cli.errors import UsageError
+
 KINDS = ("method_hparam", "student_hparam", "method_config", "student_config", "inert")
 STUDENT_PREFIX = "ppo."
 
 
 def add_arguments(p) -> None:
+    from shed_jax.cli.errors import non_negative_float, positive_int
+    from shed_jax.cli.run import ENVS
     from shed_jax.presets import PRESETS
 
-    p.add_argument("--env", default="lander", help="lander | lander-continuous | walker")
+    count = positive_int
+    p.add_argument("--env", default="lander", choices=ENVS, help=" | ".join(ENVS))
     p.add_argument("--methods", default="shed", help="comma-separated: shed,hmdp,dr,paired,accel,accel-norevisit,plr")
     p.add_argument("--preset", default="auto", choices=("auto",) + PRESETS,
                    help="auto: 'paper' on a GPU, 'quick' on a CPU (the choice is printed)")
-    p.add_argument("--seeds", type=int, default=None, help="seeds per grid point (default: quick 2, paper 5)")
+    p.add_argument("--seeds", type=count, default=None, help="seeds per grid point (default: quick 2, paper 5)")
     p.add_argument("--seed", type=int, default=0, help="root seed; seed i uses fold_in(root, i) at every point")
     p.add_argument("--grid", action="append", default=[], metavar="KEY=V1,V2,...",
                    help="a grid axis (repeatable); values are JSON or strings, e.g. --grid eta=0,10 --grid ppo.lr=1e-4,3e-4")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="fix a key for every point (repeatable), e.g. --set num_eval_levels=20")
-    p.add_argument("--episodes", type=int, default=None, help="override the number of teacher episodes N_ep")
-    p.add_argument("--steps-per-episode", type=int, default=None, help="override the budget steps per episode T")
-    p.add_argument("--test-episode-every", type=int, default=None, metavar="K",
+    p.add_argument("--episodes", type=count, default=None, help="override the number of teacher episodes N_ep")
+    p.add_argument("--steps-per-episode", type=count, default=None, help="override the budget steps per episode T")
+    p.add_argument("--test-episode-every", type=count, default=None, metavar="K",
                    help="as for run: the test set runs only in teacher episodes 0, K, 2K, ... and the last "
                         "(default: paper preset 10 for shed/hmdp, else 1 = every episode)")
-    p.add_argument("--chunk", type=int, default=None, help="budget steps per compiled call (default: T)")
-    p.add_argument("--devices", type=int, default=None, help="use the first N visible devices (default: all)")
+    p.add_argument("--chunk", type=count, default=None, help="budget steps per compiled call (default: T)")
+    p.add_argument("--devices", type=count, default=None, help="use the first N visible devices (default: all)")
     p.add_argument("--no-pad", action="store_true",
                    help="refuse (error) when a group's seeds x points does not divide by the device count, instead of padding")
     p.add_argument("--no-plots", action="store_true", help="skip the per-point plots")
@@ -82,13 +87,13 @@ def add_arguments(p) -> None:
                    help="as for run: after the last budget step, evaluate every point's final students on level sets "
                         "(test | named | FILE.json, comma-separated, or none) into <point>/final_eval_<set>.json; "
                         "default: walker named, other envs none")
-    p.add_argument("--final-eval-episodes", type=int, default=10, metavar="N",
+    p.add_argument("--final-eval-episodes", type=count, default=10, metavar="N",
                    help="episodes per level and seed of --final-eval (default 10)")
     p.add_argument("--out", default=None, help="sweep directory (default runs/sweep-<env>-<preset>-<time>)")
     p.add_argument("--resume", default=None, metavar="DIR",
                    help="continue the sweep in DIR with its saved arguments: finished groups are kept, the "
                         "group in progress continues from its last checkpoint (other arguments are ignored)")
-    p.add_argument("--time-limit", type=float, default=None, metavar="SECONDS",
+    p.add_argument("--time-limit", type=non_negative_float, default=None, metavar="SECONDS",
                    help="after the chunk in which this many seconds have passed, save and stop (exit code 75); "
                         "continue with --resume")
     p.add_argument("--no-checkpoint", action="store_true",
@@ -525,21 +530,13 @@ def table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def run_sweep(groups: list[Group], *, out: pathlib.Path, make_experiment: Callable,
-              build: Callable, num_seeds: int, root_seed: int = 0, chunk: int | None = None, mesh=None,
-              pad: bool = True, plots: bool = True, progress: bool = True, final_eval: str | None = "none",
-              final_eval_episodes: int = 10, checkpoint: bool = True, resume: bool = False,
-              time_limit: float | None = None) -> list[dict] | None:
-    """Build every group first (all values validated before any compile), run them, write the sweep table.
-
-    ``final_eval``: level sets as for ``run --final-eval`` (None: the env's default there).
-    ``checkpoint``/``resume``: see the module docstring. ``time_limit`` (seconds): stop after the chunk
-    that passes it; returns None when the sweep stopped before its end.
-    """
+def prepare_sweep(groups: list[Group], *, out: pathlib.Path, make_experiment: Callable, build: Callable,
+                  num_seeds: int, chunk: int | None = None, final_eval: str | None = "none",
+                  final_eval_episodes: int = 10, resume: bool = False) -> tuple[list, list]:
+    """Build every group and resolve its ``--final-eval`` level sets, checking every value (ValueError)
+    before anything is compiled or written. Returns ``(built groups, their level sets)`` for ``run_sweep``."""
     import jax
-    from tqdm import tqdm
 
-    from shed_jax import sharding
     from shed_jax.cli import eval as eval_cli
     from shed_jax.cli.run import final_eval_specs
 
@@ -547,9 +544,10 @@ def run_sweep(groups: list[Group], *, out: pathlib.Path, make_experiment: Callab
         raise ValueError("--seeds must be >= 1")
     if chunk is not None and chunk < 1:
         raise ValueError("--chunk must be >= 1")
-    mesh = mesh or sharding.batch_mesh()
     if final_eval_episodes < 1:
         raise ValueError("--final-eval-episodes must be >= 1")
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {out} is a file, not a directory; choose another --out")
     built = [build_group(g, make_experiment, build) for g in groups]
     finals = []  # per group: its resolved --final-eval level sets, so that a bad one fails before any compile
     for b in built:
@@ -559,12 +557,37 @@ def run_sweep(groups: list[Group], *, out: pathlib.Path, make_experiment: Callab
             raise ValueError(f"--final-eval: {err}") from err
     if any(finals) and jax.process_count() > 1:
         raise ValueError("--final-eval runs on one host only (the students of a multi-host batch are not all addressable here)")
-    finished = [all((point_dir(out, b.group, p) / "summary.json").exists() for p in b.group.points) for b in built]
     for b in built if not resume else ():
         for p in b.group.points:
             if (point_dir(out, b.group, p) / "metrics.jsonl").exists():
                 raise ValueError(f"{point_dir(out, b.group, p)} already holds a run (metrics.jsonl); "
                                  f"continue it with --resume {out} or choose another --out")
+    return built, finals
+
+
+def run_sweep(groups: list[Group], *, out: pathlib.Path, make_experiment: Callable,
+              build: Callable, num_seeds: int, root_seed: int = 0, chunk: int | None = None, mesh=None,
+              pad: bool = True, plots: bool = True, progress: bool = True, final_eval: str | None = "none",
+              final_eval_episodes: int = 10, checkpoint: bool = True, resume: bool = False,
+              time_limit: float | None = None, prepared: tuple | None = None) -> list[dict] | None:
+    """Build every group first (all values validated before any compile), run them, write the sweep table.
+
+    ``final_eval``: level sets as for ``run --final-eval`` (None: the env's default there).
+    ``checkpoint``/``resume``: see the module docstring. ``time_limit`` (seconds): stop after the chunk
+    that passes it; returns None when the sweep stopped before its end. ``prepared``: what
+    ``prepare_sweep`` returned for the same arguments (else it is called here).
+    """
+    import jax
+    from tqdm import tqdm
+
+    from shed_jax import sharding
+
+    mesh = mesh or sharding.batch_mesh()
+    if prepared is None:
+        prepared = prepare_sweep(groups, out=out, make_experiment=make_experiment, build=build, num_seeds=num_seeds,
+                                 chunk=chunk, final_eval=final_eval, final_eval_episodes=final_eval_episodes, resume=resume)
+    built, finals = prepared
+    finished = [all((point_dir(out, b.group, p) / "summary.json").exists() for p in b.group.points) for b in built]
     n_chunks = sum(_num_chunks(b, chunk) for b in built)
     bar = tqdm(total=n_chunks, unit="chunk", desc="sweep", dynamic_ncols=True, disable=not progress)
     rows = []
@@ -627,13 +650,13 @@ def resumed_args(args):
     out = pathlib.Path(args.resume)
     path = out / ARGS_FILE
     if not path.is_file():
-        raise SystemExit(f"--resume {out}: no {ARGS_FILE} there (not a sweep directory, or one from before sweeps "
+        raise UsageError(f"--resume {out}: no {ARGS_FILE} there (not a sweep directory, or one from before sweeps "
                          "could be resumed)")
     saved = json.loads(path.read_text())
     if saved.get("no_checkpoint"):
-        raise SystemExit(f"--resume {out}: that sweep ran with --no-checkpoint")
+        raise UsageError(f"--resume {out}: that sweep ran with --no-checkpoint")
     if args.out is not None and pathlib.Path(args.out) != out:
-        raise SystemExit(f"--resume continues the sweep in its own directory {out}; drop --out {args.out}")
+        raise UsageError(f"--resume continues the sweep in its own directory {out}; drop --out {args.out}")
     merged = dict(vars(args))
     merged.update({k: saved[k] for k in SAVED_ARGS if k in saved})
     merged["out"] = str(out)
@@ -641,11 +664,13 @@ def resumed_args(args):
 
 
 def main(args) -> int:
+    """The sweep command. Every value is checked (UsageError, one line, exit 2) before OUT is written."""
     import jax
 
     from shed_jax import sharding
     from shed_jax.checkpoint import CheckpointError
     from shed_jax.cli.run import EXIT_STOPPED, build
+    from shed_jax.methods.registry import METHODS
 
     resume = getattr(args, "resume", None) is not None
     if resume:
@@ -658,17 +683,23 @@ def main(args) -> int:
         print(f"[shed_jax] backend={backend}: using the '{preset}' preset")
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     if not methods:
-        raise SystemExit("--methods needs at least one method")
+        raise UsageError(f"--methods needs at least one method of {', '.join(METHODS)}")
+    unknown = [m for m in methods if m not in METHODS]
+    if unknown:
+        raise UsageError(f"--methods: unknown method(s) {', '.join(map(repr, unknown))}; known: {', '.join(METHODS)}")
     if len(set(methods)) != len(methods):
-        raise SystemExit(f"--methods lists a method twice: {args.methods}")
+        raise UsageError(f"--methods lists a method twice: {args.methods}")
     num_seeds = args.seeds or (5 if preset == "paper" else 2)
     devices = jax.devices()
     if args.devices is not None:
         if not 1 <= args.devices <= len(devices):
-            raise SystemExit(f"--devices must lie in [1, {len(devices)}] (visible devices), got {args.devices}")
+            raise UsageError(f"--devices must lie in [1, {len(devices)}] (visible devices), got {args.devices}")
         devices = devices[: args.devices]
     make_experiment = preset_experiment(args.env, preset, args.episodes, args.steps_per_episode,
                                         args.test_episode_every)
+    out = pathlib.Path(args.out or f"runs/sweep-{args.env}-{preset}-{time.strftime('%Y%m%d-%H%M%S')}")
+    if not resume and (out / ARGS_FILE).exists():
+        raise UsageError(f"{out} already holds a sweep; continue it with --resume {out} or choose another --out")
     try:
         grid, fixed = parse_grid(args.grid), parse_fixed(args.set)
         groups = []
@@ -679,12 +710,15 @@ def main(args) -> int:
             for note in notes:
                 print(f"[shed_jax] note: {note}")
             groups += gs
-    except ValueError as err:
-        raise SystemExit(f"sweep: {err}")
-    out = pathlib.Path(args.out or f"runs/sweep-{args.env}-{preset}-{time.strftime('%Y%m%d-%H%M%S')}")
-    if not resume and (out / ARGS_FILE).exists():
-        raise SystemExit(f"{out} already holds a sweep; continue it with --resume {out} or choose another --out")
-    out.mkdir(parents=True, exist_ok=True)
+        prepared = prepare_sweep(groups, out=out, make_experiment=make_experiment, build=build, num_seeds=num_seeds,
+                                 chunk=args.chunk, final_eval=args.final_eval,
+                                 final_eval_episodes=args.final_eval_episodes, resume=resume)
+    except (ValueError, TypeError) as err:
+        raise UsageError(f"sweep: {err}") from err
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise UsageError(f"--out {out}: cannot create it ({err.strerror or err})") from err
     if not resume and jax.process_index() == 0:
         saved = {k: getattr(args, k) for k in SAVED_ARGS}
         saved["preset"] = preset  # 'auto' resolved: a resumed sweep keeps the preset it started with
@@ -697,9 +731,10 @@ def main(args) -> int:
         rows = run_sweep(groups, out=out, make_experiment=make_experiment, build=build, num_seeds=num_seeds,
                          root_seed=args.seed, chunk=args.chunk, mesh=mesh, pad=not args.no_pad, plots=not args.no_plots,
                          final_eval=args.final_eval, final_eval_episodes=args.final_eval_episodes,
-                         checkpoint=not args.no_checkpoint, resume=resume, time_limit=args.time_limit)
+                         checkpoint=not args.no_checkpoint, resume=resume, time_limit=args.time_limit,
+                         prepared=prepared)
     except (ValueError, CheckpointError) as err:
-        raise SystemExit(f"sweep: {err}")
+        raise UsageError(f"sweep: {err}") from err
     if rows is None:
         print(f"[shed_jax] stopped at --time-limit {args.time_limit:g}s; continue with:\n"
               f"  python -m shed_jax sweep --resume {out}")

@@ -1,0 +1,383 @@
+"""``python -m shed_jax run`` on run directories: resuming against the saved configuration, a finished
+run left alone, --restart of a run without a checkpoint, damaged checkpoints and --from-step,
+signals during start-up, failed writes (disk full), the progress lines and the per-level plot.
+
+The run is test_checkpoint.py's tiny CartPole PLR experiment, driven in-process (same program, so
+the persistent compilation cache serves both); one finished run (module fixture) is copied for
+the cases that change a directory. Equality with that run is the check wherever a run continues.
+"""
+import argparse
+import contextlib
+import errno
+import io
+import json
+import os
+import shutil
+import signal
+import threading
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from shed_jax import checkpoint as ck
+from shed_jax import reporting
+from shed_jax.cli import run as run_cli
+from shed_jax.loop import LoopSpec, make_run
+from shed_jax.methods.level_sampler import LevelSamplerConfig
+from shed_jax.presets import Experiment
+from shed_jax.student import PPOConfig
+
+SEEDS = 2
+BASE = ["--seeds", str(SEEDS), "--chunk", "1"]
+
+
+def tiny_experiment() -> Experiment:
+    ppo = PPOConfig.for_env("cartpole", num_envs=4, num_steps=8, update_epochs=1, num_minibatches=1,
+                            actor_hidden=(8,), critic_hidden=(8,))
+    return Experiment(
+        env="cartpole", method="plr", preset="tiny", ppo=ppo,
+        method_config={"updates_per_step": 1, "sampler": LevelSamplerConfig(capacity=4, min_fill=0.5, replay_prob=0.9)},
+        loop=LoopSpec(steps_per_episode=4, num_episodes=1, test_episodes=1, test_max_steps=20),
+        test_set="cartpole-test",
+    )
+
+
+def cartpole_test_levels(env):
+    from envs.cartpole import LEVELS
+
+    return jax.tree_util.tree_map(lambda *x: jnp.stack(x), LEVELS["default"](), LEVELS["moon"]())
+
+
+def parse(argv):
+    p = argparse.ArgumentParser()
+    run_cli.add_arguments(p)
+    return p.parse_args(argv)
+
+
+@pytest.fixture(scope="module")
+def patched():
+    original = run_cli.test_levels
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(run_cli, "experiment_from_args", lambda args, backend: tiny_experiment())
+        mp.setattr(run_cli, "test_levels", lambda name, env: cartpole_test_levels(env) if name == "cartpole-test" else original(name, env))
+        yield mp
+
+
+def run(argv):
+    """``run_cli.main`` with stdout and stderr captured: (exit code, stdout, stderr)."""
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        code = run_cli.main(parse(argv))
+    return code, out.getvalue(), err.getvalue()
+
+
+def error_line(err: str) -> str:
+    assert "Traceback" not in err, err
+    lines = [line for line in err.splitlines() if line.startswith("shed_jax: error:")]
+    assert len(lines) == 1, err
+    return lines[0]
+
+
+@pytest.fixture(scope="module")
+def finished(patched, tmp_path_factory):
+    """A: the tiny run straight through (4 chunks of 1 step, --final-eval test, the GIF attempted),
+    with the order of the compile and of the progress bar's creation recorded."""
+    import tqdm
+
+    a = tmp_path_factory.mktemp("run") / "A"
+    events = []
+    original_worker, original_bar = run_cli._in_worker, tqdm.tqdm
+
+    def worker(fn, name="compile"):
+        events.append("compile")
+        return original_worker(fn, name)
+
+    def bar(*args, **kw):
+        events.append("bar")
+        return original_bar(*args, **kw)
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(run_cli, "_in_worker", worker)
+        mp.setattr(tqdm, "tqdm", bar)
+        code, out, err = run(["--out", str(a), *BASE, "--final-eval", "test", "--final-eval-episodes", "3"])
+    assert code == 0, err
+    return {"dir": a, "out": out, "err": err, "events": events}
+
+
+def copy_of(finished, tmp_path, name="copy"):
+    return shutil.copytree(finished["dir"], tmp_path / name)
+
+
+def same_records(a, b):
+    assert (b / "metrics.jsonl").read_text() == (a / "metrics.jsonl").read_text()
+
+
+def snapshot(d):
+    return {str(p.relative_to(d)): (p.stat().st_mtime_ns, p.stat().st_size) for p in d.rglob("*") if p.is_file()}
+
+
+# ---- progress --------------------------------------------------------------------------------
+
+def test_progress_says_compiling_and_each_post_run_stage(finished):
+    out = finished["out"]
+    lines = out.splitlines()
+
+    def index(text):
+        hits = [i for i, line in enumerate(lines) if text in line]
+        assert hits, f"{text!r} not in:\n{out}"
+        return hits[0]
+
+    compiling = index("[shed_jax] compiling the initial state and a chunk of 1 budget step(s)")
+    compiled = index("[shed_jax] compiled in ")
+    assert compiling < compiled < index("step     1/4") < index("step     4/4")
+    assert float(lines[compiled].split("compiled in ")[1].split(" s")[0]) >= 0
+    done = index("[shed_jax] training done (4/4 budget steps); writing the plots and summary.json")
+    final = index("[shed_jax] final evaluation on 'test': 2 level(s) x 2 seed(s) x 3 episode(s)")
+    gif = index("[shed_jax] rendering a GIF of seed 0's final student")
+    assert index("step     4/4") < done < final < gif < index("no GIF: environment 'cartpole' has no renderer")
+    # the bar (its rate and ETA) starts after the compile, so neither counts it
+    assert finished["events"] == ["compile", "bar"]
+
+
+def test_chunk_sizes_compiled_ahead():
+    assert run_cli.chunk_sizes(1, 0, 4) == [1]
+    assert run_cli.chunk_sizes(3, 0, 4) == [3, 1]
+    assert run_cli.chunk_sizes(4, 0, 8) == [4]
+    assert run_cli.chunk_sizes(3, 2, 4) == [2]
+    assert run_cli.chunk_sizes(5, 0, 4) == [4]
+    assert run_cli.chunk_sizes(2, 4, 4) == []
+
+
+def test_per_level_plot_is_small_multiples(finished, monkeypatch, tmp_path):
+    a = finished["dir"]
+    with ck.RunCheckpointer(a, create=False) as reader:
+        hist = reader.read_history()
+    seen = {}
+    original = reporting.plot_per_level
+
+    def spy(x, per_level, path, **kw):
+        seen.update(x=np.asarray(x), shape=np.shape(per_level), path=path)
+        return original(x, per_level, path, **kw)
+
+    monkeypatch.setattr(reporting, "plot_per_level", spy)
+    import envs
+
+    run_cli.make_plots(tiny_experiment(), envs.make("cartpole"), hist, tmp_path)
+    assert seen["shape"] == (SEEDS, 4, 2) and seen["path"] == tmp_path / "test_return_per_level.png"
+    np.testing.assert_array_equal(seen["x"], np.cumsum(hist["info/env_steps_train"][0].astype(np.float64)))
+    from PIL import Image
+
+    with Image.open(tmp_path / "test_return_per_level.png") as im:
+        w, h = im.size
+    assert w > 1.5 * h  # two panels side by side, not one axis with two overlaid bands
+
+
+# ---- resuming ---------------------------------------------------------------------------------
+
+def test_resume_checks_flags_against_the_saved_run(finished):
+    a = finished["dir"]
+    before = snapshot(a)
+    # the saved values (and a preset default the saved run used) are no difference
+    for flags in (["--set", "updates_per_step=1"], ["--ppo", "num_steps=8"], ["--seeds", "2", "--seed", "0"],
+                  ["--set", 'sampler={"capacity": 4, "min_fill": 0.5, "replay_prob": 0.9}'], ["--episodes", "1"]):
+        code, out, err = run(["--resume", str(a), *flags])
+        assert code == 0, (flags, err)
+        assert "holds a finished run (budget step 4/4" in out and "nothing to do" in out
+    # a different value is refused, naming only that field with the saved and the new value
+    code, _, err = run(["--resume", str(a), "--set", "updates_per_step=2"])
+    line = error_line(err)
+    assert code == 2 and "experiment.method_config.updates_per_step: saved 1, now 2" in line
+    assert line.count(": saved ") == 1
+    code, _, err = run(["--resume", str(a), "--method", "dr", "--seeds", "3"])
+    line = error_line(err)
+    assert "experiment.method: saved 'plr', now 'dr'" in line and "seeds: saved 2, now 3" in line and line.count(": saved ") == 2
+    with pytest.raises(SystemExit, match=r"--set: method 'plr' has no config field\(s\) 'nope'; known: high, low"):
+        run(["--resume", str(a), "--set", "nope=1"])
+    # a finished run is left as it was: no summary, plot or checkpoint rewritten
+    assert snapshot(a) == before
+
+
+def test_restart_of_a_run_without_checkpoint(finished, patched, tmp_path):
+    a = finished["dir"]
+    d = tmp_path / "D"  # killed after its first records, before its first checkpoint completed
+    (d / "checkpoints" / "1.orbax-checkpoint-tmp-17").mkdir(parents=True)
+    shutil.copy(a / "config.json", d / "config.json")
+    (d / "metrics.jsonl").write_text("".join((a / "metrics.jsonl").read_text().splitlines(keepends=True)[:SEEDS]))
+    (d / "notes.txt").write_text("mine")
+    with pytest.raises(SystemExit, match=r"stopped before its first checkpoint .*start it over with --restart"):
+        run_cli.main(parse(["--out", str(d), *BASE]))
+    code, _, err = run(["--resume", str(d)])
+    assert code == 2 and "holds no complete checkpoint" in error_line(err) and f"--out {d} --restart" in err
+    code, out, err = run(["--out", str(d), "--restart", *BASE])
+    assert code == 0, err
+    assert "--restart: removed checkpoints/, config.json, metrics.jsonl from" in out
+    same_records(a, d)  # the same seeds from scratch: the very same records
+    assert (d / "notes.txt").read_text() == "mine"  # only the run's own files are cleared
+    # a directory holding a checkpoint (or a finished run) is not cleared
+    with pytest.raises(SystemExit, match=r"already holds a run with checkpoint\(s\) at budget step\(s\) 2, 3, 4; continue it with --resume"):
+        run_cli.main(parse(["--out", str(a), "--restart", *BASE]))
+
+
+# ---- damaged checkpoints ----------------------------------------------------------------------
+
+def test_damaged_newest_checkpoint_is_named_and_older_ones_continue(finished, patched, tmp_path):
+    a = finished["dir"]
+    d = copy_of(finished, tmp_path, "truncated")
+    (d / "summary.json").unlink()
+    for f in (d / "checkpoints" / "4" / "state").rglob("d/*"):
+        f.write_bytes(f.read_bytes()[: f.stat().st_size // 2])
+    code, _, err = run(["--resume", str(d)])
+    line = error_line(err)
+    assert code == run_cli.EXIT_CHECKPOINT
+    assert f"checkpoint {d}/checkpoints/4 is damaged" in line
+    assert "intact older checkpoint(s): 3, 2" in line and f"--resume {d} --from-step 3" in line
+    assert len(line) < 1000 and "tensorstore_spec" not in line
+    # --from-step 3 continues from there: the same records and final state as the straight run
+    code, out, err = run(["--resume", str(d), "--from-step", "3"])
+    assert code == 0, err
+    assert "moved checkpoint(s) 4 to" in out and "resuming" in out and "from budget step 3/4" in out
+    assert (d / run_cli.DISCARDED_DIR / "4" / "state").is_dir()
+    same_records(a, d)
+    target = jax.eval_shape(jax.vmap(make_run(*run_cli.build(tiny_experiment())[1:], tiny_experiment().loop)[0]),
+                            run_cli.seed_keys(0, SEEDS))
+    with ck.RunCheckpointer(a, create=False) as ra, ck.RunCheckpointer(d, create=False) as rd:
+        x, y = ra.restore(target), rd.restore(target)
+    for p, u, v in zip(jax.tree_util.tree_leaves_with_path(x.state), jax.tree_util.tree_leaves(x.state),
+                       jax.tree_util.tree_leaves(y.state)):
+        np.testing.assert_array_equal(np.asarray(u), np.asarray(v), err_msg=ck.path_name(p[0]))
+    code, _, err = run(["--resume", str(d), "--from-step", "9"])
+    assert code == 2 and "--from-step 9" in error_line(err) and "complete: 2, 3, 4" in err
+
+
+def test_lost_state_metadata_reads_as_damage_not_as_another_configuration(finished, patched, tmp_path):
+    d = copy_of(finished, tmp_path, "nometa")
+    (d / "checkpoints" / "4" / "state" / "_METADATA").unlink()
+    code, _, err = run(["--resume", str(d)])
+    line = error_line(err)
+    assert code == 2 and "checkpoints/4 is damaged: the array metadata of its state is missing" in line
+    assert "does not match" not in line and "intact older checkpoint(s): 3, 2" in line
+
+
+# ---- signals during start-up ------------------------------------------------------------------
+
+def signal_during_compile(signum):
+    """A stand-in for the compile worker that receives ``signum`` (sent from the worker thread, as
+    from outside: the main thread handles it while it waits)."""
+    def worker(fn, name="compile"):
+        def send():
+            time.sleep(0.05)
+            os.kill(os.getpid(), signum)
+
+        t = threading.Thread(target=send)
+        t.start()
+        while t.is_alive():
+            t.join(0.05)
+        time.sleep(1.0)  # the handler runs in this wait, as in _in_worker's
+        raise AssertionError("the signal did not stop the start-up")
+
+    return worker
+
+
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT])
+def test_signal_during_startup_stops_at_once_and_keeps_nothing(patched, tmp_path, monkeypatch, signum):
+    e = tmp_path / "E"
+    before = signal.getsignal(signum)
+    monkeypatch.setattr(run_cli, "_in_worker", signal_during_compile(signum))
+    code, out, err = run(["--out", str(e), *BASE])
+    assert code == 128 + signum
+    assert f"[shed_jax] {signal.Signals(signum).name} during start-up, before the first budget step: stopped; nothing was kept" in err
+    assert "Traceback" not in err and not e.exists()  # the command can simply be run again
+    assert signal.getsignal(signum) == before
+
+
+def test_signal_during_resume_startup_names_the_resume(finished, patched, tmp_path, monkeypatch):
+    d = copy_of(finished, tmp_path, "stopped")
+    (d / "summary.json").unlink()
+    shutil.rmtree(d / "checkpoints" / "4")  # a run stopped at budget step 3
+    ckpts = snapshot(d / "checkpoints")
+    monkeypatch.setattr(run_cli, "_in_worker", signal_during_compile(signal.SIGTERM))
+    code, _, err = run(["--resume", str(d)])
+    assert code == 143 and f"SIGTERM during start-up, before the first budget step: stopped; continue it with: " \
+                           f"python -m shed_jax run --resume {d}" in err
+    assert snapshot(d / "checkpoints") == ckpts
+
+
+# ---- failed writes ------------------------------------------------------------------------------
+
+def failing_save(at_step, exc):
+    original = ck.RunCheckpointer.save
+
+    def save(self, step, *a, **kw):
+        if step == at_step:
+            raise exc
+        return original(self, step, *a, **kw)
+
+    return save
+
+
+def test_disk_full_is_reported_at_its_chunk_with_what_is_safe(finished, patched, tmp_path, monkeypatch):
+    a, f = finished["dir"], tmp_path / "F"
+    monkeypatch.setattr(ck.RunCheckpointer, "save", failing_save(3, OSError(errno.ENOSPC, "No space left on device")))
+    code, out, err = run(["--out", str(f), *BASE, "--no-gif"])
+    line = error_line(err)
+    assert code == run_cli.EXIT_IO == 74
+    assert line == (f"shed_jax: error: disk full (No space left on device) while saving checkpoint 3 in {f}/checkpoints; "
+                     f"safe on disk: checkpoint 2 in {f}/checkpoints (and metrics.jsonl up to it); after freeing space "
+                     f"continue with: python -m shed_jax run --resume {f}")
+    assert "step     2/4" in out and "step     3/4" not in out  # nothing reported as done that was not saved
+    assert not (f / "summary.json").exists()
+    monkeypatch.undo()
+    code, out, err = run(["--resume", str(f), "--no-gif"])
+    assert code == 0, err
+    same_records(a, f)
+
+
+def test_a_wrapped_failure_of_the_last_save_is_one_line(patched, tmp_path, monkeypatch):
+    """orbax reports an asynchronous write's failure when it is waited for, wrapped in its own error."""
+    f = tmp_path / "G"
+    original_wait = ck.RunCheckpointer.wait
+
+    def wait(self):
+        original_wait(self)
+        if self.latest_step() == 4:
+            try:
+                raise OSError(errno.ENOSPC, "No space left on device")
+            except OSError as inner:
+                raise RuntimeError("Checkpoint save failed") from inner
+
+    monkeypatch.setattr(ck.RunCheckpointer, "wait", wait)
+    code, out, err = run(["--out", str(f), *BASE, "--no-gif"])
+    assert code == 74
+    assert "disk full (No space left on device) while saving checkpoint 4" in error_line(err)
+    assert "training done" not in out and not (f / "summary.json").exists()
+
+
+def test_no_checkpoint_yet_says_so(patched, tmp_path, monkeypatch):
+    f = tmp_path / "H"
+    monkeypatch.setattr(ck.RunCheckpointer, "save", failing_save(1, OSError(errno.ENOSPC, "No space left on device")))
+    code, _, err = run(["--out", str(f), *BASE, "--no-gif"])
+    assert code == 74 and "no checkpoint was saved yet; after freeing space start over with: " \
+                          f"python -m shed_jax run --out {f} --restart" in error_line(err)
+
+
+# ---- metrics.jsonl on resume ------------------------------------------------------------------
+
+def test_metrics_rebuild_names_only_a_backup_it_wrote(finished, tmp_path):
+    a = finished["dir"]
+    with ck.RunCheckpointer(a, create=False) as reader:
+        hist = reader.read_history()
+    path = tmp_path / "metrics.jsonl"
+    note = run_cli.reconcile_metrics_jsonl(path, hist, 3, SEEDS)  # no file at all
+    assert "there was no metrics.jsonl" in note and ".bak" not in note
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["metrics.jsonl"]
+    lines = (a / "metrics.jsonl").read_text().splitlines(keepends=True)
+    records = [json.loads(x) for x in lines[: 3 * SEEDS]]  # rebuilt from the history: the same records
+    assert [json.loads(x) for x in path.read_text().splitlines()] == records
+    path.write_text("".join(lines[SEEDS: 3 * SEEDS]))  # step 0 missing
+    note = run_cli.reconcile_metrics_jsonl(path, hist, 3, SEEDS)
+    assert "old file kept as metrics.jsonl.bak-3" in note
+    assert (tmp_path / "metrics.jsonl.bak-3").read_text() == "".join(lines[SEEDS: 3 * SEEDS])
+    assert [json.loads(x) for x in path.read_text().splitlines()] == records
