@@ -48,6 +48,19 @@ class Experiment:
         return self.ppo.batch_size * int(self.method_config.get("updates_per_step", 1))
 
 
+def default_chunk(exp: Experiment) -> int:
+    """Budget steps per compiled chunk (progress line, checkpoint) when ``--chunk`` is not given.
+
+    A walker budget step costs seconds on a GPU (MJX's per-step latency), so its chunks are 5 budget
+    steps and the progress bar moves at least once a minute; the lander's are one teacher episode.
+    Always a divisor of the episode length, so chunks never straddle two episodes unevenly.
+    """
+    T = exp.loop.steps_per_episode
+    if _base_env(exp.env) == "walker" and exp.preset == "paper" and T % 5 == 0:
+        return 5
+    return T
+
+
 def _base_env(env: str) -> str:
     return "lander" if env.startswith("lander") else env
 

@@ -98,3 +98,14 @@ def test_default_seeds_by_preset():
     assert run_cli.default_seeds(build_experiment("walker", "dr", "quick")) == 2  # CPU too, now the deadlock is avoided
     assert run_cli.default_seeds(build_experiment("lander", "dr", "quick")) == 2
     assert run_cli.default_seeds(build_experiment("walker", "shed", "paper")) == 5
+
+
+def test_default_chunk_keeps_walker_progress_under_a_minute():
+    from shed_jax.presets import default_chunk
+
+    # walker paper: 5 of the 50 budget steps per chunk (a step costs seconds on a GPU); else an episode
+    assert default_chunk(build_experiment("walker", "shed", "paper")) == 5
+    assert default_chunk(build_experiment("walker", "dr", "paper")) == 5
+    assert default_chunk(build_experiment("walker", "dr", "paper", steps_per_episode=12)) == 12
+    assert default_chunk(build_experiment("lander", "shed", "paper")) == 20
+    assert default_chunk(build_experiment("walker", "shed", "quick")) == 4

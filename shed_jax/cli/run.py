@@ -544,7 +544,9 @@ def _plan_fresh(args, backend: str) -> _Plan:
     root_seed = DEFAULT_ROOT_SEED if args.seed is None else args.seed
     out = pathlib.Path(args.out or f"runs/{exp.env}-{exp.method}-{exp.preset}-{time.strftime('%Y%m%d-%H%M%S')}")
     clear = _check_out(out, getattr(args, "restart", False))
-    chunk = args.chunk or exp.loop.steps_per_episode
+    from shed_jax.presets import default_chunk
+
+    chunk = args.chunk or default_chunk(exp)
     config = {"experiment": exp.to_dict(), "seeds": num_seeds, "root_seed": root_seed, "backend": backend,
               "devices": [str(d) for d in jax.devices()], "chunk": chunk, "jax": jax.__version__}
     return _Plan(out, exp, num_seeds, root_seed, chunk, config, clear=clear)
