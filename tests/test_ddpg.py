@@ -101,12 +101,18 @@ def test_config_validation():
         DDPGConfig(3, 2, explore_sigma=-0.1)
 
 
-def test_solves_one_step_quadratic_bandit():
-    """r(s, u) = -||u - c(s)||^2 with c(s) = 0.5 * tanh(s W): the actor must output the argmax c(s)."""
+BANDIT_SEEDS, BANDIT_STEPS = 8, 3000
+
+
+def _bandit_errors(seed=0):
+    """BANDIT_SEEDS seeds of DDPG trained (vmapped) on the bandit below from keys split off PRNGKey(seed):
+    |actor - argmax| before and after training on 256 fixed test states [seeds, 256, 2], the final
+    critic loss [seeds], and the test states."""
     cfg = DDPGConfig(2, 2, hidden=(64, 64), tau=0.05, reward_norm=False)
     agent = make_ddpg(cfg)
     W = jnp.array([[1.0, -0.5], [0.3, 0.8]])
     target = lambda s: 0.5 * jnp.tanh(s @ W)
+    s_test = jax.random.normal(jax.random.PRNGKey(9), (256, 2))
 
     def step(st, key):
         ks, ku = jax.random.split(key)
@@ -117,18 +123,32 @@ def test_solves_one_step_quadratic_bandit():
         return agent.update(st, b)
 
     @jax.jit
+    @jax.vmap
     def train(key):
-        st = agent.init(key)
-        st, metrics = jax.lax.scan(step, st, jax.random.split(key, 1500))
-        return st, metrics
+        st0 = agent.init(key)
+        st, metrics = jax.lax.scan(step, st0, jax.random.split(key, BANDIT_STEPS))
+        error = lambda st: jnp.abs(agent.act(st, s_test) - target(s_test))
+        return error(st0), error(st), jnp.mean(metrics["critic_loss"][-100:])
 
-    st, metrics = train(jax.random.PRNGKey(0))
-    s_test = jax.random.normal(jax.random.PRNGKey(9), (256, 2))
-    error = jax.jit(lambda st: jnp.abs(agent.act(st, s_test) - target(s_test)))
-    err0 = error(jax.jit(agent.init)(jax.random.PRNGKey(0)))
-    err = error(st)
-    assert float(jnp.mean(err0)) > 0.2, float(jnp.mean(err0))  # untrained actor is far off
-    assert float(jnp.mean(err)) < 0.08, float(jnp.mean(err))
-    assert float(jnp.max(err)) < 0.3, float(jnp.max(err))
+    err0, err, critic_loss = train(jax.random.split(jax.random.PRNGKey(seed), BANDIT_SEEDS))
+    return np.asarray(err0), np.asarray(err), np.asarray(critic_loss), np.asarray(s_test)
+
+
+def test_solves_one_step_quadratic_bandit():
+    """r(s, u) = -||u - c(s)||^2 with c(s) = 0.5 * tanh(s W): the actor must output the argmax c(s).
+
+    Eight seeds at once, 3000 steps: after the former 1500 steps a seed's mean error ranged
+    0.045-0.081 and its largest error reached 0.38 (34 seeds), in 7 of 10 seeds at the test state
+    farthest out (|s| = 3.6), where there is almost no training data. So the mean error is checked
+    per seed and over seeds, and the largest error over the states with |s| <= 2.5 (249 of the 256).
+    """
+    err0, err, critic_loss, s_test = _bandit_errors()
+    bulk = np.linalg.norm(s_test, axis=1) <= 2.5
+    seed_mean = err.mean(axis=(1, 2))
+    # 5 root keys x 8 seeds x 2 ISAs: err0 min 0.257 (> 0.2); mean err: over seeds max 0.053 (< 0.08), per seed
+    # max 0.067 (< 0.1); bulk max 0.240 (< 0.3); critic loss max 0.0015 (< 0.02)
+    assert err0.mean(axis=(1, 2)).min() > 0.2, err0.mean(axis=(1, 2))  # untrained actors are far off
+    assert seed_mean.mean() < 0.08 and seed_mean.max() < 0.1, seed_mean
+    assert err[:, bulk].max() < 0.3, err[:, bulk].max(axis=(1, 2))
     # the critic learnt the reward: small loss at the end
-    assert float(jnp.mean(metrics["critic_loss"][-100:])) < 0.02
+    assert critic_loss.max() < 0.02, critic_loss
