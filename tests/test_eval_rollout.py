@@ -1,0 +1,167 @@
+"""Evaluation rollouts that stop early and fused evaluations: the same returns as the full-length
+scan they replace, bit for bit (XLA:CPU), with the steps actually run reported.
+
+The reference is the evaluation as it was written before the rollouts stopped early: one
+``lax.scan`` of the full step limit per (level, episode) run, vmapped over the runs.
+"""
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import envs
+from shed_jax.student import PPOConfig, make_student
+
+SMALL = PPOConfig(num_envs=4, num_steps=32, update_epochs=2, num_minibatches=2, actor_hidden=(16,), critic_hidden=(16,))
+
+
+def full_scan_evaluate(student, state, key, levels, num_episodes, max_steps=None, deterministic=False):
+    """(returns [n, E], lengths [n, E]) of the full-length scan, keys drawn as `evaluate` draws them."""
+    n = jax.tree_util.tree_leaves(levels)[0].shape[0]
+    if max_steps is None:
+        length = student.default_eval_steps
+    else:
+        length = int(max_steps)
+        levels = levels.replace(max_steps=jnp.full_like(levels.max_steps, length))
+    flat = jax.tree_util.tree_map(lambda x: jnp.repeat(x, num_episodes, axis=0), levels)
+    env = student.env
+
+    def one(k, level):
+        k_reset, k_run = jax.random.split(k)
+        obs, env_state = env.reset(k_reset, level)
+
+        def body(c, kk):
+            env_state, obs, ret, ep_len, finished = c
+            k_act, k_step = jax.random.split(kk)
+            action = student.act(state, k_act, obs.astype(jnp.float32), deterministic)
+            obs, env_state, _, done, info = env.step(k_step, env_state, action, level)
+            first = done & ~finished
+            ret = jnp.where(first, info["episode_return"], ret)
+            ep_len = jnp.where(first, info["episode_length"], ep_len)
+            return (env_state, obs, ret, ep_len, finished | done), None
+
+        c0 = (env_state, obs, jnp.zeros((), jnp.float32), jnp.zeros((), jnp.int32), jnp.zeros((), bool))
+        (env_state, _, ret, ep_len, finished), _ = jax.lax.scan(body, c0, jax.random.split(k_run, length))
+        return jnp.where(finished, ret, env_state.episode_return), jnp.where(finished, ep_len, env_state.time)
+
+    rets, lens = jax.vmap(one)(jax.random.split(key, n * num_episodes), flat)
+    return rets.reshape(n, num_episodes), lens.reshape(n, num_episodes)
+
+
+def _levels(env, n, **fields):
+    base = jax.tree_util.tree_map(lambda x: jnp.repeat(jnp.asarray(x)[None], n, 0), env.default_params)
+    return base.replace(**{k: jnp.asarray(v, getattr(base, k).dtype) for k, v in fields.items()})
+
+
+@pytest.fixture(scope="module")
+def cart():
+    env = envs.make("cartpole")
+    student = make_student(env, SMALL)
+    return env, student, jax.jit(student.init)(jax.random.PRNGKey(0))
+
+
+def _eq(a, b):
+    np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def test_early_stop_equals_full_scan_and_runs_fewer_steps(cart):
+    env, student, s = cart
+    ev = jax.jit(student.evaluate_with_info, static_argnums=(3, 4, 5, 6))
+    ref = jax.jit(lambda s, k, lv: full_scan_evaluate(student, s, k, lv, 4))
+    levels = env.param_space.sample(jax.random.PRNGKey(3), (3,))  # own limits: 500 steps
+    for seed in range(3):
+        key = jax.random.PRNGKey(10 + seed)
+        R, info = ev(s, key, levels, 4, None, False, 16)
+        R_ref, L_ref = ref(s, key, levels)
+        _eq(R, R_ref)
+        _eq(info["lengths"], L_ref)
+        # a random policy drops the pole within ~60 steps: the rollout stops at the first chunk
+        # boundary after the last episode end, far below the 500-step limit
+        longest = int(np.max(L_ref))
+        assert longest < 200
+        assert int(info["steps_run"]) == 16 * -(-longest // 16)
+        assert info["env_steps"] == 3 * 4 * 500  # the nominal charge is unchanged
+        for chunk in (1, 7, 64):  # results do not depend on the chunk; steps run round up to it
+            R_c, info_c = ev(s, key, levels, 4, None, False, chunk)
+            _eq(R_c, R_ref)
+            _eq(info_c["lengths"], L_ref)
+            assert int(info_c["steps_run"]) == min(500, chunk * -(-longest // chunk))
+
+
+def test_an_episode_that_never_ends_runs_the_whole_limit(cart):
+    env, student, s = cart
+    # level 1 cannot fail (thresholds out of reach): its episodes last until the step limit
+    thr = [2.4, 1e6, 2.4]
+    ang = [0.2094, 1e6, 0.2094]
+    levels = _levels(env, 3, x_threshold=thr, theta_threshold=ang)
+    key = jax.random.PRNGKey(4)
+    R, info = jax.jit(lambda s, k: student.evaluate_with_info(s, k, levels, 2))(s, key)
+    R_ref, L_ref = jax.jit(lambda s, k: full_scan_evaluate(student, s, k, levels, 2))(s, key)
+    _eq(R, R_ref)
+    _eq(info["lengths"], L_ref)
+    np.testing.assert_array_equal(np.asarray(info["lengths"])[1], [500, 500])
+    assert int(info["steps_run"]) == 500
+    # a step limit that is not a multiple of the chunk: the cut episode is recorded as the full scan's
+    R, info = jax.jit(lambda s, k: student.evaluate_with_info(s, k, levels, 2, 37))(s, key)
+    R_ref, L_ref = jax.jit(lambda s, k: full_scan_evaluate(student, s, k, levels, 2, 37))(s, key)
+    _eq(R, R_ref)
+    _eq(info["lengths"], L_ref)
+    np.testing.assert_array_equal(np.asarray(info["lengths"])[1], [37, 37])
+    assert int(info["steps_run"]) == 37
+
+
+def test_traced_time_limit_beyond_the_scan_records_the_partial_episode(cart):
+    env, student, s = cart
+    # traced levels escape the eager check: level 0 never fails and has a 600-step limit > 500
+    levels = _levels(env, 2, x_threshold=[1e6, 2.4], theta_threshold=[1e6, 0.2094], max_steps=[600, 500])
+    key = jax.random.PRNGKey(5)
+    R, info = jax.jit(lambda s, k, lv: student.evaluate_with_info(s, k, lv, 2))(s, key, levels)
+    R_ref, L_ref = jax.jit(lambda s, k, lv: full_scan_evaluate(student, s, k, lv, 2))(s, key, levels)
+    _eq(R, R_ref)
+    _eq(info["lengths"], L_ref)
+    np.testing.assert_array_equal(np.asarray(info["lengths"])[0], [500, 500])  # partial: cut by the scan
+    assert int(info["steps_run"]) == 500
+
+
+def test_fused_evaluation_equals_separate_ones(cart):
+    env, student, s = cart
+    a = env.param_space.sample(jax.random.PRNGKey(6), (3,))
+    b = _levels(env, 2, x_threshold=[2.4, 1e6], theta_threshold=[0.2094, 1e6])  # b[1] runs to its limit
+    ka, kb = jax.random.PRNGKey(7), jax.random.PRNGKey(8)
+
+    @jax.jit
+    def fused(s):
+        return student.evaluate_many(s, [(ka, a, 4, None), (kb, b, 3, 40)])
+
+    @jax.jit
+    def separate(s):
+        return student.evaluate_with_info(s, ka, a, 4), student.evaluate_with_info(s, kb, b, 3, 40)
+
+    (Ra, ia), (Rb, ib) = fused(s)
+    (Sa, ja), (Sb, jb) = separate(s)
+    _eq(Ra, Sa)
+    _eq(ia["lengths"], ja["lengths"])
+    _eq(Rb, Sb)
+    _eq(ib["lengths"], jb["lengths"])
+    assert Ra.shape == (3, 4) and Rb.shape == (2, 3)
+    assert (ia["env_steps"], ib["env_steps"]) == (ja["env_steps"], jb["env_steps"]) == (3 * 4 * 500, 2 * 3 * 40)
+    np.testing.assert_array_equal(np.asarray(Rb)[1], 40.0)  # the level that cannot fail pays 1 per step to its limit
+    # one rollout for both: as long as the longer of the two
+    assert int(ia["steps_run"]) == int(ib["steps_run"]) == max(int(ja["steps_run"]), int(jb["steps_run"]))
+    # and both equal the full scan
+    R_ref, _ = full_scan_evaluate(student, s, kb, b, 3, 40)
+    _eq(Rb, R_ref)
+
+
+def test_vmapped_seeds_run_until_the_last_one_is_done(cart):
+    env, student, s = cart
+    states = jax.vmap(student.init)(jax.random.split(jax.random.PRNGKey(1), 3))
+    keys = jax.random.split(jax.random.PRNGKey(2), 3)
+    levels = env.param_space.sample(jax.random.PRNGKey(3), (2,))
+    R, info = jax.jit(jax.vmap(lambda s, k: student.evaluate_with_info(s, k, levels, 3)))(states, keys)
+    for i in range(3):
+        s_i = jax.tree_util.tree_map(lambda x: x[i], states)
+        R_ref, L_ref = jax.jit(lambda s, k: full_scan_evaluate(student, s, k, levels, 3))(s_i, keys[i])
+        _eq(R[i], R_ref)
+        _eq(info["lengths"][i], L_ref)
+        assert int(info["steps_run"][i]) == 16 * -(-int(np.max(L_ref)) // 16)  # each seed's own count
