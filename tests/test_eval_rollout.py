@@ -165,3 +165,79 @@ def test_vmapped_seeds_run_until_the_last_one_is_done(cart):
         _eq(R[i], R_ref)
         _eq(info["lengths"][i], L_ref)
         assert int(info["steps_run"][i]) == 16 * -(-int(np.max(L_ref)) // 16)  # each seed's own count
+
+
+@pytest.mark.slow
+def test_lander_early_stop_and_fused_equal_the_full_scan():
+    """The same equalities on the lander (a real physics step, two evaluation sets of two levels)."""
+    from shed_jax import eval_sets
+
+    env = envs.make("lander")
+    student = make_student(env, PPOConfig.for_env("lander", num_envs=4, num_steps=8, num_minibatches=1, update_epochs=1))
+    s = jax.jit(student.init)(jax.random.PRNGKey(0))
+    test = eval_sets.lander_test_set().to_params(env.default_params)
+    heavy = jax.tree_util.tree_map(lambda x: x[jnp.array([7, 8])], test)  # g = -8.9, -6.0: crashes early
+    light = jax.tree_util.tree_map(lambda x: x[jnp.array([0, 2])], test)  # g = -2.0, -1.1: cut at 60 steps
+    ka, kb = jax.random.PRNGKey(1), jax.random.PRNGKey(2)
+
+    @jax.jit
+    def run(s):
+        alone = student.evaluate_with_info(s, ka, heavy, 2, 400)
+        fused = student.evaluate_many(s, [(ka, heavy, 2, 400), (kb, light, 2, 60)])
+        ref_a = full_scan_evaluate(student, s, ka, heavy, 2, 400)
+        ref_b = full_scan_evaluate(student, s, kb, light, 2, 60)
+        return alone, fused, ref_a, ref_b
+
+    (Ra, ia), ((Fa, fa), (Fb, fb)), (Ra_ref, La_ref), (Rb_ref, Lb_ref) = run(s)
+    _eq(Ra, Ra_ref)
+    _eq(ia["lengths"], La_ref)
+    _eq(Fa, Ra_ref)
+    _eq(fa["lengths"], La_ref)
+    _eq(Fb, Rb_ref)
+    _eq(fb["lengths"], Lb_ref)
+    longest = int(np.max(La_ref))
+    assert longest < 400 and int(ia["steps_run"]) == 16 * -(-longest // 16)  # stopped early
+    # one rollout for both sets: as long as the longer of the two needs
+    assert int(fa["steps_run"]) == int(fb["steps_run"]) == max(int(ia["steps_run"]), 16 * -(-int(np.max(Lb_ref)) // 16))
+
+
+# ------------------------------------------------------------------------------------------
+# the loop: SHED's evaluation and the test set as one rollout
+# ------------------------------------------------------------------------------------------
+
+
+def _shed_loop(fused: bool, spec):
+    from shed_jax.loop import make_run
+    from shed_jax.methods.shed import SHED, SHEDConfig
+
+    class SeparateTests(SHED):
+        fuses_test_eval = False  # the loop evaluates the test set after the step, as before fusion
+
+    env = envs.make("cartpole")
+    student = make_student(env, PPOConfig.for_env("cartpole", num_envs=4, num_steps=8, num_minibatches=1, update_epochs=1))
+    cfg = SHEDConfig(updates_per_step=1, num_levels=2, num_eval_levels=3, num_eval_episodes=2, eval_max_steps=40,
+                     budget_steps=2, ddpg_batch=4, real_capacity=16, ddpg_threshold=1)
+    # h-MDP: SHED without the diffusion model (cheaper to compile), the same evaluation code
+    method = (SHED if fused else SeparateTests)(env, student, cfg, use_diffusion=False, name="hmdp",
+                                                eval_levels=env.param_space.sample(jax.random.PRNGKey(42), (3,)))
+    assert method.fuses_test_eval is fused
+    init, run = make_run(student, method, env.param_space.sample(jax.random.PRNGKey(7), (2,)), spec)
+    run = jax.jit(jax.vmap(run, in_axes=(0, None, None)), static_argnums=1)
+    return jax.jit(jax.vmap(init))(jax.random.split(jax.random.PRNGKey(3), 2)), run
+
+
+@pytest.mark.parametrize("test_episode_every", [1, 2])  # 1: static "always test"; 2: a traced schedule
+def test_loop_fused_test_set_equals_separate_evaluation(test_episode_every):
+    from shed_jax.loop import LoopSpec
+
+    spec = LoopSpec(steps_per_episode=2, num_episodes=3, test_episodes=3, test_max_steps=None,
+                    test_episode_every=test_episode_every)
+    s_f, run_f = _shed_loop(True, spec)
+    s_s, run_s = _shed_loop(False, spec)
+    out_f, m_f = run_f(s_f, 6, 0)
+    out_s, m_s = run_s(s_s, 6, 0)
+    for a, b in zip(jax.tree_util.tree_leaves((out_f, m_f)), jax.tree_util.tree_leaves((out_s, m_s))):
+        _eq(a, b)  # every metric and the whole run state, NaN where nothing was tested
+    tested = np.isfinite(np.asarray(m_f["test_return"]))
+    np.testing.assert_array_equal(tested, np.broadcast_to(spec.tests_at(np.arange(6)), (2, 6)))
+    assert np.all(np.asarray(m_f["test_return"])[tested] >= 1.0)  # cartpole pays 1 per step
