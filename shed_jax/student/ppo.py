@@ -7,6 +7,7 @@
     s, metrics = student.update(s, key, traj)        # lax.scan over epochs x minibatches
     s, metrics = student.train(s, key, levels, num_updates)
     R = student.evaluate(s, key, levels, num_episodes, max_steps=None, deterministic=False)
+    outs = student.evaluate_many(s, [(key, levels, num_episodes, max_steps), ...])  # one rollout
     scores = student.level_scores(s, traj)
 
 Everything is jittable, vmappable (over seeds and over `PPOHyperparams`) and usable inside
@@ -462,7 +463,7 @@ class PPOStudent:
             ep_len = jnp.where(first, info["episode_length"], jnp.where(recording, env_state.time, ep_len))
             return (env_state, obs, ret, ep_len, jnp.logical_or(finished, first)), None
 
-        def recording(c, t):
+        def any_recording(c, t):
             return jnp.any(jnp.logical_and(jnp.logical_not(c[4]), t < limits))
 
         def chunk_body(carry):
@@ -474,7 +475,7 @@ class PPOStudent:
         rows = limits.shape[0]
         c0 = (env_state, obs, jnp.zeros((rows,), jnp.float32), jnp.zeros((rows,), jnp.int32), jnp.zeros((rows,), bool))
         (_, _, ret, ep_len, _), t_end = jax.lax.while_loop(
-            lambda carry: recording(*carry), chunk_body, (c0, jnp.zeros((), jnp.int32)))
+            lambda carry: any_recording(*carry), chunk_body, (c0, jnp.zeros((), jnp.int32)))
         return ret, ep_len, jnp.minimum(t_end, total)
 
     def evaluate_with_info(self, state: StudentState, key, levels, num_episodes: int, max_steps: int | None = None,
