@@ -116,7 +116,8 @@ def make_run(student, method, test_levels, spec: LoopSpec) -> tuple[Callable, Ca
         if getattr(method, "fuses_test_eval", False):
             # The method evaluates the stepped student anyway (SHED's teacher state): the test set
             # joins that rollout (``step_with_test``), so a latency-bound simulator pays its
-            # sequential steps once. Same keys, same results as the separate evaluation below.
+            # sequential steps once. Same keys as the separate evaluation below; the same floats
+            # only where the backend computes a row the same at any batch size (docs/running.md).
             # Whether to test: static True when every step tests, else ``tests_at(t)``, a traced
             # bool computed from the unbatched ``t`` (all seeds share it), so the method's
             # ``lax.cond`` stays a real branch under vmap and the test set runs only on test steps.

@@ -13,8 +13,10 @@ Optional: a method that evaluates its student at the end of ``step`` (SHED, h-MD
 
 (with ``method.fuses_test_eval`` true), which is ``step`` plus the loop's test-set evaluation of the stepped student, run as one batched
 rollout with the method's own evaluation (``PPOStudent.evaluate_many``): a latency-bound simulator
-(MJX) then pays its per-step latency once. Its results equal ``step``'s and a separate
-``student.evaluate(s, test.key, test.levels, test.num_episodes, test.max_steps)``.
+(MJX) then pays its per-step latency once. It draws the keys that ``step`` and a separate
+``student.evaluate(s, test.key, test.levels, test.num_episodes, test.max_steps)`` draw, so the
+results are equal where the backend computes a row the same at any batch size (see
+``PPOStudent.evaluate_many``; elsewhere they agree up to last-bit differences and their growth).
 
 ``step`` generates levels, trains the student for the budget step's env steps on them (the method
 decides how: one block of C steps on n levels for SHED/h-MDP/ACCEL-NR, or a new level per slot per

@@ -327,8 +327,9 @@ class SHED:
         The test returns are NaN when ``test.run`` is false; then only the teacher's evaluation
         runs. A traced ``test.run`` chooses with ``lax.cond``, a real branch as long as it is
         unbatched (the loop's schedule is shared by all vmapped seeds); a Python bool chooses at
-        trace time. Results equal ``performance(key, sstate)`` and a separate test evaluation with
-        ``test.key``: every row's keys are drawn as each evaluation alone draws them.
+        trace time. Every row's keys are drawn as ``performance(key, sstate)`` and a separate test
+        evaluation with ``test.key`` draw them; the results are theirs where the backend computes a
+        row the same at any batch size (``PPOStudent.evaluate_many``).
         """
         cfg = self.config
         n_test = jax.tree_util.tree_leaves(test.levels)[0].shape[0]

@@ -390,9 +390,12 @@ class PPOStudent:
     def evaluate_many(self, state: StudentState, requests, deterministic: bool = False, chunk: int = EVAL_CHUNK):
         """Several evaluations as ONE rollout: ``requests`` is a sequence of
         ``(key, levels, num_episodes, max_steps)``; returns a list of ``(returns, info)``, entry i
-        equal bit for bit to ``evaluate_with_info(state, key_i, levels_i, num_episodes_i,
-        max_steps_i, deterministic)`` (on a backend whose batched ops give each row the same bits at
-        any batch size, as XLA:CPU's do).
+        computed as ``evaluate_with_info(state, key_i, levels_i, num_episodes_i, max_steps_i,
+        deterministic)`` computes it: the same keys and the same per-row work, in a larger batch.
+        The floats are equal where the backend computes a row the same at any batch size. That is
+        not guaranteed: XLA:CPU compiles some ops (row sums, small matmuls) to different code for
+        different batch sizes, and lander returns can differ in the last bits, and an episode can
+        then take another path (cartpole's are equal; tests/test_eval_rollout.py).
 
         Keys: row r of request i (level r // E_i, episode r % E_i) takes ``split(key_i, n_i E_i)[r]``,
         split again into its reset key and run key, and the run key into one key per step up to the
