@@ -9,7 +9,7 @@ One *budget step* of the scan:
 3. evaluate the student on the fixed test set (stochastic policy, as the paper and DCD do) and
    record it with the method's ``StepInfo``. A method that evaluates the student at the end of its
    step anyway (``fuses_test_eval``: SHED, h-MDP) runs the test set in the same rollout
-   (``step_with_test``), with the same results.
+   (``step_with_test``), with the same keys.
 
 ``make_run`` returns ``(init, run)``: ``init(key) -> RunState`` and
 ``run(state, num_steps, start_step) -> (state, metrics)`` where ``metrics`` is stacked over the

@@ -11,9 +11,9 @@ Optional: a method that evaluates its student at the end of ``step`` (SHED, h-MD
 
     m, s, info, test_returns = method.step_with_test(key, m, s, test)   # test: an EvalRequest
 
-(with ``method.fuses_test_eval`` true), which is ``step`` plus the loop's test-set evaluation of the stepped student, run as one batched
-rollout with the method's own evaluation (``PPOStudent.evaluate_many``): a latency-bound simulator
-(MJX) then pays its per-step latency once. It draws the keys that ``step`` and a separate
+(with ``method.fuses_test_eval`` true), which is ``step`` plus the loop's test-set evaluation of
+the stepped student, run as one batched rollout with the method's own evaluation
+(``PPOStudent.evaluate_many``): a latency-bound simulator (MJX) then pays its per-step latency once. It draws the keys that ``step`` and a separate
 ``student.evaluate(s, test.key, test.levels, test.num_episodes, test.max_steps)`` draw, so the
 results are equal where the backend computes a row the same at any batch size (see
 ``PPOStudent.evaluate_many``; elsewhere they agree up to last-bit differences and their growth).
