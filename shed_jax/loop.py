@@ -7,7 +7,9 @@ One *budget step* of the scan:
 2. ``method.step``: generate levels, train the student, evaluate, reward, store, synthesise,
    update the teacher (what exactly is the method's business; see ``shed_jax.methods``);
 3. evaluate the student on the fixed test set (stochastic policy, as the paper and DCD do) and
-   record it with the method's ``StepInfo``.
+   record it with the method's ``StepInfo``. A method that evaluates the student at the end of its
+   step anyway (``fuses_test_eval``: SHED, h-MDP) runs the test set in the same rollout
+   (``step_with_test``), with the same keys.
 
 ``make_run`` returns ``(init, run)``: ``init(key) -> RunState`` and
 ``run(state, num_steps, start_step) -> (state, metrics)`` where ``metrics`` is stacked over the
@@ -28,7 +30,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from shed_jax.methods.base import thin_levels
+from shed_jax.methods.base import EvalRequest, thin_levels
 
 
 @struct.dataclass
@@ -111,19 +113,32 @@ def make_run(student, method, test_levels, spec: LoopSpec) -> tuple[Callable, Ca
         mstate, sstate = jax.lax.cond(
             t_in_episode == 0, start_episode, lambda operand: operand, (state.method, state.student)
         )
-        mstate, sstate, info = method.step(k_step, mstate, sstate)
-        info = thin_levels(info, spec.max_recorded_levels)
+        if getattr(method, "fuses_test_eval", False):
+            # The method evaluates the stepped student anyway (SHED's teacher state): the test set
+            # joins that rollout (``step_with_test``), so a latency-bound simulator pays its
+            # sequential steps once. Same keys as the separate evaluation below; the same floats
+            # only where the backend computes a row the same at any batch size (docs/running.md).
+            # Whether to test: static True when every step tests, else ``tests_at(t)``, a traced
+            # bool computed from the unbatched ``t`` (all seeds share it), so the method's
+            # ``lax.cond`` stays a real branch under vmap and the test set runs only on test steps.
+            always = spec.test_every == 1 and spec.test_episode_every == 1
+            test = EvalRequest(k_test, test_levels, spec.test_episodes, spec.test_max_steps,
+                               True if always else spec.tests_at(t))
+            mstate, sstate, info, test_returns = method.step_with_test(k_step, mstate, sstate, test)
+            info = thin_levels(info, spec.max_recorded_levels)
+        else:
+            mstate, sstate, info = method.step(k_step, mstate, sstate)
+            info = thin_levels(info, spec.max_recorded_levels)
 
-        def run_test(s):
-            return student.evaluate(s, k_test, test_levels, spec.test_episodes, spec.test_max_steps)
+            def run_test(s):
+                return student.evaluate(s, k_test, test_levels, spec.test_episodes, spec.test_max_steps)
 
-        do_test = spec.tests_at(t)
-        test_returns = jax.lax.cond(
-            do_test,
-            run_test,
-            lambda s: jnp.full((n_test, spec.test_episodes), jnp.nan, jnp.float32),
-            sstate,
-        )
+            test_returns = jax.lax.cond(
+                spec.tests_at(t),
+                run_test,
+                lambda s: jnp.full((n_test, spec.test_episodes), jnp.nan, jnp.float32),
+                sstate,
+            )
         metrics = {
             "step": t,
             "episode": episode,

@@ -7,6 +7,17 @@ explicit method state pytree:
     m, s = method.begin_episode(key, m, s)       # s: a freshly initialised StudentState
     m, s, info = method.step(key, m, s)          # one budget step (see docs/architecture.md)
 
+Optional: a method that evaluates its student at the end of ``step`` (SHED, h-MDP) may also offer
+
+    m, s, info, test_returns = method.step_with_test(key, m, s, test)   # test: an EvalRequest
+
+(with ``method.fuses_test_eval`` true), which is ``step`` plus the loop's test-set evaluation of
+the stepped student, run as one batched rollout with the method's own evaluation
+(``PPOStudent.evaluate_many``): a latency-bound simulator (MJX) then pays its per-step latency once. It draws the keys that ``step`` and a separate
+``student.evaluate(s, test.key, test.levels, test.num_episodes, test.max_steps)`` draw, so the
+results are equal where the backend computes a row the same at any batch size (see
+``PPOStudent.evaluate_many``; elsewhere they agree up to last-bit differences and their growth).
+
 ``step`` generates levels, trains the student for the budget step's env steps on them (the method
 decides how: one block of C steps on n levels for SHED/h-MDP/ACCEL-NR, or a new level per slot per
 PPO rollout for DR/PLR/ACCEL/PAIRED), evaluates as the method needs, computes teacher rewards,
@@ -15,6 +26,7 @@ stores experience and updates the teacher. All of it must be jittable and usable
 """
 from __future__ import annotations
 
+import dataclasses
 from typing import Any, Protocol
 
 import jax
@@ -43,6 +55,22 @@ class StepInfo:
     teacher_reward: jax.Array
     num_new_levels: jax.Array
     extras: dict = struct.field(default_factory=dict)
+
+
+@dataclasses.dataclass(frozen=True)
+class EvalRequest:
+    """The loop's test-set evaluation, handed to ``step_with_test`` (built inside the trace).
+
+    ``run`` says whether the test set runs at this step: a Python bool, or a traced bool that must be
+    unbatched under ``vmap`` (the loop's is: all seeds share the budget-step schedule), so that the
+    method's ``lax.cond`` on it stays a real branch. When it is false the returns are NaN.
+    """
+
+    key: jax.Array
+    levels: Any  # env params pytree with a leading axis
+    num_episodes: int
+    max_steps: int | None
+    run: Any = True
 
 
 def thin_levels(info: StepInfo, max_levels: int | None) -> StepInfo:

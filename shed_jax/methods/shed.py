@@ -36,7 +36,7 @@ import optax
 from flax import struct
 
 from shed_jax import eval_sets
-from shed_jax.methods.base import StepInfo
+from shed_jax.methods.base import EvalRequest, StepInfo
 from shed_jax.methods.dr import LevelCodec, mean_metrics, teacher_space
 from shed_jax.methods.mutations import new_seeds
 from shed_jax.teacher.buffers import (
@@ -321,6 +321,35 @@ class SHED:
         rets, info = self.student.evaluate_with_info(sstate, key, self.eval_params, self.config.num_eval_episodes, self.eval_max)
         return rets.mean(axis=-1), jnp.asarray(info["env_steps"], jnp.int32)
 
+    def performance_and_test(self, key, sstate, test: EvalRequest):
+        """``performance`` plus the loop's test set as one rollout: (s, env steps, test returns [n, E]).
+
+        The test returns are NaN when ``test.run`` is false; then only the teacher's evaluation
+        runs. A traced ``test.run`` chooses with ``lax.cond``, a real branch as long as it is
+        unbatched (the loop's schedule is shared by all vmapped seeds); a Python bool chooses at
+        trace time. Every row's keys are drawn as ``performance(key, sstate)`` and a separate test
+        evaluation with ``test.key`` draw them; the results are theirs where the backend computes a
+        row the same at any batch size (``PPOStudent.evaluate_many``).
+        """
+        cfg = self.config
+        n_test = jax.tree_util.tree_leaves(test.levels)[0].shape[0]
+        steps = jnp.int32(self.student.eval_env_steps(cfg.num_eval_levels, cfg.num_eval_episodes, self.eval_max))
+
+        def both(s):
+            (rets, _), (test_rets, _) = self.student.evaluate_many(
+                s, [(key, self.eval_params, cfg.num_eval_episodes, self.eval_max),
+                    (test.key, test.levels, test.num_episodes, test.max_steps)])
+            return rets.mean(axis=-1), test_rets
+
+        def teacher_only(s):
+            return self.performance(key, s)[0], jnp.full((n_test, test.num_episodes), jnp.nan, jnp.float32)
+
+        if isinstance(test.run, bool):
+            s_next, test_rets = (both if test.run else teacher_only)(sstate)
+        else:
+            s_next, test_rets = jax.lax.cond(test.run, both, teacher_only, sstate)
+        return s_next, steps, test_rets
+
     def _scaled(self, b: Transition) -> Transition:
         k = 1.0 / self.config.state_scale
         return b.replace(s=b.s * k, s_next=b.s_next * k)
@@ -457,6 +486,18 @@ class SHED:
         return mstate.replace(s=s0, t=jnp.int32(0), pending_eval_steps=steps), sstate
 
     def step(self, key: jax.Array, mstate: SHEDState, sstate):
+        return self._step(key, mstate, sstate, None)[:3]
+
+    @property
+    def fuses_test_eval(self) -> bool:
+        """Whether the loop may call ``step_with_test``: the student runs evaluations as one rollout."""
+        return hasattr(self.student, "evaluate_many")
+
+    def step_with_test(self, key: jax.Array, mstate: SHEDState, sstate, test: EvalRequest):
+        """``step`` whose evaluation also runs the loop's test set (``methods.base``): one rollout."""
+        return self._step(key, mstate, sstate, test)
+
+    def _step(self, key, mstate: SHEDState, sstate, test: EvalRequest | None):
         cfg, student = self.config, self.student
         n, d = cfg.num_levels, self.codec.dim
         reward_fn = self.reward_fn_for(mstate.hparams.eta)
@@ -464,7 +505,11 @@ class SHED:
         u = self.act(mstate, k_act)  # [n * d]
         vecs = self.codec.space.from_unit(u.reshape(n, d))
         sstate, ppo = student.train(sstate, k_train, self.codec.to_params(vecs, new_seeds(k_seed, n)), cfg.updates_per_step)
-        s_next, eval_steps = self.performance(k_eval, sstate)
+        if test is None:
+            s_next, eval_steps = self.performance(k_eval, sstate)
+            test_rets = None
+        else:
+            s_next, eval_steps, test_rets = self.performance_and_test(k_eval, sstate, test)
         r = reward_fn(mstate.s, u, s_next)
         done = (mstate.t == cfg.budget_steps - 1).astype(jnp.float32)
         real = buffer_add(mstate.real, Transition(s=mstate.s, u=u, r=r, s_next=s_next, done=done))
@@ -490,7 +535,7 @@ class SHED:
             },
         )
         mstate = mstate.replace(ddpg=ddpg_state, s=s_next, t=mstate.t + 1, pending_eval_steps=jnp.int32(0))
-        return mstate, sstate, info
+        return mstate, sstate, info, test_rets
 
 
 def make_method(name: str, env, student, config: Any = None):

@@ -7,6 +7,7 @@
     s, metrics = student.update(s, key, traj)        # lax.scan over epochs x minibatches
     s, metrics = student.train(s, key, levels, num_updates)
     R = student.evaluate(s, key, levels, num_episodes, max_steps=None, deterministic=False)
+    outs = student.evaluate_many(s, [(key, levels, num_episodes, max_steps), ...])  # one rollout
     scores = student.level_scores(s, traj)
 
 Everything is jittable, vmappable (over seeds and over `PPOHyperparams`) and usable inside
@@ -62,6 +63,10 @@ class Trajectory:
     next_values: jax.Array  # bootstrap value: V(next_obs), or 0 on termination
     episode_returns: jax.Array  # undiscounted return of the episode ending at this step (0 otherwise)
     episode_lengths: jax.Array
+
+
+# Steps per while-loop iteration of an evaluation rollout (`PPOStudent._eval_rollout`).
+EVAL_CHUNK = 16
 
 
 def _make_optimizer(learning_rate, max_grad_norm):
@@ -358,18 +363,14 @@ class PPOStudent:
         }
 
     def eval_env_steps(self, n_levels: int, num_episodes: int, max_steps: int | None = None) -> int:
-        """Env steps one `evaluate` call simulates (fixed-length scans), for budget accounting."""
+        """Env steps one `evaluate` call is charged (n x E x its step limit), for budget accounting.
+
+        A nominal count: the rollout stops early once every episode has ended, and its ``info``
+        reports the steps actually run (``steps_run``), but budgets and records keep this one."""
         return n_levels * num_episodes * (self.default_eval_steps if max_steps is None else int(max_steps))
 
-    def evaluate_with_info(self, state: StudentState, key, levels, num_episodes: int, max_steps: int | None = None, deterministic: bool = False):
-        """Like `evaluate`, plus {"lengths": [n, E], "env_steps": simulated steps, "episode_steps": sum of lengths}.
-
-        Each (level, episode) pair is one env run for a fixed number of steps (`max_steps`, else
-        the env's default time limit); only its first episode counts (done masking). `max_steps`
-        overrides the levels' own time limit; without it the levels' `max_steps` must not exceed
-        the default limit (checked when the levels are concrete).
-        """
-        n = _leading_dim(levels)
+    def _eval_levels(self, levels, num_episodes: int, max_steps: int | None):
+        """(levels under the evaluation's time limit, its step limit), with the arguments checked."""
         if max_steps is None:
             length = self.default_eval_steps
             ms = levels.max_steps
@@ -384,34 +385,114 @@ class PPOStudent:
             levels = levels.replace(max_steps=jnp.full_like(jnp.asarray(levels.max_steps), length))
         if num_episodes < 1:
             raise ValueError(f"evaluate: num_episodes must be >= 1, got {num_episodes}")
-        flat_levels = jax.tree_util.tree_map(lambda x: jnp.repeat(jnp.asarray(x), num_episodes, axis=0), levels)
+        return levels, length
 
-        def one(k, level):
-            k_reset, k_run = jax.random.split(k)
-            obs, env_state = self.env.reset(k_reset, level)
+    def evaluate_many(self, state: StudentState, requests, deterministic: bool = False, chunk: int = EVAL_CHUNK):
+        """Several evaluations as ONE rollout: ``requests`` is a sequence of
+        ``(key, levels, num_episodes, max_steps)``; returns a list of ``(returns, info)``, entry i
+        computed as ``evaluate_with_info(state, key_i, levels_i, num_episodes_i, max_steps_i,
+        deterministic)`` computes it: the same keys and the same per-row work, in a larger batch.
+        The floats are equal where the backend computes a row the same at any batch size. That is
+        not guaranteed: XLA:CPU compiles some ops (row sums, small matmuls) to different code for
+        different batch sizes, and lander returns can differ in the last bits, and an episode can
+        then take another path (cartpole's are equal; tests/test_eval_rollout.py).
 
-            def body(c, kk):
-                env_state, obs, ret, ep_len, finished = c
-                k_act, k_step = jax.random.split(kk)
-                action = self.act(state, k_act, obs.astype(jnp.float32), deterministic)
-                obs, env_state, _, done, info = self.env.step(k_step, env_state, action, level)
-                first = jnp.logical_and(done, jnp.logical_not(finished))
-                ret = jnp.where(first, info["episode_return"], ret)
-                ep_len = jnp.where(first, info["episode_length"], ep_len)
-                return (env_state, obs, ret, ep_len, jnp.logical_or(finished, done)), None
+        Keys: row r of request i (level r // E_i, episode r % E_i) takes ``split(key_i, n_i E_i)[r]``,
+        split again into its reset key and run key, and the run key into one key per step up to the
+        request's own step limit, exactly as a request alone would. A row stops being recorded at
+        its first episode end or at its request's step limit, and the whole rollout stops when no
+        row is still recording (``info["steps_run"]``, the same number in every entry). Sequential
+        env steps are what an evaluation pays for on a latency-bound simulator (MJX), so fusing the
+        teacher's evaluation with the test set pays that latency once.
+        """
+        if chunk < 1:
+            raise ValueError(f"evaluate: chunk must be >= 1, got {chunk}")
+        groups = []
+        for key, levels, num_episodes, max_steps in requests:
+            n = _leading_dim(levels)
+            levels, length = self._eval_levels(levels, num_episodes, max_steps)
+            flat = jax.tree_util.tree_map(lambda x: jnp.repeat(jnp.asarray(x), num_episodes, axis=0), levels)
+            k_reset, k_run = jnp.moveaxis(jax.vmap(jax.random.split)(jax.random.split(key, n * num_episodes)), 1, 0)
+            groups.append((n, num_episodes, length, flat, k_reset, k_run))
+        total = max(g[2] for g in groups)
+        padded = -(-total // chunk) * chunk  # the key table covers whole chunks
 
-            c0 = (env_state, obs, jnp.zeros((), jnp.float32), jnp.zeros((), jnp.int32), jnp.zeros((), bool))
-            (env_state, _, ret, ep_len, finished), _ = jax.lax.scan(body, c0, jax.random.split(k_run, length))
-            # only reachable if a traced level's time limit exceeds the scan: report the partial episode
-            ret = jnp.where(finished, ret, env_state.episode_return)
-            ep_len = jnp.where(finished, ep_len, env_state.time)
-            return ret, ep_len
+        def step_keys(k_run, length):
+            """[rows, padded] per-step keys: split(k_run, length), the last repeated past the limit."""
+            keys = jax.vmap(lambda k: jax.random.split(k, length))(k_run)
+            return keys[:, np.minimum(np.arange(padded), length - 1)]
 
-        rets, lens = jax.vmap(one)(jax.random.split(key, n * num_episodes), flat_levels)
-        rets = rets.reshape(n, num_episodes)
-        lens = lens.reshape(n, num_episodes)
-        info = {"lengths": lens, "env_steps": n * num_episodes * length, "episode_steps": lens.sum()}
-        return rets, info
+        cat = lambda *xs: jnp.concatenate(xs, axis=0)  # noqa: E731
+        levels = jax.tree_util.tree_map(cat, *[g[3] for g in groups])
+        reset_keys = cat(*[g[4] for g in groups])
+        keys = cat(*[step_keys(g[5], g[2]) for g in groups])
+        limits = jnp.asarray(np.concatenate([np.full(g[0] * g[1], g[2], np.int32) for g in groups]))
+        rets, lens, steps_run = self._eval_rollout(state, reset_keys, keys, levels, limits, total, deterministic, chunk)
+
+        out, r0 = [], 0
+        for n, num_episodes, length, *_ in groups:
+            r1 = r0 + n * num_episodes
+            g_rets, g_lens = rets[r0:r1].reshape(n, num_episodes), lens[r0:r1].reshape(n, num_episodes)
+            out.append((g_rets, {"lengths": g_lens, "env_steps": n * num_episodes * length,
+                                 "episode_steps": g_lens.sum(), "steps_run": steps_run}))
+            r0 = r1
+        return out
+
+    def _eval_rollout(self, state, reset_keys, keys, levels, limits, total: int, deterministic: bool, chunk: int):
+        """Rows (one env run each) stepped together until no row records any more.
+
+        A ``lax.while_loop`` over chunks of ``chunk`` steps, each a ``lax.scan``: the loop's test runs
+        once a chunk, and at most ``chunk - 1`` steps run past the last episode end (unrecorded, so
+        results do not depend on ``chunk``). Step t of row r uses ``keys[r, t]``. Returns (first
+        episode's return [rows], its length [rows], steps run: a multiple of chunk capped at total).
+        """
+        obs, env_state = jax.vmap(self.env.reset)(reset_keys, levels)
+
+        def row_step(kk, env_state, obs, level):
+            k_act, k_step = jax.random.split(kk)
+            action = self.act(state, k_act, obs.astype(jnp.float32), deterministic)
+            return self.env.step(k_step, env_state, action, level)
+
+        def one_step(c, xs):
+            t, keys_t = xs
+            env_state, obs, ret, ep_len, finished = c
+            obs, env_state, _, done, info = jax.vmap(row_step)(keys_t, env_state, obs, levels)
+            recording = jnp.logical_and(jnp.logical_not(finished), t < limits)
+            first = jnp.logical_and(done, recording)
+            # first episode end: its return/length; still running: the partial episode so far (kept
+            # if the row reaches its step limit without an end, only possible for a traced level
+            # whose own time limit exceeds the step limit)
+            ret = jnp.where(first, info["episode_return"], jnp.where(recording, env_state.episode_return, ret))
+            ep_len = jnp.where(first, info["episode_length"], jnp.where(recording, env_state.time, ep_len))
+            return (env_state, obs, ret, ep_len, jnp.logical_or(finished, first)), None
+
+        def any_recording(c, t):
+            return jnp.any(jnp.logical_and(jnp.logical_not(c[4]), t < limits))
+
+        def chunk_body(carry):
+            c, t0 = carry
+            ks = jnp.moveaxis(jax.lax.dynamic_slice_in_dim(keys, t0, chunk, axis=1), 1, 0)
+            c, _ = jax.lax.scan(one_step, c, (t0 + jnp.arange(chunk, dtype=jnp.int32), ks))
+            return c, t0 + chunk
+
+        rows = limits.shape[0]
+        c0 = (env_state, obs, jnp.zeros((rows,), jnp.float32), jnp.zeros((rows,), jnp.int32), jnp.zeros((rows,), bool))
+        (_, _, ret, ep_len, _), t_end = jax.lax.while_loop(
+            lambda carry: any_recording(*carry), chunk_body, (c0, jnp.zeros((), jnp.int32)))
+        return ret, ep_len, jnp.minimum(t_end, total)
+
+    def evaluate_with_info(self, state: StudentState, key, levels, num_episodes: int, max_steps: int | None = None,
+                           deterministic: bool = False, chunk: int = EVAL_CHUNK):
+        """Like `evaluate`, plus {"lengths": [n, E], "env_steps": the nominal steps n x E x limit
+        (budget accounting), "episode_steps": sum of lengths, "steps_run": steps the rollout ran}.
+
+        Each (level, episode) pair is one env run of up to a step limit (`max_steps`, else the env's
+        default time limit); only its first episode counts. All runs stop together as soon as every
+        one has ended its first episode or reached the limit (`evaluate_many`); the returns equal
+        those of a full-length run. `max_steps` overrides the levels' own time limit; without it the
+        levels' `max_steps` must not exceed the default limit (checked when the levels are concrete).
+        """
+        return self.evaluate_many(state, [(key, levels, num_episodes, max_steps)], deterministic, chunk)[0]
 
     def evaluate(self, state: StudentState, key, levels, num_episodes: int, max_steps: int | None = None, deterministic: bool = False):
         """Undiscounted returns [n_levels, num_episodes] of the first episode of each run."""

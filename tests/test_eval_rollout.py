@@ -1,0 +1,251 @@
+"""Evaluation rollouts that stop early and fused evaluations: the same returns as the full-length
+scan they replace, bit for bit (XLA:CPU), with the steps actually run reported.
+
+The reference is the evaluation as it was written before the rollouts stopped early: one
+``lax.scan`` of the full step limit per (level, episode) run, vmapped over the runs. Early stopping
+keeps the batch's shape, so its equality is robust. A fused evaluation draws the same keys in a
+larger batch; its float equality needs the backend to compute a row the same at both batch sizes,
+which XLA:CPU does for cartpole and for the small lander batches below, not for every lander batch
+(docs/running.md).
+"""
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import envs
+from shed_jax.student import PPOConfig, make_student
+
+SMALL = PPOConfig(num_envs=4, num_steps=32, update_epochs=2, num_minibatches=2, actor_hidden=(16,), critic_hidden=(16,))
+
+
+def full_scan_evaluate(student, state, key, levels, num_episodes, max_steps=None, deterministic=False):
+    """(returns [n, E], lengths [n, E]) of the full-length scan, keys drawn as `evaluate` draws them."""
+    n = jax.tree_util.tree_leaves(levels)[0].shape[0]
+    if max_steps is None:
+        length = student.default_eval_steps
+    else:
+        length = int(max_steps)
+        levels = levels.replace(max_steps=jnp.full_like(levels.max_steps, length))
+    flat = jax.tree_util.tree_map(lambda x: jnp.repeat(x, num_episodes, axis=0), levels)
+    env = student.env
+
+    def one(k, level):
+        k_reset, k_run = jax.random.split(k)
+        obs, env_state = env.reset(k_reset, level)
+
+        def body(c, kk):
+            env_state, obs, ret, ep_len, finished = c
+            k_act, k_step = jax.random.split(kk)
+            action = student.act(state, k_act, obs.astype(jnp.float32), deterministic)
+            obs, env_state, _, done, info = env.step(k_step, env_state, action, level)
+            first = done & ~finished
+            ret = jnp.where(first, info["episode_return"], ret)
+            ep_len = jnp.where(first, info["episode_length"], ep_len)
+            return (env_state, obs, ret, ep_len, finished | done), None
+
+        c0 = (env_state, obs, jnp.zeros((), jnp.float32), jnp.zeros((), jnp.int32), jnp.zeros((), bool))
+        (env_state, _, ret, ep_len, finished), _ = jax.lax.scan(body, c0, jax.random.split(k_run, length))
+        return jnp.where(finished, ret, env_state.episode_return), jnp.where(finished, ep_len, env_state.time)
+
+    rets, lens = jax.vmap(one)(jax.random.split(key, n * num_episodes), flat)
+    return rets.reshape(n, num_episodes), lens.reshape(n, num_episodes)
+
+
+def _levels(env, n, **fields):
+    base = jax.tree_util.tree_map(lambda x: jnp.repeat(jnp.asarray(x)[None], n, 0), env.default_params)
+    return base.replace(**{k: jnp.asarray(v, getattr(base, k).dtype) for k, v in fields.items()})
+
+
+@pytest.fixture(scope="module")
+def cart():
+    env = envs.make("cartpole")
+    student = make_student(env, SMALL)
+    return env, student, jax.jit(student.init)(jax.random.PRNGKey(0))
+
+
+def _eq(a, b):
+    np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def test_early_stop_equals_full_scan_and_runs_fewer_steps(cart):
+    env, student, s = cart
+    ev = jax.jit(student.evaluate_with_info, static_argnums=(3, 4, 5, 6))
+    ref = jax.jit(lambda s, k, lv: full_scan_evaluate(student, s, k, lv, 4))
+    levels = env.param_space.sample(jax.random.PRNGKey(3), (3,))  # own limits: 500 steps
+    for seed in range(3):
+        key = jax.random.PRNGKey(10 + seed)
+        R, info = ev(s, key, levels, 4, None, False, 16)
+        R_ref, L_ref = ref(s, key, levels)
+        _eq(R, R_ref)
+        _eq(info["lengths"], L_ref)
+        # a random policy drops the pole within ~60 steps: the rollout stops at the first chunk
+        # boundary after the last episode end, far below the 500-step limit
+        longest = int(np.max(L_ref))
+        assert longest < 200
+        assert int(info["steps_run"]) == 16 * -(-longest // 16)
+        assert info["env_steps"] == 3 * 4 * 500  # the nominal charge is unchanged
+        for chunk in (1, 7, 64):  # results do not depend on the chunk; steps run round up to it
+            R_c, info_c = ev(s, key, levels, 4, None, False, chunk)
+            _eq(R_c, R_ref)
+            _eq(info_c["lengths"], L_ref)
+            assert int(info_c["steps_run"]) == min(500, chunk * -(-longest // chunk))
+
+
+def test_an_episode_that_never_ends_runs_the_whole_limit(cart):
+    env, student, s = cart
+    # level 1 cannot fail (thresholds out of reach): its episodes last until the step limit
+    thr = [2.4, 1e6, 2.4]
+    ang = [0.2094, 1e6, 0.2094]
+    levels = _levels(env, 3, x_threshold=thr, theta_threshold=ang)
+    key = jax.random.PRNGKey(4)
+    R, info = jax.jit(lambda s, k: student.evaluate_with_info(s, k, levels, 2))(s, key)
+    R_ref, L_ref = jax.jit(lambda s, k: full_scan_evaluate(student, s, k, levels, 2))(s, key)
+    _eq(R, R_ref)
+    _eq(info["lengths"], L_ref)
+    np.testing.assert_array_equal(np.asarray(info["lengths"])[1], [500, 500])
+    assert int(info["steps_run"]) == 500
+    # a step limit that is not a multiple of the chunk: the cut episode is recorded as the full scan's
+    R, info = jax.jit(lambda s, k: student.evaluate_with_info(s, k, levels, 2, 37))(s, key)
+    R_ref, L_ref = jax.jit(lambda s, k: full_scan_evaluate(student, s, k, levels, 2, 37))(s, key)
+    _eq(R, R_ref)
+    _eq(info["lengths"], L_ref)
+    np.testing.assert_array_equal(np.asarray(info["lengths"])[1], [37, 37])
+    assert int(info["steps_run"]) == 37
+
+
+def test_traced_time_limit_beyond_the_scan_records_the_partial_episode(cart):
+    env, student, s = cart
+    # traced levels escape the eager check: level 0 never fails and has a 600-step limit > 500
+    levels = _levels(env, 2, x_threshold=[1e6, 2.4], theta_threshold=[1e6, 0.2094], max_steps=[600, 500])
+    key = jax.random.PRNGKey(5)
+    R, info = jax.jit(lambda s, k, lv: student.evaluate_with_info(s, k, lv, 2))(s, key, levels)
+    R_ref, L_ref = jax.jit(lambda s, k, lv: full_scan_evaluate(student, s, k, lv, 2))(s, key, levels)
+    _eq(R, R_ref)
+    _eq(info["lengths"], L_ref)
+    np.testing.assert_array_equal(np.asarray(info["lengths"])[0], [500, 500])  # partial: cut by the scan
+    assert int(info["steps_run"]) == 500
+
+
+def test_fused_evaluation_equals_separate_ones(cart):
+    env, student, s = cart
+    a = env.param_space.sample(jax.random.PRNGKey(6), (3,))
+    b = _levels(env, 2, x_threshold=[2.4, 1e6], theta_threshold=[0.2094, 1e6])  # b[1] runs to its limit
+    ka, kb = jax.random.PRNGKey(7), jax.random.PRNGKey(8)
+
+    @jax.jit
+    def fused(s):
+        return student.evaluate_many(s, [(ka, a, 4, None), (kb, b, 3, 40)])
+
+    @jax.jit
+    def separate(s):
+        return student.evaluate_with_info(s, ka, a, 4), student.evaluate_with_info(s, kb, b, 3, 40)
+
+    (Ra, ia), (Rb, ib) = fused(s)
+    (Sa, ja), (Sb, jb) = separate(s)
+    _eq(Ra, Sa)
+    _eq(ia["lengths"], ja["lengths"])
+    _eq(Rb, Sb)
+    _eq(ib["lengths"], jb["lengths"])
+    assert Ra.shape == (3, 4) and Rb.shape == (2, 3)
+    assert (ia["env_steps"], ib["env_steps"]) == (ja["env_steps"], jb["env_steps"]) == (3 * 4 * 500, 2 * 3 * 40)
+    np.testing.assert_array_equal(np.asarray(Rb)[1], 40.0)  # the level that cannot fail pays 1 per step to its limit
+    # one rollout for both: as long as the longer of the two
+    assert int(ia["steps_run"]) == int(ib["steps_run"]) == max(int(ja["steps_run"]), int(jb["steps_run"]))
+    # and both equal the full scan
+    R_ref, _ = full_scan_evaluate(student, s, kb, b, 3, 40)
+    _eq(Rb, R_ref)
+
+
+def test_vmapped_seeds_run_until_the_last_one_is_done(cart):
+    env, student, s = cart
+    states = jax.vmap(student.init)(jax.random.split(jax.random.PRNGKey(1), 3))
+    keys = jax.random.split(jax.random.PRNGKey(2), 3)
+    levels = env.param_space.sample(jax.random.PRNGKey(3), (2,))
+    R, info = jax.jit(jax.vmap(lambda s, k: student.evaluate_with_info(s, k, levels, 3)))(states, keys)
+    for i in range(3):
+        s_i = jax.tree_util.tree_map(lambda x: x[i], states)
+        R_ref, L_ref = jax.jit(lambda s, k: full_scan_evaluate(student, s, k, levels, 3))(s_i, keys[i])
+        _eq(R[i], R_ref)
+        _eq(info["lengths"][i], L_ref)
+        assert int(info["steps_run"][i]) == 16 * -(-int(np.max(L_ref)) // 16)  # each seed's own count
+
+
+@pytest.mark.slow
+def test_lander_early_stop_and_fused_equal_the_full_scan():
+    """The same equalities on the lander (a real physics step, two evaluation sets of two levels).
+
+    The fused half holds because batches of 4 and 8 lander runs compile alike on XLA:CPU; 80 and
+    180 runs do not (docs/running.md). If a new XLA breaks it while the cartpole fusion tests pass,
+    suspect the compiler's batch-size-dependent code, not the keys."""
+    from shed_jax import eval_sets
+
+    env = envs.make("lander")
+    student = make_student(env, PPOConfig.for_env("lander", num_envs=4, num_steps=8, num_minibatches=1, update_epochs=1))
+    s = jax.jit(student.init)(jax.random.PRNGKey(0))
+    test = eval_sets.lander_test_set().to_params(env.default_params)
+    heavy = jax.tree_util.tree_map(lambda x: x[jnp.array([7, 8])], test)  # g = -8.9, -6.0: crashes early
+    light = jax.tree_util.tree_map(lambda x: x[jnp.array([0, 2])], test)  # g = -2.0, -1.1: cut at 60 steps
+    ka, kb = jax.random.PRNGKey(1), jax.random.PRNGKey(2)
+
+    @jax.jit
+    def run(s):
+        alone = student.evaluate_with_info(s, ka, heavy, 2, 400)
+        fused = student.evaluate_many(s, [(ka, heavy, 2, 400), (kb, light, 2, 60)])
+        ref_a = full_scan_evaluate(student, s, ka, heavy, 2, 400)
+        ref_b = full_scan_evaluate(student, s, kb, light, 2, 60)
+        return alone, fused, ref_a, ref_b
+
+    (Ra, ia), ((Fa, fa), (Fb, fb)), (Ra_ref, La_ref), (Rb_ref, Lb_ref) = run(s)
+    _eq(Ra, Ra_ref)
+    _eq(ia["lengths"], La_ref)
+    _eq(Fa, Ra_ref)
+    _eq(fa["lengths"], La_ref)
+    _eq(Fb, Rb_ref)
+    _eq(fb["lengths"], Lb_ref)
+    longest = int(np.max(La_ref))
+    assert longest < 400 and int(ia["steps_run"]) == 16 * -(-longest // 16)  # stopped early
+    # one rollout for both sets: as long as the longer of the two needs
+    assert int(fa["steps_run"]) == int(fb["steps_run"]) == max(int(ia["steps_run"]), 16 * -(-int(np.max(Lb_ref)) // 16))
+
+
+# ------------------------------------------------------------------------------------------
+# the loop: SHED's evaluation and the test set as one rollout
+# ------------------------------------------------------------------------------------------
+
+
+def _shed_loop(fused: bool, spec):
+    from shed_jax.loop import make_run
+    from shed_jax.methods.shed import SHED, SHEDConfig
+
+    class SeparateTests(SHED):
+        fuses_test_eval = False  # the loop evaluates the test set after the step, as before fusion
+
+    env = envs.make("cartpole")
+    student = make_student(env, PPOConfig.for_env("cartpole", num_envs=4, num_steps=8, num_minibatches=1, update_epochs=1))
+    cfg = SHEDConfig(updates_per_step=1, num_levels=2, num_eval_levels=3, num_eval_episodes=2, eval_max_steps=40,
+                     budget_steps=2, ddpg_batch=4, real_capacity=16, ddpg_threshold=1)
+    # h-MDP: SHED without the diffusion model (cheaper to compile), the same evaluation code
+    method = (SHED if fused else SeparateTests)(env, student, cfg, use_diffusion=False, name="hmdp",
+                                                eval_levels=env.param_space.sample(jax.random.PRNGKey(42), (3,)))
+    assert method.fuses_test_eval is fused
+    init, run = make_run(student, method, env.param_space.sample(jax.random.PRNGKey(7), (2,)), spec)
+    run = jax.jit(jax.vmap(run, in_axes=(0, None, None)), static_argnums=1)
+    return jax.jit(jax.vmap(init))(jax.random.split(jax.random.PRNGKey(3), 2)), run
+
+
+@pytest.mark.parametrize("test_episode_every", [1, 2])  # 1: static "always test"; 2: a traced schedule
+def test_loop_fused_test_set_equals_separate_evaluation(test_episode_every):
+    from shed_jax.loop import LoopSpec
+
+    spec = LoopSpec(steps_per_episode=2, num_episodes=3, test_episodes=3, test_max_steps=None,
+                    test_episode_every=test_episode_every)
+    s_f, run_f = _shed_loop(True, spec)
+    s_s, run_s = _shed_loop(False, spec)
+    out_f, m_f = run_f(s_f, 6, 0)
+    out_s, m_s = run_s(s_s, 6, 0)
+    for a, b in zip(jax.tree_util.tree_leaves((out_f, m_f)), jax.tree_util.tree_leaves((out_s, m_s))):
+        _eq(a, b)  # every metric and the whole run state, NaN where nothing was tested
+    tested = np.isfinite(np.asarray(m_f["test_return"]))
+    np.testing.assert_array_equal(tested, np.broadcast_to(spec.tests_at(np.arange(6)), (2, 6)))
+    assert np.all(np.asarray(m_f["test_return"])[tested] >= 1.0)  # cartpole pays 1 per step
