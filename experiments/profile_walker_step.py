@@ -1,0 +1,81 @@
+"""Where a walker budget step's time goes, part by part, on the device JAX sees.
+
+Times, for ``--seeds`` vmapped students of the walker paper preset on ``--levels`` uniformly
+sampled levels: one rollout, one PPO update (epochs x minibatches), the teacher's evaluation
+(10 evaluation levels x 4 episodes) and the test set (test set B, 10 x 10), each compiled alone;
+evaluations report how many steps they ran before every episode had ended. Run it after a few
+updates of training (``--warm-updates``) so episode lengths are those of a learning student.
+
+    python -m experiments.profile_walker_step --seeds 5 --warm-updates 6 --out runs/profile_walker.json
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import pathlib
+import sys
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+
+def _timed(fn, *args, repeats=2):
+    out = jax.block_until_ready(fn(*args))  # compile + first call
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        out = jax.block_until_ready(fn(*args))
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times)), out
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--seeds", type=int, default=5)
+    p.add_argument("--levels", type=int, default=4)
+    p.add_argument("--warm-updates", type=int, default=6)
+    p.add_argument("--ppo", nargs="*", default=[], metavar="KEY=VALUE", help="PPO overrides (student.config)")
+    p.add_argument("--out", default="runs/profile_walker.json")
+    args = p.parse_args(argv)
+
+    from shed_jax import eval_sets
+    from shed_jax.cli.run import build, seed_keys
+    from shed_jax.presets import build_experiment
+    from shed_jax.student.config import parse_overrides
+
+    exp = build_experiment("walker", "shed", "paper", ppo_overrides=parse_overrides(args.ppo) or None)
+    env, student, _, tests = build(exp)
+    keys = seed_keys(0, args.seeds)
+    levels = env.param_space.sample(jax.random.PRNGKey(1), (args.levels,))
+    evals = eval_sets.walker_eval_set(10).to_params(env.default_params)
+    s = jax.jit(jax.vmap(lambda k: student.assign_levels(student.init(k), k, levels)))(keys)
+    s, _ = jax.jit(jax.vmap(lambda st, k: student.run_updates(st, k, args.warm_updates)))(s, keys)
+    rec = {"device": jax.devices()[0].device_kind, "date": time.strftime("%Y-%m-%d", time.gmtime()),
+           "command": "python -m experiments.profile_walker_step " + " ".join(argv if argv is not None else sys.argv[1:]),
+           "seeds": args.seeds, "num_envs": student.config.num_envs, "num_steps": student.config.num_steps,
+           "epochs": student.config.update_epochs, "minibatches": student.config.num_minibatches}
+    rollout = jax.jit(jax.vmap(student.rollout))
+    rec["rollout_s"], (s2, traj) = _timed(rollout, s, keys)
+    update = jax.jit(jax.vmap(student.update))
+    rec["update_s"], _ = _timed(update, s2, keys, traj)
+
+    def ev(levels_, episodes, max_steps):
+        return jax.jit(jax.vmap(lambda st, k: student.evaluate_with_info(st, k, levels_, episodes, max_steps)))
+
+    rec["teacher_eval_s"], (_, info) = _timed(ev(evals, 4, 2000), s, keys)
+    rec["teacher_eval_steps_run"] = np.asarray(info["steps_run"]).tolist()
+    rec["test_eval_s"], (_, info) = _timed(ev(tests, 10, 2000), s, keys)
+    rec["test_eval_steps_run"] = np.asarray(info["steps_run"]).tolist()
+    updates = exp.method_config["updates_per_step"]
+    rec["train_s_per_budget_step"] = updates * (rec["rollout_s"] + rec["update_s"])
+    print(json.dumps(rec), flush=True)
+    out = pathlib.Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(rec, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
