@@ -109,15 +109,31 @@ def main(argv=None) -> int:
     p.add_argument("--repeats", type=int, default=2, help="timed steps of each kind (median)")
     p.add_argument("--preset", default="paper", choices=("paper", "quick"))
     p.add_argument("--ppo-results", default=None, help="a bench_ppo results.json to fold in as ppo_flat")
+    p.add_argument("--profile", default=None, help="an experiments.profile_walker_step JSON to fold in as profile")
+    p.add_argument("--loops-from", default=None,
+                   help="take the loop timings from an earlier walker_loop JSON instead of measuring them "
+                        "(its device, date and command are kept under loops_source)")
     p.add_argument("--out", default="runs/walker_loop.json")
     args = p.parse_args(argv)
     record = {"device": jax.devices()[0].device_kind, "date": time.strftime("%Y-%m-%d", time.gmtime()),
               "command": "python -m experiments.walker_loop " + " ".join(argv if argv is not None else sys.argv[1:]),
-              "jax": jax.__version__, "budget_step_seconds": {}, "loops": {}}
+              "jax": jax.__version__, "budget_step_seconds": {}, "loops": {},
+              # DCD's named levels need whole runs with --final-eval; None until such runs are folded in
+              "named_solved_rate": None}
     out = pathlib.Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     if args.ppo_results:
         record["ppo_flat"] = ppo_flat(args.ppo_results)
+    if args.profile:
+        record["profile"] = json.loads(pathlib.Path(args.profile).read_text())
+    if args.loops_from:  # compose the record from measured parts; nothing is measured here
+        earlier = json.loads(pathlib.Path(args.loops_from).read_text())
+        record["loops_source"] = {k: earlier.get(k) for k in ("device", "date", "command")}
+        record["device"], record["date"] = earlier["device"], earlier["date"]
+        record["loops"], record["budget_step_seconds"] = earlier["loops"], earlier["budget_step_seconds"]
+        out.write_text(json.dumps(record, indent=2))
+        print(f"wrote {out}")
+        return 0
     for method in [m for m in args.methods.split(",") if m]:
         r = time_steps(method, args.seeds, args.repeats, args.preset)
         record["loops"][method] = r

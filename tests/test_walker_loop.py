@@ -33,3 +33,19 @@ def test_ppo_flat_record(tmp_path):
     assert r["median_steps_to_230"] == 2_000_000  # median 240 >= 230 at the first evaluation
     assert r["seeds_at_230_by_10M"] == 2  # the first seed reaches 230 only at 12M
     assert r["source"]["device"] == "H200"
+
+
+def test_record_composed_from_measured_parts(tmp_path):
+    loops = {"device": "NVIDIA H200", "date": "2026-11-25", "command": "python -m experiments.walker_loop",
+             "loops": {"dr": {"budget_step_s_mean": 21.0}}, "budget_step_seconds": {"dr": 21.0}}
+    ppo = {"device": "NVIDIA H200", "date": "2026-11-25", "command": "bench",
+           "sections": {"walker": {"evals": [{"env_steps_per_seed": 1_000_000, "per_seed": [240.0, 250.0]}]}}}
+    (tmp_path / "loops.json").write_text(json.dumps(loops))
+    (tmp_path / "ppo.json").write_text(json.dumps(ppo))
+    out = tmp_path / "record.json"
+    assert walker_loop.main(["--loops-from", str(tmp_path / "loops.json"), "--ppo-results", str(tmp_path / "ppo.json"),
+                             "--out", str(out)]) == 0
+    rec = json.loads(out.read_text())
+    assert rec["device"] == "NVIDIA H200" and rec["date"] == "2026-11-25"  # the measurement's, not today's machine
+    assert rec["budget_step_seconds"] == {"dr": 21.0} and rec["loops_source"]["command"] == loops["command"]
+    assert rec["ppo_flat"]["median_steps_to_230"] == 1_000_000 and rec["named_solved_rate"] is None

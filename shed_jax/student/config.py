@@ -188,8 +188,8 @@ PRESETS: dict[str, PPOConfig] = {
     # The walker student: observations normalised (running mean/std), 1,024 envs x 64 steps per
     # rollout, 10 epochs of 64 minibatches (1,024 samples each), gamma 0.999, lambda 0.95, no entropy
     # bonus (close to SB3's tuned BipedalWalker PPO). 8 seeds on the flat BipedalWalker level, 16
-    # stochastic evaluation episodes each: median 254 at 2.6M env steps, every seed >= 229 at 2.6M
-    # and >= 253 at 5.2M (H200, 2026-11-25; docs/walker.md). The earlier preset (256 x 32, 5 epochs
+    # stochastic evaluation episodes each: median 259 at 3.1M env steps, every seed >= 230 from 4.2M
+    # (H200, 2026-11-25; docs/walker.md). The earlier preset (256 x 32, 5 epochs
     # of 8, gamma 0.99, lambda 0.9, raw observations) needed 18.4M steps for a median of 230.
     "walker": PPOConfig(
         num_envs=1024,
