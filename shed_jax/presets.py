@@ -51,13 +51,14 @@ class Experiment:
 def default_chunk(exp: Experiment) -> int:
     """Budget steps per compiled chunk (progress line, checkpoint) when ``--chunk`` is not given.
 
-    A walker budget step costs seconds on a GPU (MJX's per-step latency), so its chunks are 5 budget
-    steps and the progress bar moves at least once a minute; the lander's are one teacher episode.
+    A walker budget step costs about 20 s on an H200 (MJX's per-step latency in its evaluations), so
+    its chunks are 2 budget steps and the progress bar moves at least once a minute; the lander's are
+    one teacher episode.
     Always a divisor of the episode length, so chunks never straddle two episodes unevenly.
     """
     T = exp.loop.steps_per_episode
-    if _base_env(exp.env) == "walker" and exp.preset == "paper" and T % 5 == 0:
-        return 5
+    if _base_env(exp.env) == "walker" and exp.preset == "paper" and T % 2 == 0:
+        return 2
     return T
 
 
