@@ -9,7 +9,7 @@ own module so either can be run alone:
     python -m experiments.bench_walker --help
 
 On a CPU the batch sizes are cut down so the run takes minutes, not hours; the GPU figures in
-docs/benchmarks.md come from the full sizes on an H200.
+docs/benchmarks.md (dated entries in docs/log/benchmarks.md) come from the full sizes on an H200.
 """
 from __future__ import annotations
 

@@ -4,9 +4,9 @@
     python -m experiments.bench_ppo --sections lander --total-steps 3000000 --seeds 8 --out DIR
 
 Sections (each is independent; a failure is recorded in results.json and the next one runs):
-  lander / lander-continuous  8 vmapped seeds to 3M env steps (SPEC 6.1 preset). Records the
+  lander / lander-continuous  8 vmapped seeds to 3M env steps (docs/design.md §10.1 preset). Records the
                               learning curve (training episode returns), the first env step at
-                              which the median over seeds reaches 200 (SPEC 6.1 acceptance), the
+                              which the median over seeds reaches 200 (docs/design.md §10.1 acceptance), the
                               final evaluation return per seed (stochastic and deterministic
                               policy), compile time, env steps/s and wall time.
   walker                      4 vmapped seeds on a flat level (`--walker-level`, default
@@ -249,7 +249,7 @@ def bench_student(env_name, total_steps, seeds, out, level_name=None, chunks=20,
 
 
 def _brax_compat():
-    """brax 0.14.2's PPO calls jax.device_put_replicated, which jax 0.11 removed (SPEC 7)."""
+    """brax 0.14.2's PPO calls jax.device_put_replicated, which jax 0.11 removed (docs/design.md §12.3)."""
     if not hasattr(jax, "device_put_replicated"):
         def device_put_replicated(x, devices):
             stacked = jax.tree_util.tree_map(lambda a: jnp.stack([jnp.asarray(a)] * len(devices)), x)

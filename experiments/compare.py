@@ -11,7 +11,7 @@ Writes to OUT:
 
 * ``results.md``: the table (method, env, preset, seeds, final mean test return ± SE over seeds,
   student env steps of the reported student and of the whole run, wall time per seed and, with
-  ``--paper``, the paper's digitised final number from SPEC 3.4); for runs with several teacher
+  ``--paper``, the paper's digitised final number from docs/design.md §12.1); for runs with several teacher
   episodes (SHED, h-MDP) a second table of the test return at the end of each tested episode;
   then links to the plots;
 * ``curves_<env>.png``: mean test return ± SE vs student env steps, all methods of that env on one
@@ -27,7 +27,7 @@ Writes to OUT:
 
 Walker runs whose directory holds ``final_eval_named.json`` (``run``'s default final evaluation)
 also get a table of DCD's six test levels: return ± SE over seeds with the solved rate (return > 230)
-in parentheses, and the mean over all named levels; with ``--paper walker`` DCD's own table (SPEC 3.2,
+in parentheses, and the mean over all named levels; with ``--paper walker`` DCD's own table (docs/design.md §12.2,
 Box2D at about 66x our budget) follows as reference rows. ``named_levels.png`` shows the same six
 levels as bars, with DCD's means as markers under ``--paper walker``.
 
@@ -47,11 +47,11 @@ import sys
 
 import numpy as np
 
-# The paper's digitised mean test-return curves, SPEC 3.4 ("Reported numbers", digitised from the
+# The paper's digitised mean test-return curves, docs/design.md §12.1 (digitised from the
 # paper's figures: mean line only, about ±10-20; x = student update 0-1000; y = mean return over the
 # 10 test levels). A (low, high) pair is a range read off the figure. Keys are our method names:
-# SPEC's lander "ACCEL" is the official code's linear-ramp ACCEL (SPEC 2.7); the lander PAIRED row is
-# from the paper's v1. Methods absent here (plr, accel-norevisit) have no number in the paper.
+# the lander "ACCEL" row is the official code's linear-ramp ACCEL (docs/design.md §11.2); the lander
+# PAIRED row is from the paper's v1. Methods absent here (plr, accel-norevisit) have no number in the paper.
 PAPER_UPDATES = (0, 200, 400, 600, 800, 1000)
 PAPER = {
     "lander": {
@@ -70,16 +70,16 @@ PAPER = {
     },
 }
 # Student env steps per plotted paper update, to overlay the paper's curves on our x axis: lander,
-# the paper's 1e6 steps over 1000 updates (SPEC 6.3); walker, 1e7 env steps over 1000 (SPEC 3.4,
+# the paper's 1e6 steps over 1000 updates (docs/design.md §10.3); walker, 1e7 env steps over 1000 (docs/design.md §12.1,
 # "one plotted step ≈ 1e4 env steps (inferred)").
 PAPER_STEPS_PER_UPDATE = {"lander": 1e3, "walker": 1e4}
 EPISODIC_METHODS = ("shed", "hmdp")
 
-# DCD's six standard BipedalWalker test levels (SPEC 5.5), in the column order of DCD's table, and
-# DCD's results on them (SPEC 3.2, from DCD's results files: 20k updates, about 6.6e8 Box2D steps,
+# DCD's six standard BipedalWalker test levels (docs/design.md §9.2, §13.2), in the column order of DCD's table, and
+# DCD's results on them (docs/design.md §12.2, from DCD's results files: 20k updates, about 6.6e8 Box2D steps,
 # 10 seeds): (mean return, SE, solved rate) per level. An ordering reference, not a parity target.
 NAMED_SET_A = ("BipedalWalker", "Hardcore", "Stairs", "PitGap", "Stump", "Roughness")
-DCD_SOLVED_THRESHOLD = 230.0  # an episode is solved when its return is above this (SPEC 3.3)
+DCD_SOLVED_THRESHOLD = 230.0  # an episode is solved when its return is above this (docs/design.md §9.3)
 DCD_NAMED = {
     "ACCEL": ((317.9, 0.9, .998), (210.8, 10.7, .629), (91.6, 9.7, .206), (112.0, 24.0, .310), (165.8, 14.0, .491),
               (253.3, 13.1, .764)),
@@ -100,7 +100,7 @@ def _point(v) -> float:
 
 
 def format_paper(v) -> str:
-    """A digitised value as printed in SPEC 3.4: ``≈ -100`` or ``≈ 62–65``."""
+    """A digitised value as printed in docs/design.md §12.1: ``≈ -100`` or ``≈ 62–65``."""
     if isinstance(v, tuple):
         return f"≈ {v[0]:g}–{v[1]:g}"
     return f"≈ {v:g}"
@@ -262,7 +262,7 @@ def table(runs: list[Run], paper: str | None = None) -> str:
                "all teacher episodes", "wall time / seed"]
     align = "lllrrrrr"
     if paper is not None:
-        headers.append(f"paper, update 1000 (SPEC 3.4, {paper})")
+        headers.append(f"paper, update 1000 (docs/design.md §12.1, {paper})")
         align += "r"
     rows = []
     order = sorted(runs, key=lambda r: (r.env, -np.nan_to_num(final_return(r)[0], nan=-np.inf)))
@@ -317,7 +317,7 @@ def write_plots(runs: list[Run], out: pathlib.Path, paper: str | None = None) ->
             labels = {r.method: lab for r, lab in zip(group, curves)}
             for method, values in PAPER[paper].items():
                 if method in labels:
-                    refs[f"paper {method} (SPEC 3.4)"] = (np.asarray(PAPER_UPDATES, np.float64) * scale,
+                    refs[f"paper {method} (docs/design.md §12.1)"] = (np.asarray(PAPER_UPDATES, np.float64) * scale,
                                                           np.asarray([_point(v) for v in values]), labels[method])
         path = out / f"curves_{_safe(env)}.png"
         reporting.plot_curves(curves, path, xlabel="student env steps", ylabel="mean test return",
@@ -467,7 +467,7 @@ def named_table(runs: list[Run], paper: str | None = None) -> str | None:
             row[-1] += f" [{n} levels]"
     if paper == "walker":
         for name, cells in DCD_NAMED.items():
-            rows.append([f"DCD {name} (SPEC 3.2)", "10"] + [format_level_cell(*c) for c in cells] + ["—"])
+            rows.append([f"DCD {name} (docs/design.md §12.2)", "10"] + [format_level_cell(*c) for c in cells] + ["—"])
     return reporting.markdown_table(["method", "seeds", *NAMED_SET_A, pooled], rows, "lr" + "r" * 7)
 
 
@@ -536,7 +536,7 @@ def markdown(runs: list[Run], plots: list[pathlib.Path], out: pathlib.Path, pape
                  "student (for SHED/h-MDP its last teacher episode); \"all teacher episodes\" counts every "
                  "student the teacher trained.")
     if paper is not None:
-        lines.append("Paper: the mean line digitised from the paper's figure at update ≈ 1000 (SPEC 3.4), "
+        lines.append("Paper: the mean line digitised from the paper's figure at update ≈ 1000 (docs/design.md §12.1), "
                      "±10–20 from digitising, over an unknown number of seeds.")
     lines.append("")
     for p in plots:
@@ -553,7 +553,7 @@ def main(argv=None) -> int:
                         "(default: the method, disambiguated by preset, then directory name); RUN_DIRs "
                         "with the same label are pooled into one row (same experiment, other root seeds)")
     p.add_argument("--paper", choices=sorted(PAPER), default=None,
-                   help="add the paper's digitised numbers (SPEC 3.4) for this environment")
+                   help="add the paper's digitised numbers (docs/design.md §12.1) for this environment")
     args = p.parse_args(argv)
     runs = [load_run(d) for d in args.runs]
     assign_labels(runs)

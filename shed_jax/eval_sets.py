@@ -1,4 +1,4 @@
-"""Evaluation (teacher state) and test level sets, as fixed data (SPEC 3.1, 3.2).
+"""Evaluation (teacher state) and test level sets, as fixed data (docs/design.md §9.1, §9.2).
 
 A set is a :class:`LevelSet`: named per-level columns (numpy, host data) holding both the
 teacher-controllable box parameters and the non-box fields (``enable_wind``, ``max_steps``,
@@ -15,10 +15,10 @@ Sets here:
   cut into bins, one value is drawn uniformly inside each bin, and the per-parameter draws are
   combined by independent random permutations (a Latin hypercube), so every bin of every parameter
   is covered by some level. Deterministic for a seed.
-* ``official_lander_eval_set``: the official code's 10 eval landers (hard-coded from the SPEC table;
+* ``official_lander_eval_set``: the official code's 10 eval landers (hard-coded from the docs/design.md §9.1 table;
   other m via the same generator, numpy legacy RNG seed 92, with 9i/(m-1) in place of i).
 * ``lander_test_set``: the official 10 test landers.
-* ``walker_ladder_set`` (``walker_eval_set`` seed 92, ``walker_test_set_b`` seed 2024): the SPEC 3.1
+* ``walker_ladder_set`` (``walker_eval_set`` seed 92, ``walker_test_set_b`` seed 2024): the docs/design.md §9.1
   difficulty ladder over the DCD FULL ranges, each level with its own fixed terrain seed.
 * ``walker_test_set_a``: DCD's named test levels, from ``envs.walker.levels.LEVELS`` (imported lazily).
 
@@ -112,7 +112,7 @@ def paper_eval_set(names: Sequence[str], low, high, m: int, seed: int = 92, num_
 # Lander
 # --------------------------------------------------------------------------------------------
 
-# (gravity, enable_wind, wind_power, turbulence_power), max_steps 500 [official code, SPEC 3.1]
+# (gravity, enable_wind, wind_power, turbulence_power), max_steps 500 [official code, docs/design.md §9.1]
 LANDER_EVAL_10 = (
     (-0.01, False, 0.616, 0.01),
     (-1.70, True, 0.01, 0.01),
@@ -126,7 +126,7 @@ LANDER_EVAL_10 = (
     (-9.457, False, 8.899, 0.745),
 )
 
-# [official code, SPEC 3.2]
+# [official code, docs/design.md §9.2]
 LANDER_TEST_10 = (
     (-2.0, True, 1.0, 0.2),
     (-2.9, False, 0.6, 0.9),
@@ -161,7 +161,7 @@ def official_lander_generator(m: int, seed: int = 92) -> list:
 
     For level i: g = clip(N(-0.9 x, 2), -9.99, -0.01); wind_on = choice{T, F};
     wind = clip(N(0.7 x, 2), 0.01, 10); turb = clip(N(0.1 x, 1), 0.01, 1.5), with x = i for m = 10
-    and x = 9 i / (m - 1) otherwise (SPEC 3.1), drawn in this order.
+    and x = 9 i / (m - 1) otherwise (docs/design.md §9.1), drawn in this order.
     """
     if m < 2:
         raise ValueError(f"the official lander generator needs m >= 2, got {m}")
@@ -183,7 +183,7 @@ def official_lander_eval_set(m: int = 10) -> LevelSet:
 
 
 def lander_test_set() -> LevelSet:
-    """The official 10 test landers (SPEC 3.2)."""
+    """The official 10 test landers (docs/design.md §9.2)."""
     return _lander_set(LANDER_TEST_10)
 
 
@@ -204,7 +204,7 @@ def lander_paper_eval_set(m: int, seed: int = 92) -> LevelSet:
 # Walker
 # --------------------------------------------------------------------------------------------
 
-# DCD FULL ranges of the 8-d level vector (SPEC 5.1)
+# DCD FULL ranges of the 8-d level vector (docs/design.md §13.2)
 WALKER_NAMES = (
     "roughness",
     "pit_gap_low",
@@ -217,13 +217,13 @@ WALKER_NAMES = (
 )
 WALKER_LOW = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)
 WALKER_HIGH = (10.0, 10.0, 10.0, 5.0, 5.0, 5.0, 5.0, 9.0)
-# obstacle present only if its pair's high value reaches the threshold (SPEC 5.1)
+# obstacle present only if its pair's high value reaches the threshold (docs/design.md §13.2)
 WALKER_THRESHOLDS = {"pit_gap": 0.8, "stump_height": 0.2, "stair_height": 0.2}
 DCD_TEST_LEVELS = ("BipedalWalker", "Hardcore", "Stairs", "PitGap", "Stump", "Roughness")
 
 
 def walker_ladder_set(m: int = 10, seed: int = 92) -> LevelSet:
-    """The SPEC 3.1 ladder: level i has difficulty f_i = i/(m-1).
+    """The docs/design.md §9.1 ladder: level i has difficulty f_i = i/(m-1).
 
     Draws (numpy Generator(seed), per level in this order): the 7 continuous FULL parameters
     clip(N(lo + 0.6 f (hi - lo), 0.1 (hi - lo)), lo, hi); steps clip(round(N(1 + 4.8 f, 1)), 1, 9);
@@ -274,7 +274,7 @@ def walker_test_set_a(names: Sequence[str] = DCD_TEST_LEVELS, terrain_seeds: Seq
     """DCD's named test levels as one stacked WalkerParams (from ``envs.walker.levels.LEVELS``).
 
     Each level gets a fixed terrain (``fixed_terrain=True``) from a fixed seed list (default
-    1000 + i; DCD seeds test terrains from the wall clock, SPEC 5.5 fixes them).
+    1000 + i; DCD seeds test terrains from the wall clock, docs/design.md §9.2 fixes them).
     """
     from envs.walker.levels import LEVELS  # lazy: keeps this module free of env imports
 

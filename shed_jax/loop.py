@@ -51,7 +51,7 @@ class LoopSpec:
     test_max_steps: int | None = None  # None: the test levels' own time limit
     test_every: int = 1  # evaluate on the test set every k budget steps (NaN in between)
     # Test only in teacher episodes e with e % k == 0, and always in the last one (NaN in the
-    # others). Reports need the first and last episodes' curves (SPEC 3.3); testing the students of
+    # others). Reports need the first and last episodes' curves (docs/design.md §9.3); testing the students of
     # the episodes between costs a 500-step evaluation per budget step, about a fifth of a SHED step.
     test_episode_every: int = 1
     # At most this many of a budget step's levels go into the metrics record (evenly spaced rows,

@@ -1,7 +1,7 @@
 """Named experiment presets: everything a run needs besides the seed, as one frozen value.
 
 * ``quick``: CPU-sized (a few minutes on 2 cores), for smoke runs and the test suite.
-* ``paper``: SPEC 6.3 budgets. Lander: C = 10 PPO updates of 40 x 128 = 51,200 env steps per budget
+* ``paper``: docs/design.md §10.3 budgets. Lander: C = 10 PPO updates of 40 x 128 = 51,200 env steps per budget
   step, T = 20 budget steps (1.02e6 student steps, the paper's 1e6), n = 5 levels, m = 10 eval
   envs with 8 episodes each, the official 10 test landers (10 episodes, 500 steps). SHED and h-MDP
   run N_ep = 50 teacher episodes (the student is re-initialised each episode; the test set runs in
@@ -96,7 +96,7 @@ def build_experiment(env: str, method: str, preset: str, *, episodes: int | None
             test_set = "walker-test-b"
             if method in ("shed", "hmdp", "accel-norevisit"):
                 mcfg["num_levels"] = 4
-            if episodic:  # SPEC 6.3: E_eval = 4 evaluation episodes per eval level (lander: 8)
+            if episodic:  # docs/design.md §10.3: E_eval = 4 evaluation episodes per eval level (lander: 8)
                 mcfg["num_eval_episodes"] = 4
     else:  # quick
         if kind == "lander":
@@ -117,7 +117,7 @@ def build_experiment(env: str, method: str, preset: str, *, episodes: int | None
     # never silently the default
     T = T if steps_per_episode is None else steps_per_episode
     # SHED/h-MDP paper runs: test the students of teacher episodes 0, 10, 20, ... and the last
-    # (SPEC 3.3 reports the first and last episodes); by step counts this saves about a fifth
+    # (docs/design.md §9.3 reports the first and last episodes); by step counts this saves about a fifth
     test_ep = 10 if (preset == "paper" and episodic) else 1
     if test_episode_every is not None:  # LoopSpec rejects values < 1
         test_ep = test_episode_every

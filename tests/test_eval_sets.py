@@ -110,7 +110,7 @@ def test_stack_params_and_levelset_validation():
 def test_walker_test_set_a_named_levels():
     a = es.walker_test_set_a()
     assert isinstance(a, WalkerParams) and a.roughness.shape == (6,)
-    # DCD order: BipedalWalker, Hardcore, Stairs, PitGap, Stump, Roughness (SPEC 5.5)
+    # DCD order: BipedalWalker, Hardcore, Stairs, PitGap, Stump, Roughness (docs/design.md §9.2)
     np.testing.assert_allclose(np.asarray(a.roughness)[[0, 5]], [1.0, 5.0])
     np.testing.assert_allclose(a.stair_height_high[2], 2.0)
     np.testing.assert_allclose(a.pit_gap_low[3], 5.0)

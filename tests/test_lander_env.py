@@ -94,7 +94,7 @@ def test_reset_statistics_and_observation_normalisation():
     n = 64
     obs, s = reset(jax.random.split(jax.random.PRNGKey(1), n), levels(n))
     obs = np.asarray(obs)
-    # SPEC 4.6 post-reset probes (Gymnasium): x +-0.008, y in [1.40, 1.42], |vx| <= 0.80, no legs
+    # docs/design.md §13.1 / docs/lander.md "Parity" post-reset probes (Gymnasium): x +-0.008, y in [1.40, 1.42], |vx| <= 0.80, no legs
     assert np.all(np.abs(obs[:, 0]) <= 0.0085) and np.all((obs[:, 1] > 1.395) & (obs[:, 1] < 1.425))
     assert np.all(np.abs(obs[:, 2]) <= 0.81) and np.all(obs[:, 6:] == 0)
     # Gymnasium's exact linear response of the first no-op step (measured, 200 seeds):

@@ -241,7 +241,7 @@ def test_dr_code_distribution_and_lander_theta():
     uniform = DR(env, None, DRConfig())
     vecs, params = uniform.sample_levels(jax.random.PRNGKey(0), 4000)
     v = np.asarray(vecs)
-    np.testing.assert_allclose(v.min(0), [-9.0, 0.01, 0.01], atol=0.05)  # SPEC 1.6 teacher box
+    np.testing.assert_allclose(v.min(0), [-9.0, 0.01, 0.01], atol=0.05)  # docs/design.md §5 teacher box
     np.testing.assert_allclose(v.max(0), [-0.01, 12.0, 1.5], atol=0.05)
     assert np.all(np.asarray(params.enable_wind))  # wind on for every generated level
     assert np.all(np.asarray(params.max_steps) == 600)  # lander training time limit

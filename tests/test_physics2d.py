@@ -228,7 +228,7 @@ def test_polyline_points_in_polygon_against_numpy():
 
 def test_lander_step_has_no_reduced_precision_matrix_product():
     """On GPUs a float32 dot at default precision is TF32; the lander's only dot is the reset's
-    locked-joint projection, at HIGHEST (contact selection is masked sums, docs/benchmarks.md)."""
+    locked-joint projection, at HIGHEST (contact selection is masked sums, docs/log/benchmarks.md "Exact contact selection and a free-flight reset")."""
     import re
 
     import envs

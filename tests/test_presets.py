@@ -1,4 +1,4 @@
-"""Presets: the SPEC 6.3 budgets, T kept in sync with the teacher's done flag, and every method
+"""Presets: the docs/design.md §10.3 budgets, T kept in sync with the teacher's done flag, and every method
 constructible from every preset through the registry (construction only; no compile)."""
 import pytest
 
@@ -29,7 +29,7 @@ def test_paper_lander_budget_matches_spec():
 def test_walker_paper_budget_is_1e7_steps():
     e = build_experiment("walker", "accel", "paper")
     assert e.env_steps_per_budget_step * e.loop.steps_per_episode == 1024 * 64 * 3 * 50  # 9.83e6
-    shed = build_experiment("walker", "shed", "paper")  # SPEC 6.3: n = 4, E_eval = 4, N_ep = 20
+    shed = build_experiment("walker", "shed", "paper")  # docs/design.md §10.3: n = 4, E_eval = 4, N_ep = 20
     assert shed.method_config["num_levels"] == 4 and shed.method_config["num_eval_episodes"] == 4
     assert shed.loop.num_episodes == 20 and build_experiment("lander", "shed", "paper").method_config.get(
         "num_eval_episodes", 8) == 8

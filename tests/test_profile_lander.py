@@ -1,5 +1,5 @@
 """experiments.profile_lander: the per-kernel sums from a Perfetto trace, and the variants' programs
-(the GPU timings themselves are benchmarks, docs/benchmarks.md)."""
+(the GPU timings themselves are benchmarks, docs/log/benchmarks.md "Exact contact selection and a free-flight reset")."""
 import gzip
 import json
 

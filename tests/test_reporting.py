@@ -154,7 +154,7 @@ def test_compare_table_rows_and_plots(runs, capsys):
     md = (out / "results.md").read_text()
     lines = md.splitlines()
     assert lines[0] == ("| method | env | preset | seeds | final test return (mean ± SE) | student env steps | "
-                        "all teacher episodes | wall time / seed | paper, update 1000 (SPEC 3.4, lander) |")
+                        "all teacher episodes | wall time / seed | paper, update 1000 (docs/design.md §12.1, lander) |")
     # sorted best first; SE(shed) = 10/sqrt(3), SE(dr) = sd(-200,-260)/sqrt(2) = 30
     assert lines[2] == "| shed | lander | quick | 3 | -110.0 ± 5.8 | 3k | 6k (2 ep.) | 40 s | ≈ -100 |"
     assert lines[3] == "| dr | lander | quick | 2 | -230.0 ± 30.0 | 4k | 4k | 60.0 min | ≈ -257 |"
@@ -234,11 +234,11 @@ def test_compare_named_level_table_with_dcd_reference(runs):
     assert lines[at + 2] == ("| shed | 2 | 215.0 ± 15.0 (.250) | -30.0 ± 0.0 (.000) | -50.0 ± 0.0 (.000) | "
                              f"-40.0 ± 0.0 (.000) | -10.0 ± 0.0 (.000) | -20.0 ± 0.0 (.000) | {pooled} |")
     # the run without a named evaluation (dr) has no row; DCD's three methods follow as reference rows
-    assert lines[at + 3] == ("| DCD ACCEL (SPEC 3.2) | 10 | 317.9 ± 0.9 (.998) | 210.8 ± 10.7 (.629) | 91.6 ± 9.7 (.206) | "
+    assert lines[at + 3] == ("| DCD ACCEL (docs/design.md §12.2) | 10 | 317.9 ± 0.9 (.998) | 210.8 ± 10.7 (.629) | 91.6 ± 9.7 (.206) | "
                              "112.0 ± 24.0 (.310) | 165.8 ± 14.0 (.491) | 253.3 ± 13.1 (.764) | — |")
-    assert lines[at + 4] == ("| DCD PLR⊥ (SPEC 3.2) | 10 | 304.8 ± 2.3 (.992) | 84.8 ± 12.8 (.158) | 51.0 ± 4.8 (.045) | "
+    assert lines[at + 4] == ("| DCD PLR⊥ (docs/design.md §12.2) | 10 | 304.8 ± 2.3 (.992) | 84.8 ± 12.8 (.158) | 51.0 ± 4.8 (.045) | "
                              "43.3 ± 11.3 (.040) | 6.5 ± 5.5 (.006) | 129.7 ± 13.3 (.244) | — |")
-    assert lines[at + 5].startswith("| DCD DR (SPEC 3.2) | 10 | 266.8 ± 13.3 (.836) |") and not lines[at + 6].startswith("|")
+    assert lines[at + 5].startswith("| DCD DR (docs/design.md §12.2) | 10 | 266.8 ± 13.3 (.836) |") and not lines[at + 6].startswith("|")
     _png(out / "named_levels.png")  # the same six levels as bars, linked from results.md
     assert "](named_levels.png)" in (out / "results.md").read_text()
     assert compare.plot_named([compare.load_run(runs / "dr")], out) is None

@@ -35,7 +35,7 @@ def test_roughness_scales_the_random_walk(gen):
     sd1 = np.std(gen(make_params(roughness=1.0)).y, axis=1).mean()
     sd5 = np.std(gen(make_params(roughness=5.0)).y, axis=1).mean()
     sd9 = np.std(gen(make_params(roughness=9.0)).y, axis=1).mean()
-    # SPEC 5.2 parity (20 seeds of DCD): 0.54 for roughness 5, 0.96 for 9 (seed noise ~ +-20 %).
+    # docs/walker.md "Terrain" parity (20 seeds of DCD): 0.54 for roughness 5, 0.96 for 9 (seed noise ~ +-20 %).
     assert 0.42 < sd5 < 0.70 and 0.78 < sd9 < 1.25
     assert sd1 < sd5 < sd9
     # The start pad (first 21 columns) is always flat.
@@ -53,7 +53,7 @@ def test_stumps_heights_in_step_units_and_counts(gen):
         assert np.all((h >= 2.0 - 1e-4) & (h <= 3.0 + 1e-4))
         np.testing.assert_allclose(b[:, 2], C.TERRAIN_HEIGHT, atol=1e-5)  # stands on flat ground
         assert b[:, 0].min() >= 20 * S - 1e-4  # nothing on the start pad
-    # Counter not reset after a stump: 4-8 flat columns follow; SPEC parity 13.3 boxes per level.
+    # Counter not reset after a stump: 4-8 flat columns follow; docs/walker.md "Terrain" parity: 13.3 boxes per level.
     assert 11.5 < t.n_boxes.mean() < 15.0
 
 
@@ -72,7 +72,7 @@ def test_pits_walls_and_gap(gen):
         for wa, wb in zip(w1, w2):
             inner = (t.x[i] > wa[1] + 1e-3) & (t.x[i] < wb[0] - 1e-3)
             np.testing.assert_allclose(t.y[i][inner], wa[3] - 4 * S, atol=1e-4)
-    assert 20 < t.n_boxes.mean() < 30  # SPEC parity (gap 5): 25
+    assert 20 < t.n_boxes.mean() < 30  # docs/walker.md "Terrain" parity (gap 5): 25
 
 
 def test_pit_threshold_and_closing_column_moves_back(gen):
@@ -106,7 +106,7 @@ def test_stairs_steps_below_n_and_heights(gen):
                 run = 1
         counts.append(run)
     assert max(counts) <= n - 1
-    assert 20 < t.n_boxes.mean() < 28  # SPEC parity (Med-Stairs): 23.2
+    assert 20 < t.n_boxes.mean() < 28  # docs/walker.md "Terrain" parity (Med-Stairs): 23.2
     # EASY quirk: steps 1 -> randint(1) = 0 steps, stairs enabled but never built.
     t1 = gen(make_params(roughness=0.0, stair_height_high=0.4, stair_steps=1.0))
     assert t1.n_boxes.max() == 0 and np.any(t1.kinds == C.STAIRS)

@@ -2,7 +2,7 @@
 
 A level is ``LanderParams`` (gravity, wind on/off, wind and turbulence power, time limit). The rules
 (terrain, engines, wind, observation, reward, termination) live here; rigid-body dynamics are
-``envs.physics2d``. See SPEC section 4 and docs/lander.md.
+``envs.physics2d``. See docs/design.md §13.1 and docs/lander.md.
 """
 from __future__ import annotations
 
@@ -57,7 +57,7 @@ def wave(idx):
 
 
 def terrain(key):
-    """Smoothed heights (CHUNKS,) of a fresh random terrain with the flat helipad (SPEC 4.2)."""
+    """Smoothed heights (CHUNKS,) of a fresh random terrain with the flat helipad (docs/lander.md "Model")."""
     h = jax.random.uniform(key, (M.CHUNKS + 1,), jnp.float32, 0.0, M.H / 2)
     pad = (jnp.arange(M.CHUNKS + 1) >= M.CHUNKS // 2 - 2) & (jnp.arange(M.CHUNKS + 1) <= M.CHUNKS // 2 + 2)
     h = jnp.where(pad, jnp.float32(M.HELIPAD_Y), h)
@@ -100,7 +100,7 @@ class LunarLander(Environment):
                  position_iterations: int = M.POSITION_ITERATIONS, unroll: int | None = None,
                  solver_kernel: str = "auto"):
         # unroll: solver-loop unroll factor, a speed knob with no effect on results. None picks 4 on
-        # accelerators (2.4 vs 3.7 ms per sequential step at batch 40 on an H200; docs/benchmarks.md)
+        # accelerators (2.4 vs 3.7 ms per sequential step at batch 40 on an H200; docs/log/benchmarks.md)
         # and 1 on CPU, where the larger program mostly costs compile time.
         if unroll is None:
             unroll = 1 if jax.default_backend() == "cpu" else 4

@@ -1,4 +1,4 @@
-"""Gymnasium's hand-written Lunar Lander controller (SPEC 4.5), as a jittable, vmappable function."""
+"""Gymnasium's hand-written Lunar Lander controller (docs/lander.md), as a jittable, vmappable function."""
 from __future__ import annotations
 
 import jax.numpy as jnp

@@ -1,6 +1,6 @@
 """The lander's rigid bodies as a physics2d model: hull + two legs on motorised, limited pins.
 
-Every number is Gymnasium LunarLander-v3's (SPEC section 4.1), converted from pixels (/ SCALE).
+Every number is Gymnasium LunarLander-v3's (docs/design.md §13.1, docs/lander.md "Model"), converted from pixels (/ SCALE).
 Body 0 is the hull (a sensor: any touch of the ground ends the episode, so its contacts never need
 solving), bodies 1 and 2 are the legs (Gymnasium's i = -1 and i = +1).
 """

@@ -1,6 +1,6 @@
 """Parity harness: Gymnasium's heuristic in our lander (vmapped) and in Gymnasium LunarLander-v3.
 
-Both sides report, per setting, the statistics SPEC 4.6 compares: mean / std return, the +100
+Both sides report, per setting, the statistics docs/design.md §13.1 (and docs/lander.md "Parity") compares: mean / std return, the +100
 landing rate, the -100 crash rate, mean length (and the truncation rate). Our side runs every
 episode of every setting of one action type in a single compiled program (vmap over levels).
 

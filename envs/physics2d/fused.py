@@ -2,7 +2,7 @@
 
 Why this exists: the solver's Gauss-Seidel passes are tiny (a few dozen flops per constraint) and
 strictly sequential, so XLA turns each pass into ~37 kernel launches (17 fusions and 20 copies of
-the loop carry, docs/benchmarks.md) and a lander step spends ~1.7 ms of its 2.3 ms launching them.
+the loop carry, docs/log/benchmarks.md "Why an iteration costs 21 µs") and a lander step spends ~1.7 ms of its 2.3 ms launching them.
 Here the whole loop (all iterations) is one Pallas kernel: every GPU thread holds one world's carry
 in registers for all the iterations. No library offers this (XLA's command buffers and unrolling
 were measured and did not help), hence the hand-written kernel.

@@ -32,7 +32,7 @@ def _rose(r, stump_lo, stump_hi, pit_hi, pit_lo):
     return _lvl(roughness=r, stump=(stump_lo, stump_hi), pit=(pit_lo, pit_hi))
 
 
-#: name -> WalkerParams fields (SPEC 5.5). Obstacle levels are flat (roughness 0) as in DCD.
+#: name -> WalkerParams fields (docs/design.md §13.2). Obstacle levels are flat (roughness 0) as in DCD.
 LEVEL_FIELDS: dict[str, dict] = {
     "BipedalWalker": _lvl(roughness=1.0, max_steps=1600),
     # Gymnasium's own hardcore generator (gym_hardcore). The generator ignores the 8 values; they

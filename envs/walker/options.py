@@ -17,7 +17,7 @@ class WalkerOptions:
     kv:                  velocity-servo gain of the motor (N m per rad/s), see docs/walker.md.
     collide_upper_legs:  also collide the thighs with the ground. Box2D does; off by default because the
                          two extra heightfield pairs cost 39 % of the step at 32k envs on an H200
-                         (docs/benchmarks.md) and a thigh reaches the ground only in a deep kneel.
+                         (docs/log/benchmarks.md "Knob sweep and the new default") and a thigh reaches the ground only in a deep kneel.
     max_boxes:           obstacle box slots per level (extra boxes are dropped; 64 covers FULL).
     z_span:              vertical extent of the heightfield above its per-level base (m).
     contact_threshold:   a lower leg touches the ground if a contact's distance is <= this (m).

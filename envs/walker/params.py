@@ -8,7 +8,7 @@ from flax import struct
 
 from envs.core import EnvParams, ParamSpace
 
-#: DCD's level vector, in order (SPEC 5.1).
+#: DCD's level vector, in order (docs/design.md §13.2).
 PARAM_NAMES = (
     "roughness",
     "pit_gap_low",

@@ -1,6 +1,6 @@
 """DCD's parametric BipedalWalker terrain generator as one ``lax.scan`` over the 200 columns.
 
-``generate(key, level)`` reproduces DCD's GRASS/STUMP/STAIRS/PIT state machine (SPEC 5.2) from the
+``generate(key, level)`` reproduces DCD's GRASS/STUMP/STAIRS/PIT state machine (docs/walker.md "Terrain") from the
 8 level parameters and a key, returning the ground polyline (199 edges through ``x, y``) and the
 obstacle boxes (stumps, stair steps, pit walls). ``rasterise`` turns that into the height profile
 ``max(polyline, box tops)`` sampled every ``TERRAIN_STEP / resolution`` metres, which is what the
@@ -10,7 +10,7 @@ so physics, sensing and drawing agree).
 Everything is pure jnp on scalars and fixed-size arrays, so a batch of different levels is one
 ``vmap``. Any parameter vector is valid: pairs are sorted and thresholds applied here.
 
-A level with ``gym_hardcore`` set runs Gymnasium's BipedalWalkerHardcore rules instead (SPEC 5.2),
+A level with ``gym_hardcore`` set runs Gymnasium's BipedalWalkerHardcore rules instead (docs/walker.md "Terrain"),
 in the same scan, selected per level so that one batch can mix both: every obstacle type present,
 roughness 1, square stumps of 1 or 2 steps (the counter restarts at the stump's size), pits 3 or 4
 steps between walls with no fractional part, staircases of 3 or 4 steps of height 1 and width 4

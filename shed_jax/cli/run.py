@@ -50,7 +50,7 @@ DEFAULT_ENV = "lander"
 DEFAULT_METHOD = "shed"
 DEFAULT_PRESET = "auto"
 DEFAULT_ROOT_SEED = 0
-# --final-eval when not given: the walker's named levels (DCD's six of SPEC 3.2 set A first) with solved rates
+# --final-eval when not given: the walker's named levels (DCD's six of docs/design.md §9.2 set A first) with solved rates
 DEFAULT_FINAL_EVAL = {"walker": "named"}
 #: what a run writes into its directory; ``--restart`` removes these (and nothing else)
 RUN_FILES = ("config.json", "metrics.jsonl", "metrics.jsonl.tmp", "nonfinite_chunk.jsonl", "checkpoints")
@@ -286,7 +286,7 @@ def resolve_preset(preset: str | None, backend: str, say: bool = True) -> str:
         preset = "paper" if backend == "gpu" else "quick"
         if say:
             print(f"[shed_jax] backend={backend}: using the '{preset}' preset "
-                  f"({'GPU budgets from SPEC 6.3' if preset == 'paper' else 'a CPU-sized smoke run; pass --preset paper for the real budget'})")
+                  f"({'GPU budgets from docs/design.md §10.3' if preset == 'paper' else 'a CPU-sized smoke run; pass --preset paper for the real budget'})")
     return preset
 
 

@@ -1,4 +1,4 @@
-"""ACCEL (PLR⊥ + edits) and ACCEL-NR (the paper's ACCEL without revisiting), SPEC 2.4 / 2.5.
+"""ACCEL (PLR⊥ + edits) and ACCEL-NR (the paper's ACCEL without revisiting), docs/design.md §8.5 / §8.6.
 
 **ACCEL** (native mode) [DCD, ext: JaxUED]: PLR⊥ whose new levels come from the EASY generator,
 with replay probability 0.9, and after every replay update the replayed levels are edited
@@ -106,7 +106,7 @@ def dcd_easy_parents(levels: jax.Array, mean_return: jax.Array, value_loss: jax.
 
 @dataclasses.dataclass(frozen=True)
 class ACCELNRConfig:
-    """ACCEL-NR settings (SPEC 2.5): block mode with SHED's n and C."""
+    """ACCEL-NR settings (docs/design.md §8.6): block mode with SHED's n and C."""
 
     updates_per_step: int = 10  # C in PPO updates
     num_levels: int = 5  # n levels per budget step (lander 5, walker 4)

@@ -1,7 +1,7 @@
 """Domain randomisation (DR), plus the level plumbing every native-mode baseline shares.
 
-DR (SPEC 2.1): each PPO rollout, every slot gets a fresh level drawn from a fixed distribution and
-the student trains on all of them. Default distribution: U(Θ), the teacher's box (lander: the SPEC
+DR (docs/design.md §8.2): each PPO rollout, every slot gets a fresh level drawn from a fixed distribution and
+the student trains on all of them. Default distribution: U(Θ), the teacher's box (lander: the docs/design.md
 1.6 box with wind on; walker: U(FULL)). Option ``distribution="code"``: the official lander code's
 "hard" Gaussian DR (g ~ N(-10, 1), wind on with p 0.5, wind ~ N(15, 1), turb ~ N(1.5, 0.5), each
 clipped), which lies mostly outside Θ. Option ``level_switch="episode"``: a slot moves to its fresh
@@ -14,7 +14,7 @@ Shared plumbing (used by plr.py, accel.py, paired.py):
 * :class:`LevelCodec` -- a level is a parameter vector in ``param_space`` order plus a terrain
   seed; the codec turns ``([n, d], [n])`` into an env params pytree. Environments whose params
   have a ``terrain_seed`` field (the walker) get the seed and ``fixed_terrain=True``, so a level
-  is exactly reproducible (DCD level semantics, SPEC 5.6); others ignore the seed.
+  is exactly reproducible (DCD level semantics, docs/walker.md "Level"); others ignore the seed.
 * :func:`nan_like` -- NaN-filled metrics for ``lax.cond`` branches that skip a PPO update.
 * :func:`warn_if_rollouts_cut_episodes` -- native mode resets every slot at each rollout, so it
   warns when a training episode can outlast a rollout.
@@ -33,17 +33,17 @@ from envs.core import ParamSpace
 from shed_jax.methods.base import StepInfo
 from shed_jax.methods.mutations import new_seeds
 
-# SPEC 1.6: the lander teacher box Θ, (gravity, wind_power, turbulence_power).
+# docs/design.md §5: the lander teacher box Θ, (gravity, wind_power, turbulence_power).
 LANDER_THETA_LOW = (-9.0, 0.01, 0.01)
 LANDER_THETA_HIGH = (-0.01, 12.0, 1.5)
-LANDER_TRAIN_MAX_STEPS = 600  # SPEC 4.1: training envs 600 steps, eval/test 500 [official code]
+LANDER_TRAIN_MAX_STEPS = 600  # docs/design.md §13.1: training envs 600 steps, eval/test 500 [official code]
 
 
 def teacher_space(env, low=None, high=None) -> ParamSpace:
     """The box Θ the teacher samples from.
 
     Explicit ``low``/``high`` (validated to lie inside ``env.param_space``) win. Otherwise the
-    lander uses the SPEC 1.6 box with ``enable_wind=True`` and the 600-step training time limit for
+    lander uses the docs/design.md §5 box with ``enable_wind=True`` and the 600-step training time limit for
     every generated level, and any other environment its whole ``param_space`` (walker: FULL).
     """
     space = env.param_space
@@ -67,7 +67,7 @@ class RolloutTruncationWarning(UserWarning):
 def warn_if_rollouts_cut_episodes(name: str, student, space: ParamSpace, other_fix: str = "") -> None:
     """Warn when native-mode rollouts cannot hold a whole training episode.
 
-    Native mode (SPEC 2.0) resets every slot onto its new level at the start of each rollout, so an
+    Native mode (docs/design.md §8.1) resets every slot onto its new level at the start of each rollout, so an
     episode longer than ``student.config.num_steps`` is cut off and its end (a landing, the walker's
     goal) is never seen in training. DCD's and JaxUED's rollouts are as long as an episode; the
     lander (128 < 600) and walker (32 < 2000) presets' are not (docs/baselines.md).
@@ -154,7 +154,7 @@ class DRConfig:
     distribution: str = "uniform"  # "uniform": U(Θ); "code": official-code Gaussian DR (lander only)
     low: tuple[float, ...] | None = None  # Θ override (default: teacher_space)
     high: tuple[float, ...] | None = None
-    # "rollout" (SPEC 2.0, DCD): every rollout resets every slot onto a new level. "episode": a slot
+    # "rollout" (docs/design.md §8.1, DCD): every rollout resets every slot onto a new level. "episode": a slot
     # moves to a new level only when its episode ends (student.rollout's next_levels), so episodes
     # longer than a rollout run to their end.
     level_switch: str = "rollout"
@@ -168,7 +168,7 @@ class DRConfig:
             raise ValueError(f"DRConfig.level_switch must be 'rollout' or 'episode', got {self.level_switch!r}")
 
 
-# SPEC 2.1 `dr=code` [official code]: (mean, std, clip low, clip high) per lander parameter.
+# docs/design.md §8.2 `dr=code` [official code]: (mean, std, clip low, clip high) per lander parameter.
 _CODE_DR = ((-10.0, 1.0, -11.99, -0.01), (15.0, 1.0, 0.01, 19.99), (1.5, 0.5, 0.01, 1.99))
 
 

@@ -5,7 +5,7 @@ plus optional per-level extra data (e.g. a walker terrain seed), with a score an
 last sampled. Everything is a pure function of a :class:`LevelBuffer` pytree, so it is jittable,
 usable inside ``lax.scan`` and vmappable over seeds.
 
-Replay distribution (Jiang et al., "Prioritized Level Replay"; SPEC 2.3):
+Replay distribution (Jiang et al., "Prioritized Level Replay"; docs/design.md §8.4):
 
     P = (1 - rho) * P_S + rho * P_C
     P_S(i) ∝ (1 / rank_i) ** (1 / beta)      rank 1 = highest score among the held levels
@@ -53,7 +53,7 @@ class LevelBuffer:
 
 @dataclasses.dataclass(frozen=True)
 class LevelSamplerConfig:
-    """Static level-sampler settings (defaults: SPEC 2.3, DCD bipedal)."""
+    """Static level-sampler settings (defaults: docs/design.md §8.4, DCD bipedal)."""
 
     capacity: int = 1000
     replay_prob: float = 0.5  # p_replay: PLR⊥ 0.5, ACCEL 0.9 [DCD]

@@ -1,7 +1,7 @@
 """ACCEL's level editor and EASY base-level sampler, on parameter vectors.
 
 A level is a float vector in ``env.param_space`` order, so one editor serves every environment; only
-a per-environment table of edit steps (and the EASY box) differs. One edit (SPEC 2.4, 5.1):
+a per-environment table of edit steps (and the EASY box) differs. One edit (docs/design.md §8.5, §13.2):
 
     i ~ U{0..d-1},  dir ~ U{-1, 0, +1},  v_i <- clip(v_i + dir * step_i, low_i, high_i)
 
@@ -10,7 +10,7 @@ roughness). ``num_edits`` edits are applied in sequence (3 [DCD]), so at most ``
 coordinates change. Environments whose level also holds a terrain seed draw a fresh seed per child
 (:func:`new_seeds`), as DCD does.
 
-Tables [SPEC 2.4 / 5.1]:
+Tables [docs/design.md §8.5, §13.1 / §13.2]:
 
 * lander (gravity, wind_power, turbulence_power): steps 0.36 / 0.48 / 0.06 (4 % of the teacher box
   Θ), clipped to Θ; EASY g ~ U[-7, -3], wind ~ U[0.01, 1], turb ~ U[0.01, 0.1] [our choice].

@@ -1,4 +1,4 @@
-"""PAIRED behind the UED method interface (native mode), SPEC 2.2.
+"""PAIRED behind the UED method interface (native mode), docs/design.md §8.3.
 
 Three learners [DCD]: the protagonist (the reported student), an antagonist (the same PPO, its
 own state, kept in the method state) and an adversary that proposes levels. Each PPO iteration of
@@ -44,7 +44,7 @@ from shed_jax.student.normalization import RunningMeanStd
 
 @dataclasses.dataclass(frozen=True)
 class PAIREDConfig:
-    """PAIRED settings; adversary PPO per SPEC 2.2 [DCD], lr and network size [our choice]."""
+    """PAIRED settings; adversary PPO per docs/design.md §8.3 [DCD], lr and network size [our choice]."""
 
     updates_per_step: int = 10
     noise_dim: int = 10

@@ -41,7 +41,7 @@ SCORES = ("pvl", "maxmc")
 
 @dataclasses.dataclass(frozen=True)
 class PLRConfig:
-    """PLR⊥ settings; sampler defaults are SPEC 2.3 (DCD bipedal, p_replay 0.5)."""
+    """PLR⊥ settings; sampler defaults are docs/design.md §8.4 (DCD bipedal, p_replay 0.5)."""
 
     updates_per_step: int = 10
     sampler: LevelSamplerConfig = LevelSamplerConfig()

@@ -1,4 +1,4 @@
-"""SHED and h-MDP behind the UED method interface (SPEC 1.2): a DDPG teacher over performance vectors.
+"""SHED and h-MDP behind the UED method interface (docs/design.md §3): a DDPG teacher over performance vectors.
 
 One budget step, top to bottom (all inside one jitted function, thresholds as ``lax.cond``):
 
@@ -12,7 +12,7 @@ One budget step, top to bottom (all inside one jitted function, thresholds as ``
    |B_syn| > 500 and both buffers > 32, else 3 real updates if |B_real| > 32 [official code].
 
 Buffers hold raw performance vectors (returns); the DDPG networks see them divided by ``state_scale``
-(the teacher sees s/100, SPEC 1.1) and the diffusion model normalises them itself. Rewards are
+(the teacher sees s/100, docs/design.md §2) and the diffusion model normalises them itself. Rewards are
 computed on raw returns; DDPG z-scores them per batch. The teacher's networks, the diffusion model
 and both buffers persist across teacher episodes; ``begin_episode`` only evaluates the fresh student
 to get s_0 and resets the step counter.
@@ -55,7 +55,7 @@ from shed_jax.teacher.reward import RewardConfig, coefficient_of_variation, make
 
 @dataclasses.dataclass(frozen=True)
 class SHEDConfig:
-    """SHED / h-MDP settings; defaults are SPEC 1.2 / 6.2 (official thresholds) and 6.3 (lander)."""
+    """SHED / h-MDP settings; defaults are docs/design.md §3 / §10.2 (official thresholds) and §10.3 (lander)."""
 
     updates_per_step: int = 10  # C in PPO iterations
     num_levels: int = 5  # n (lander 5, walker 4)

@@ -155,15 +155,15 @@ class PPOConfig:
 
     @classmethod
     def for_env(cls, name: str, **overrides) -> "PPOConfig":
-        """The preset for a registered environment (SPEC 6.1), with optional field overrides."""
+        """The preset for a registered environment (docs/design.md §10.1), with optional field overrides."""
         if name not in PRESETS:
             raise ValueError(f"no PPO preset for environment {name!r}; known: {', '.join(sorted(PRESETS))}")
         return dataclasses.replace(PRESETS[name], **overrides)
 
 
-# SPEC 6.1, lander column (SB3 LunarLander practice). Meets the acceptance check (median of 8 seeds
+# docs/design.md §10.1, lander column (SB3 LunarLander practice). Meets the acceptance check (median of 8 seeds
 # >= 200 within 3M env steps) on the discrete lander; change these values only with the evidence of
-# a GPU run of experiments/bench_ppo.py (docs/benchmarks.md).
+# a GPU run of experiments/bench_ppo.py (docs/benchmarks.md "Student PPO", dated runs in docs/log/benchmarks.md).
 _LANDER = PPOConfig(
     num_envs=40,
     num_steps=128,
@@ -177,7 +177,7 @@ _LANDER = PPOConfig(
 # e^-0.5 = 0.61 instead of 1), no entropy bonus, and 32 minibatches (160 samples each, 4x the
 # gradient steps). With the discrete preset unchanged the stochastic policy's median was 144 at 3M
 # steps; with this one it is 276, and the median training return passes 200 at 0.71M steps
-# (8 seeds, H200, 2026-11-22; docs/benchmarks.md).
+# (8 seeds, H200, 2026-11-22; docs/log/benchmarks.md "The walker, the tuned continuous lander and Brax's PPO").
 _LANDER_CONTINUOUS = dataclasses.replace(
     _LANDER, num_minibatches=32, init_log_std=-0.5, hparams=_LANDER.hparams.replace(ent_coef=0.0)
 )

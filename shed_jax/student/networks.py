@@ -1,6 +1,6 @@
 """Actor and critic networks and the two action distributions the student uses.
 
-Separate actor and critic MLPs (SPEC 6.1: 64-64 tanh, orthogonal init). Hidden layers use
+Separate actor and critic MLPs (docs/design.md §10.1: 64-64 tanh, orthogonal init). Hidden layers use
 orthogonal(sqrt 2) weights; the policy head uses orthogonal(0.01) so the initial policy is close
 to uniform / zero-mean, and the value head orthogonal(1), as in PureJaxRL/CleanRL. The orthogonal
 initializer is ``jax.nn.initializers.orthogonal`` except on a CPU, where a LAPACK-free QR avoids

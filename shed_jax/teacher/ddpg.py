@@ -1,4 +1,4 @@
-"""DDPG teacher (SPEC 1.6): a deterministic actor over u-space and a Q critic, with target copies.
+"""DDPG teacher (docs/design.md §5): a deterministic actor over u-space and a Q critic, with target copies.
 
 Actor  m -> 400 -> 300 -> d_a, ReLU, tanh output (u in [-1, 1]^{d_a}).
 Critic [s, u] -> 400 -> 300 -> 1, ReLU.

@@ -1,8 +1,8 @@
-"""Conditional DDPM over the teacher's next state s' given (s, a) (SPEC 1.4, 1.5).
+"""Conditional DDPM over the teacher's next state s' given (s, a) (docs/design.md §6, §7).
 
 * Schedule: the VP schedule of Diffusion-QL, beta_k = 1 - exp(-beta_min/K - (beta_max - beta_min)
-  (2k - 1) / (2 K^2)), with the **minus** sign (the paper's "+beta_min/K" is a typo; the code and the
-  SPEC table use minus). K = 5, beta_min 0.1, beta_max 10 give ln(alpha_bar_K) = -5.05.
+  (2k - 1) / (2 K^2)), with the **minus** sign (the paper's "+beta_min/K" is a typo; the code and
+  docs/design.md §6.1 use minus). K = 5, beta_min 0.1, beta_max 10 give ln(alpha_bar_K) = -5.05.
 * Forward: s'_k = sqrt(abar_k) s'_0 + sqrt(1 - abar_k) eps; loss E||eps - eps_phi(s'_k, s, a, k)||^2
   (mean over elements) with k ~ U{1..K}.
 * Samplers: ``ancestral`` (paper appendix): s'_{k-1} = s'_k/sqrt(alpha_k) - beta_k/sqrt(alpha_k(1 -
@@ -17,7 +17,7 @@
   buffer (s and s' pooled), refreshed at every ``train_steps`` call and kept in the state so sampling
   uses exactly the statistics the network was trained with. Because the buffer is a FIFO window,
   these are running statistics over the most recent ``capacity`` transitions; a floor ``min_std``
-  keeps a constant dimension finite. 'scale' divides by ``scale`` = 100 (SPEC 1.4); 'none' uses raw
+  keeps a constant dimension finite. 'scale' divides by ``scale`` = 100 (docs/design.md §6.5); 'none' uses raw
   values (official code). Actions live in u-space [-1, 1] and are not normalised.
 
 Everything is a pure function over a ``DiffusionState`` pytree; ``make_diffusion(config)`` returns a
@@ -371,7 +371,7 @@ class DiffusionModel:
         syn_action: str = "uniform",
         syn_reward: str = "recompute",
     ) -> Transition:
-        """``n`` synthetic transitions (SPEC 1.5) as a Transition batch with leading axis n.
+        """``n`` synthetic transitions (docs/design.md §7) as a Transition batch with leading axis n.
 
         s from uniformly drawn real transitions; a ~ U[-1,1]^{d_a} ('uniform') or from the BC head
         ('bc'); s' from the reverse chain; r = reward_fn(s, a, s') ('recompute', vmapped over the

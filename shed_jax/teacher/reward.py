@@ -1,6 +1,6 @@
 """The teacher's reward R(s, a, s') on performance vectors, and per-batch reward normalisation.
 
-Forms (SPEC 1.3), chosen by a frozen :class:`RewardConfig`:
+Forms (docs/design.md §4), chosen by a frozen :class:`RewardConfig`:
 
 * ``paper_l1`` (default, [paper]):  R = ||s' - s||_1 - eta * cv
 * ``signed_sum`` ([our choice]):    R = sum_i (s'_i - s_i) - eta * cv   (does not reward drops)
@@ -57,7 +57,7 @@ class RewardConfig:
 
 
 def coefficient_of_variation(s, s_next, guard: float = 1e-6, clip: float = 100.0) -> jax.Array:
-    """cv of the per-environment change omega = s' - s (SPEC 1.3), guarded and clipped.
+    """cv of the per-environment change omega = s' - s (docs/design.md §4.1), guarded and clipped.
 
     cv = sqrt( sum_i (omega_i - mean)^2 / (m - 1) / max(mean^2, guard) ), clipped to [0, clip].
     Needs m >= 2 evaluation environments (the sample std is undefined for m = 1).
@@ -75,7 +75,7 @@ def coefficient_of_variation(s, s_next, guard: float = 1e-6, clip: float = 100.0
 def code_cv(x) -> jax.Array:
     """The official code's cv_c(x) = 100 * population-std(x) / mean(x) of a performance vector.
 
-    Unguarded and signed, as in the code: it flips sign when mean(x) < 0 (documented in SPEC 1.3).
+    Unguarded and signed, as in the code: it flips sign when mean(x) < 0 (documented in docs/design.md §4.3).
     """
     x = jnp.asarray(x, jnp.float32)
     return 100.0 * jnp.std(x, axis=-1) / jnp.mean(x, axis=-1)
