@@ -8,36 +8,16 @@ import argparse
 import json
 import math
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from shed_jax.cli import eval as eval_cli
 from shed_jax.cli import run as run_cli
-from shed_jax.loop import LoopSpec
-from shed_jax.methods.level_sampler import LevelSamplerConfig
-from shed_jax.presets import Experiment
-from shed_jax.student import PPOConfig
+
+# the tiny CartPole experiment and its test levels are test_checkpoint's
+from test_checkpoint import cartpole_test_levels, tiny_experiment  # noqa: E402
 
 SEEDS = 2
-
-
-def tiny_experiment() -> Experiment:
-    ppo = PPOConfig.for_env("cartpole", num_envs=4, num_steps=8, update_epochs=1, num_minibatches=1,
-                            actor_hidden=(8,), critic_hidden=(8,))
-    return Experiment(
-        env="cartpole", method="plr", preset="tiny", ppo=ppo,
-        method_config={"updates_per_step": 1, "sampler": LevelSamplerConfig(capacity=4, min_fill=0.5, replay_prob=0.9)},
-        loop=LoopSpec(steps_per_episode=4, num_episodes=1, test_episodes=1, test_max_steps=20),
-        test_set="cartpole-test",
-    )
-
-
-def cartpole_test_levels(env):
-    from envs.cartpole import LEVELS
-
-    return jax.tree_util.tree_map(lambda *x: jnp.stack(x), LEVELS["default"](), LEVELS["moon"]())
 
 
 def parse(module, argv):

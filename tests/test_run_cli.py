@@ -25,45 +25,13 @@ import pytest
 from shed_jax import checkpoint as ck
 from shed_jax import reporting
 from shed_jax.cli import run as run_cli
-from shed_jax.loop import LoopSpec, make_run
-from shed_jax.methods.level_sampler import LevelSamplerConfig
-from shed_jax.presets import Experiment
-from shed_jax.student import PPOConfig
+from shed_jax.loop import make_run
+
+# the tiny CartPole experiment, its test levels and the patched CLI are test_checkpoint's
+from test_checkpoint import cartpole_test_levels, parse, patched, tiny_experiment  # noqa: E402,F401
 
 SEEDS = 2
 BASE = ["--seeds", str(SEEDS), "--chunk", "1"]
-
-
-def tiny_experiment() -> Experiment:
-    ppo = PPOConfig.for_env("cartpole", num_envs=4, num_steps=8, update_epochs=1, num_minibatches=1,
-                            actor_hidden=(8,), critic_hidden=(8,))
-    return Experiment(
-        env="cartpole", method="plr", preset="tiny", ppo=ppo,
-        method_config={"updates_per_step": 1, "sampler": LevelSamplerConfig(capacity=4, min_fill=0.5, replay_prob=0.9)},
-        loop=LoopSpec(steps_per_episode=4, num_episodes=1, test_episodes=1, test_max_steps=20),
-        test_set="cartpole-test",
-    )
-
-
-def cartpole_test_levels(env):
-    from envs.cartpole import LEVELS
-
-    return jax.tree_util.tree_map(lambda *x: jnp.stack(x), LEVELS["default"](), LEVELS["moon"]())
-
-
-def parse(argv):
-    p = argparse.ArgumentParser()
-    run_cli.add_arguments(p)
-    return p.parse_args(argv)
-
-
-@pytest.fixture(scope="module")
-def patched():
-    original = run_cli.test_levels
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(run_cli, "experiment_from_args", lambda args, backend: tiny_experiment())
-        mp.setattr(run_cli, "test_levels", lambda name, env: cartpole_test_levels(env) if name == "cartpole-test" else original(name, env))
-        yield mp
 
 
 def run(argv):
