@@ -172,12 +172,11 @@ def test_vmapped_seeds_run_until_the_last_one_is_done(cart):
 
 
 @pytest.mark.slow
-def test_lander_early_stop_and_fused_equal_the_full_scan():
-    """The same equalities on the lander (a real physics step, two evaluation sets of two levels).
-
-    The fused half holds because batches of 4 and 8 lander runs compile alike on XLA:CPU; 80 and
-    180 runs do not (docs/running.md). If a new XLA breaks it while the cartpole fusion tests pass,
-    suspect the compiler's batch-size-dependent code, not the keys."""
+def test_lander_early_stop_equals_the_full_scan():
+    """Early stopping on the lander (a real physics step) equals the full-length scan. Fusion is
+    checked exactly on cartpole above; on the lander it need not be bitwise, since XLA:CPU compiles
+    batches of 80 and 180 runs to different reduction code (docs/running.md). One rollout pair
+    only: each lander rollout adds about a minute of compile to the suite."""
     from shed_jax import eval_sets
 
     env = envs.make("lander")
@@ -185,28 +184,17 @@ def test_lander_early_stop_and_fused_equal_the_full_scan():
     s = jax.jit(student.init)(jax.random.PRNGKey(0))
     test = eval_sets.lander_test_set().to_params(env.default_params)
     heavy = jax.tree_util.tree_map(lambda x: x[jnp.array([7, 8])], test)  # g = -8.9, -6.0: crashes early
-    light = jax.tree_util.tree_map(lambda x: x[jnp.array([0, 2])], test)  # g = -2.0, -1.1: cut at 60 steps
-    ka, kb = jax.random.PRNGKey(1), jax.random.PRNGKey(2)
+    ka = jax.random.PRNGKey(1)
 
     @jax.jit
     def run(s):
-        alone = student.evaluate_with_info(s, ka, heavy, 2, 400)
-        fused = student.evaluate_many(s, [(ka, heavy, 2, 400), (kb, light, 2, 60)])
-        ref_a = full_scan_evaluate(student, s, ka, heavy, 2, 400)
-        ref_b = full_scan_evaluate(student, s, kb, light, 2, 60)
-        return alone, fused, ref_a, ref_b
+        return student.evaluate_with_info(s, ka, heavy, 2, 400), full_scan_evaluate(student, s, ka, heavy, 2, 400)
 
-    (Ra, ia), ((Fa, fa), (Fb, fb)), (Ra_ref, La_ref), (Rb_ref, Lb_ref) = run(s)
+    (Ra, ia), (Ra_ref, La_ref) = run(s)
     _eq(Ra, Ra_ref)
     _eq(ia["lengths"], La_ref)
-    _eq(Fa, Ra_ref)
-    _eq(fa["lengths"], La_ref)
-    _eq(Fb, Rb_ref)
-    _eq(fb["lengths"], Lb_ref)
     longest = int(np.max(La_ref))
     assert longest < 400 and int(ia["steps_run"]) == 16 * -(-longest // 16)  # stopped early
-    # one rollout for both sets: as long as the longer of the two needs
-    assert int(fa["steps_run"]) == int(fb["steps_run"]) == max(int(ia["steps_run"]), 16 * -(-int(np.max(Lb_ref)) // 16))
 
 
 # ------------------------------------------------------------------------------------------
