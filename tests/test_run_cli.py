@@ -349,3 +349,11 @@ def test_metrics_rebuild_names_only_a_backup_it_wrote(finished, tmp_path):
     assert "old file kept as metrics.jsonl.bak-3" in note
     assert (tmp_path / "metrics.jsonl.bak-3").read_text() == "".join(lines[SEEDS: 3 * SEEDS])
     assert [json.loads(x) for x in path.read_text().splitlines()] == records
+
+
+def test_compile_heartbeat_keeps_start_up_from_going_silent(capsys):
+    # a 0.35 s "compile" with a 0.1 s heartbeat: a line at about 0.1, 0.2 and 0.3 s, and the result
+    assert run_cli._in_worker(lambda: time.sleep(0.35) or 7, heartbeat=0.1) == 7
+    lines = [l for l in capsys.readouterr().out.splitlines() if l.startswith("[shed_jax] still compiling")]
+    assert 2 <= len(lines) <= 4, lines
+    assert run_cli._in_worker(lambda: 8) == 8 and "still" not in capsys.readouterr().out  # no heartbeat asked

@@ -802,9 +802,10 @@ def _remove_made(made: list) -> str:
     return ", ".join(removed)
 
 
-def _in_worker(fn, name: str = "compile"):
+def _in_worker(fn, name: str = "compile", heartbeat: float | None = None, what: str = "compiling"):
     """``fn()`` in a worker thread while the main thread waits, so that SIGINT/SIGTERM are handled at
-    once (a compile inside XLA would hold off the Python handlers until it returns)."""
+    once (a compile inside XLA would hold off the Python handlers until it returns). With
+    ``heartbeat`` (seconds), a "still <what>" line every so often, so the run is never silent longer."""
     box: dict = {}
 
     def work():
@@ -815,8 +816,13 @@ def _in_worker(fn, name: str = "compile"):
 
     worker = threading.Thread(target=work, name=f"shed_jax-{name}", daemon=True)
     worker.start()
+    start = time.time()
+    beat = start + heartbeat if heartbeat else float("inf")
     while worker.is_alive():
         worker.join(0.1)
+        if time.time() >= beat and worker.is_alive():
+            print(f"[shed_jax] still {what} ({time.time() - start:.0f} s)...", flush=True)
+            beat += heartbeat
     if "error" in box:
         raise box["error"]
     return box["value"]
@@ -939,7 +945,7 @@ def _start(args, plan: _Plan, made: list) -> dict | None:
                 state = jax.jit(jax.vmap(init))(keys)
             return state, {n: run_chunk.lower(state, n, done).compile() for n in sizes}
 
-        state, compiled = _in_worker(lambda: compile_all(state))
+        state, compiled = _in_worker(lambda: compile_all(state), heartbeat=45.0)
         print(f"[shed_jax] compiled in {time.time() - t0:.1f} s", flush=True)
     return dict(env=env, student=student, tests=tests, final_sets=final_sets, state=state, hist=hist, done=done,
                 previous_wall=previous_wall, t0=t0, compiled=compiled, metrics_path=metrics_path)
