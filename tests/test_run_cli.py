@@ -59,7 +59,7 @@ def finished(patched, tmp_path_factory):
     events = []
     original_worker, original_bar = run_cli._in_worker, tqdm.tqdm
 
-    def worker(fn, name="compile"):
+    def worker(fn, name="compile", **kwargs):
         events.append("compile")
         return original_worker(fn, name)
 
@@ -234,7 +234,7 @@ def test_lost_state_metadata_reads_as_damage_not_as_another_configuration(finish
 def signal_during_compile(signum):
     """A stand-in for the compile worker that receives ``signum`` (sent from the worker thread, as
     from outside: the main thread handles it while it waits)."""
-    def worker(fn, name="compile"):
+    def worker(fn, name="compile", **kwargs):
         def send():
             time.sleep(0.05)
             os.kill(os.getpid(), signum)
