@@ -76,7 +76,7 @@ def main(argv=None) -> int:
 
 def _exit(code: int) -> None:
     """Exit; at once (``os._exit``) while a compile of ``run`` still runs in its worker thread, which a
-    normal interpreter shutdown would race (``shed_jax/cli/run.py``, start-up interruptions)."""
+    normal interpreter shutdown would race (``shed_jax/driver.py``, start-up interruptions)."""
     if any(t.name.startswith("shed_jax-") and t.is_alive() for t in threading.enumerate()):
         sys.stdout.flush()
         sys.stderr.flush()

@@ -2,7 +2,7 @@
 signals stop at a chunk boundary, the non-finite guard names the component and keeps the last
 good checkpoint.
 
-The run CLI is driven in-process (``main(args)``) on a tiny CartPole PLR experiment (PLR keeps a
+The run CLI is driven in-process (``main(args)``, i.e. ``shed_jax.driver.run``) on a tiny CartPole PLR experiment (PLR keeps a
 level buffer in the method state, so buffers, optimiser states, RNG keys and the step counter all
 go through the checkpoint). Every run compiles the same program, so after the first one the
 persistent compilation cache (tests/conftest.py) serves it.
@@ -20,6 +20,8 @@ import numpy as np
 import pytest
 
 from shed_jax import checkpoint as ck
+from shed_jax import driver, errors
+from shed_jax import experiment as xp
 from shed_jax.cli import run as run_cli
 from shed_jax.loop import LoopSpec, RunState, make_run
 from shed_jax.methods.level_sampler import LevelSamplerConfig
@@ -55,17 +57,17 @@ def parse(argv):
 @pytest.fixture(scope="module")
 def patched():
     """The run CLI on the tiny experiment (presets only know lander/walker) and its test set."""
-    original = run_cli.test_levels
+    original = xp.test_levels
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(run_cli, "experiment_from_args", lambda args, backend: tiny_experiment())
-        mp.setattr(run_cli, "test_levels", lambda name, env: cartpole_test_levels(env) if name == "cartpole-test" else original(name, env))
+        mp.setattr(xp, "experiment_from_args", lambda args, backend: tiny_experiment())
+        mp.setattr(xp, "test_levels", lambda name, env: cartpole_test_levels(env) if name == "cartpole-test" else original(name, env))
         yield mp
 
 
 def target_for(exp, seeds=SEEDS, root_seed=0):
-    _, student, method, tests = run_cli.build(exp)
+    _, student, method, tests = xp.build(exp)
     init, _ = make_run(student, method, tests, exp.loop)
-    return jax.eval_shape(jax.vmap(init), run_cli.seed_keys(root_seed, seeds))
+    return jax.eval_shape(jax.vmap(init), xp.seed_keys(root_seed, seeds))
 
 
 def restore(run_dir, target, **kw):
@@ -119,7 +121,7 @@ def test_straight_run_writes_run_dir(run_a):
 
 def test_resume_is_bitwise_exact(runs, capsys):
     a, b, rc_stop, stopped_jsonl = runs
-    assert rc_stop == run_cli.EXIT_STOPPED
+    assert rc_stop == errors.EXIT_STOPPED
     assert len(stopped_jsonl.splitlines()) == 2 * SEEDS  # steps 0 and 1
     # a crash after the jsonl append of step 2 but before its checkpoint, and a line cut by the kill
     lines = (a / "metrics.jsonl").read_text().splitlines(keepends=True)
@@ -150,7 +152,7 @@ def test_resume_is_bitwise_exact(runs, capsys):
     for k in hist:
         np.testing.assert_array_equal(hist[k], rb.history[k], err_msg=k)
     # the student learned something (so equality is not trivially about untouched params)
-    init = jax.jit(jax.vmap(make_run(*run_cli.build(exp)[1:], exp.loop)[0]))(run_cli.seed_keys(0, SEEDS))
+    init = jax.jit(jax.vmap(make_run(*xp.build(exp)[1:], exp.loop)[0]))(xp.seed_keys(0, SEEDS))
     assert not np.array_equal(np.asarray(init.student.params["actor"]["MLP_0"]["Dense_0"]["kernel"]),
                               np.asarray(ra.state.student.params["actor"]["MLP_0"]["Dense_0"]["kernel"]))
     assert int(np.asarray(ra.state.step)[0]) == 4
@@ -176,15 +178,15 @@ def test_config_mismatch_names_the_keys(runs, patched, capsys):
     assert err.value.keys == ["experiment.ppo.num_steps"]
     assert err.value.differences == [("experiment.ppo.num_steps", 8, 16)]
     # the CLI: a different seed count on --resume is refused with exit 2, naming the key
-    assert run_cli.main(parse(["--resume", str(a), "--seeds", "3", "--no-gif"])) == run_cli.EXIT_CHECKPOINT
+    assert run_cli.main(parse(["--resume", str(a), "--seeds", "3", "--no-gif"])) == errors.EXIT_CHECKPOINT
     assert "seeds: saved 2, now 3" in capsys.readouterr().err
     # a fresh run into an existing run directory is refused
     with pytest.raises(SystemExit, match="--resume"):
         run_cli.main(parse(["--out", str(a), "--no-gif"]))
     # the experiment round-trips through its saved dict (nested sampler config included)
-    exp = run_cli.experiment_from_dict(saved["experiment"])
+    exp = xp.experiment_from_dict(saved["experiment"])
     assert ck.config_differences({"experiment": exp.to_dict()}, {"experiment": tiny_experiment().to_dict()}, ["experiment"]) == []
-    assert isinstance(run_cli.method_config(exp.method, exp.method_config)["sampler"], LevelSamplerConfig)
+    assert isinstance(xp.method_config(exp.method, exp.method_config)["sampler"], LevelSamplerConfig)
 
 
 def _copy_run(src, dst):
@@ -238,7 +240,7 @@ def test_damaged_or_missing_checkpoints_raise(runs, patched, tmp_path):
     with pytest.raises(ck.CheckpointCorruptError, match=r"student\.params\.actor\.MLP_0\.Dense_0\.kernel: saved float32\[2, 4, 8\]"):
         restore(a, target_for(tiny_experiment(actor_hidden=(16,))))
     # the CLI turns these into exit code 2
-    assert run_cli.main(parse(["--resume", str(tmp_path / "truncated"), "--no-gif"])) == run_cli.EXIT_CHECKPOINT
+    assert run_cli.main(parse(["--resume", str(tmp_path / "truncated"), "--no-gif"])) == errors.EXIT_CHECKPOINT
     time.sleep(1.0)  # let the failed reads settle
     gc.collect()
 
@@ -246,7 +248,7 @@ def test_damaged_or_missing_checkpoints_raise(runs, patched, tmp_path):
 def test_signal_stops_at_chunk_boundary_and_saves(runs, patched, tmp_path, capsys):
     a = runs[0]
 
-    class SelfSignal(run_cli.StopRequest):
+    class SelfSignal(driver.StopRequest):
         def poll(self):
             if self.signum is None:
                 signal.raise_signal(signal.SIGTERM)  # handled by the run's own handler
@@ -255,7 +257,7 @@ def test_signal_stops_at_chunk_boundary_and_saves(runs, patched, tmp_path, capsy
     c = tmp_path / "C"
     before = signal.getsignal(signal.SIGTERM)
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(run_cli, "StopRequest", SelfSignal)
+        mp.setattr(driver, "StopRequest", SelfSignal)
         assert run_cli.main(parse(["--out", str(c), "--seeds", str(SEEDS), "--chunk", "1", "--no-gif"])) == 128 + signal.SIGTERM
     captured = capsys.readouterr()
     assert "SIGTERM" in captured.err and f"--resume {c}" in captured.out
@@ -287,7 +289,7 @@ def test_nonfinite_guard_stops_and_keeps_last_good_checkpoint(runs, patched, tmp
     shutil.copy(a / "config.json", d / "config.json")
     (d / "metrics.jsonl").write_text("".join((a / "metrics.jsonl").read_text().splitlines(keepends=True)[: 2 * SEEDS]))
     capsys.readouterr()
-    assert run_cli.main(parse(["--resume", str(d), "--no-gif"])) == run_cli.EXIT_NONFINITE
+    assert run_cli.main(parse(["--resume", str(d), "--no-gif"])) == errors.EXIT_NONFINITE
     err = capsys.readouterr().err
     assert "non-finite values in budget steps 2-2" in err
     assert "student.params.actor.MLP_0.Dense_0.bias: NaN in" in err and "after budget step 2" in err

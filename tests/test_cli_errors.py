@@ -10,6 +10,8 @@ import json
 
 import pytest
 
+from shed_jax import errors as lib_errors
+from shed_jax import experiment as xp
 from shed_jax.__main__ import main
 from shed_jax.cli import errors
 from shed_jax.cli import run as run_cli
@@ -119,18 +121,18 @@ def parse(argv):
 def test_set_routes_teacher_reward_keys_into_reward():
     """docs/running.md's `--set eta=10`: eta is a field of the teacher reward (RewardConfig), which
     SHEDConfig holds as `reward`; the key goes there, merged with a `reward` given as well."""
-    exp = run_cli.experiment_from_args(parse(["--preset", "quick", "--set", "eta=10"]), "cpu")
+    exp = xp.experiment_from_args(parse(["--preset", "quick", "--set", "eta=10"]), "cpu")
     assert exp.method_config["reward"] == {"eta": 10}
-    exp = run_cli.experiment_from_args(parse(["--preset", "quick", "--method", "hmdp", "--set", 'reward={"form": "signed_sum"}',
+    exp = xp.experiment_from_args(parse(["--preset", "quick", "--method", "hmdp", "--set", 'reward={"form": "signed_sum"}',
                                               "--set", "eta=10", "--set", "code_cv_weight=0.5"]), "cpu")
     assert exp.method_config["reward"] == {"form": "signed_sum", "eta": 10, "code_cv_weight": 0.5}
-    _, _, method, _ = run_cli.build(exp)
+    _, _, method, _ = xp.build(exp)
     assert (method.config.reward.form, method.config.reward.eta) == ("signed_sum", 10)
     assert method.default_hparams.eta == 10.0  # the dynamic eta the teacher's reward uses
     # a later reward dict merges, an own field of the method is never routed
-    assert run_cli.route_method_overrides("shed", {"eta": 1, "reward": {"form": "code_mean"}, "psi": 0.5}) == {
+    assert xp.route_method_overrides("shed", {"eta": 1, "reward": {"form": "code_mean"}, "psi": 0.5}) == {
         "reward": {"eta": 1, "form": "code_mean"}, "psi": 0.5}
-    assert run_cli.route_method_overrides("dr", {"eta": 1}) == {"eta": 1}  # no reward there: refused later
+    assert xp.route_method_overrides("dr", {"eta": 1}) == {"eta": 1}  # no reward there: refused later
 
 
 def test_presets_refuse_zero_counts_instead_of_using_the_default():
@@ -144,23 +146,23 @@ def test_presets_refuse_zero_counts_instead_of_using_the_default():
 
 def test_disk_full_is_recognised_when_wrapped():
     full = OSError(errno.ENOSPC, "No space left on device")
-    assert errors.is_disk_full(full)
+    assert lib_errors.is_disk_full(full)
     try:
         try:
             raise full
         except OSError as inner:
             raise RuntimeError("orbax: save failed") from inner
     except RuntimeError as wrapped:
-        assert errors.is_disk_full(wrapped) and errors.os_error_in(wrapped) is full
-    assert errors.is_disk_full(ExceptionGroup("saves", [ValueError("x"), full]))
-    assert errors.is_disk_full(ValueError("DATA_LOSS: write failed: No space left on device [tensorstore_spec=...]"))
-    assert not errors.is_disk_full(OSError(errno.EACCES, "Permission denied"))
-    assert errors.io_reason(full) == "disk full (No space left on device)"
-    assert errors.io_reason(PermissionError(errno.EACCES, "Permission denied", "/x")) == "Permission denied (/x)"
-    assert errors.one_line('a\n  b [tensorstore_spec=\'{"x": 1}\']') == "a b"
+        assert lib_errors.is_disk_full(wrapped) and lib_errors.os_error_in(wrapped) is full
+    assert lib_errors.is_disk_full(ExceptionGroup("saves", [ValueError("x"), full]))
+    assert lib_errors.is_disk_full(ValueError("DATA_LOSS: write failed: No space left on device [tensorstore_spec=...]"))
+    assert not lib_errors.is_disk_full(OSError(errno.EACCES, "Permission denied"))
+    assert lib_errors.io_reason(full) == "disk full (No space left on device)"
+    assert lib_errors.io_reason(PermissionError(errno.EACCES, "Permission denied", "/x")) == "Permission denied (/x)"
+    assert lib_errors.one_line('a\n  b [tensorstore_spec=\'{"x": 1}\']') == "a b"
 
 
 def test_usage_error_is_one_line_and_exit_2():
-    err = errors.UsageError("first\nsecond   part")
+    err = lib_errors.UsageError("first\nsecond   part")
     assert str(err) == "first second part" and err.code == 2 and isinstance(err, SystemExit)
     assert json.loads(json.dumps(str(err))) == "first second part"

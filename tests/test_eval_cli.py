@@ -11,6 +11,8 @@ import math
 import numpy as np
 import pytest
 
+from shed_jax import evaluation
+from shed_jax import experiment as xp
 from shed_jax.cli import eval as eval_cli
 from shed_jax.cli import run as run_cli
 
@@ -28,10 +30,10 @@ def parse(module, argv):
 
 @pytest.fixture(scope="module")
 def run_dir(tmp_path_factory):
-    original = run_cli.test_levels
+    original = xp.test_levels
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(run_cli, "experiment_from_args", lambda args, backend: tiny_experiment())
-        mp.setattr(run_cli, "test_levels", lambda name, env: cartpole_test_levels(env) if name == "cartpole-test" else original(name, env))
+        mp.setattr(xp, "experiment_from_args", lambda args, backend: tiny_experiment())
+        mp.setattr(xp, "test_levels", lambda name, env: cartpole_test_levels(env) if name == "cartpole-test" else original(name, env))
         d = tmp_path_factory.mktemp("eval") / "run"
         assert run_cli.main(parse(run_cli, ["--out", str(d), "--seeds", str(SEEDS), "--chunk", "1", "--no-gif",
                                             "--final-eval", "test", "--final-eval-episodes", "3"])) == 0
@@ -44,7 +46,7 @@ def test_table_math_by_hand():
         [[10, 20, 30, 40, 500], [0, 0, 0, 0, 0]],
         [[30, 40, 50, 60, 70], [-100, 300, 300, 300, 300]],
     ], np.float64)
-    t = eval_cli.level_table(r, threshold=45.0, alpha=0.1)
+    t = evaluation.level_table(r, threshold=45.0, alpha=0.1)
     # seed means: level 0: 120 and 50 -> mean 85, SE = sd(ddof 1) / sqrt(2) = |120 - 50| / 2 = 35;
     # level 1: 0 and 220 -> mean 110, SE 110
     np.testing.assert_allclose(t["mean"], [85.0, 110.0])
@@ -59,15 +61,15 @@ def test_table_math_by_hand():
     assert o["solved_rate"] == pytest.approx(8 / 20)
     assert o["cvar"] == pytest.approx(-50.0)  # worst ceil(0.1 * 20) = 2 values: -100 and 0
     # ceil: 25 % of 10 -> 3 values; 30 % of 10 -> exactly 3 (no float round-up to 4)
-    assert eval_cli.cvar(np.arange(10.0), 0.25) == pytest.approx(1.0)
-    assert eval_cli.cvar(np.arange(10.0), 0.3) == pytest.approx(1.0)
-    assert eval_cli.cvar([5.0], 0.1) == 5.0
+    assert evaluation.cvar(np.arange(10.0), 0.25) == pytest.approx(1.0)
+    assert evaluation.cvar(np.arange(10.0), 0.3) == pytest.approx(1.0)
+    assert evaluation.cvar([5.0], 0.1) == 5.0
     # no threshold -> NaN solved rates; one seed -> SE 0
-    t1 = eval_cli.level_table(r[:1], threshold=None)
+    t1 = evaluation.level_table(r[:1], threshold=None)
     assert np.all(np.isnan(t1["solved_rate"])) and math.isnan(t1["overall"]["solved_rate"])
     np.testing.assert_array_equal(t1["se"], [0.0, 0.0])
     with pytest.raises(ValueError, match="seeds, levels, episodes"):
-        eval_cli.level_table(r[0], 1.0)
+        evaluation.level_table(r[0], 1.0)
 
 
 def test_eval_test_set_writes_json(run_dir, capsys):
@@ -82,7 +84,7 @@ def test_eval_test_set_writes_json(run_dir, capsys):
     assert res["level_params"]["gravity"] == pytest.approx([9.8, 1.62])
     # cartpole pays 1 per step, capped at --max-steps 30
     assert np.all((returns >= 1) & (returns <= 30)) and np.all(returns == np.round(returns))
-    table = eval_cli.level_table(returns, 15.0)
+    table = evaluation.level_table(returns, 15.0)
     for j, row in enumerate(res["per_level"]):
         assert row["mean"] == pytest.approx(table["mean"][j])
         assert row["se"] == pytest.approx(table["se"][j])
@@ -136,20 +138,20 @@ def test_run_final_eval_equals_eval_on_the_saved_students(run_dir, tmp_path):
 
 
 def test_final_eval_specs():
-    assert run_cli.final_eval_specs(None, "walker") == ["named"]  # DCD's levels by default
-    assert run_cli.final_eval_specs(None, "lander") == []
-    assert run_cli.final_eval_specs("none", "walker") == []
-    assert run_cli.final_eval_specs("test, named", "lander") == ["test", "named"]
+    assert evaluation.final_eval_specs(None, "walker") == ["named"]  # DCD's levels by default
+    assert evaluation.final_eval_specs(None, "lander") == []
+    assert evaluation.final_eval_specs("none", "walker") == []
+    assert evaluation.final_eval_specs("test, named", "lander") == ["test", "named"]
     with pytest.raises(SystemExit, match="'none' cannot be combined"):
-        run_cli.final_eval_specs("none,test", "walker")
+        evaluation.final_eval_specs("none,test", "walker")
     with pytest.raises(SystemExit, match="twice"):
-        run_cli.final_eval_specs("test,test", "walker")
+        evaluation.final_eval_specs("test,test", "walker")
 
 
 def test_bad_final_eval_set_fails_before_training(tmp_path):
     d = tmp_path / "run"
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(run_cli, "experiment_from_args", lambda args, backend: tiny_experiment())
+        mp.setattr(xp, "experiment_from_args", lambda args, backend: tiny_experiment())
         with pytest.raises(SystemExit, match="--final-eval: .*'hard' is none of these"):
             run_cli.main(parse(run_cli, ["--out", str(d), "--seeds", "1", "--no-gif", "--final-eval", "hard"]))
     assert not (d / "metrics.jsonl").exists() and not (d / "checkpoints").exists()
@@ -170,8 +172,8 @@ def test_bad_level_files(tmp_path, content, message):
 
     f = tmp_path / "levels.json"
     f.write_text(content)
-    with pytest.raises(eval_cli.LevelFileError) as err:
-        eval_cli.load_level_file(f, envs.make("cartpole"))
+    with pytest.raises(evaluation.LevelFileError) as err:
+        evaluation.load_level_file(f, envs.make("cartpole"))
     assert message in str(err.value) and str(f) in str(err.value)
 
 
@@ -193,18 +195,18 @@ def test_named_and_test_sets_of_lander_and_walker():
 
     lander = envs.make("lander")
     exp = build_experiment("lander", "dr", "quick")
-    tests = run_cli.test_levels(exp.test_set, lander)
-    levels, labels, name = eval_cli.resolve_levels("named", lander, exp, tests)
+    tests = xp.test_levels(exp.test_set, lander)
+    levels, labels, name = evaluation.resolve_levels("named", lander, exp, tests)
     assert name == "named" and labels == [f"eval-{i}" for i in range(10)] + [f"test-{i}" for i in range(10)]
     np.testing.assert_allclose(np.asarray(levels.gravity)[[0, 9, 10, 19]], [-0.01, -9.457, -2.0, -6.3], rtol=1e-6)
     np.testing.assert_array_equal(np.asarray(levels.enable_wind)[:3], [False, True, False])
     assert np.all(np.asarray(levels.max_steps) == eval_sets.LANDER_MAX_STEPS)
-    _, labels, _ = eval_cli.resolve_levels("test", lander, exp, tests)
+    _, labels, _ = evaluation.resolve_levels("test", lander, exp, tests)
     assert labels == [f"test-{i}" for i in range(10)]
 
     walker = envs.make("walker")
     wexp = build_experiment("walker", "dr", "quick")
-    levels, labels, _ = eval_cli.resolve_levels("named", walker, wexp, None)
+    levels, labels, _ = evaluation.resolve_levels("named", walker, wexp, None)
     assert labels == list(LEVELS) and np.asarray(levels.roughness).shape == (len(LEVELS),)
     assert np.all(np.asarray(levels.fixed_terrain))
     np.testing.assert_array_equal(np.asarray(levels.terrain_seed), 1000 + np.arange(len(LEVELS)))

@@ -58,6 +58,7 @@ def test_every_method_builds_from_the_quick_preset(method):
 def test_ppo_overrides_reach_the_student_config_and_the_cli_flag():
     import argparse
 
+    from shed_jax import experiment as xp
     from shed_jax.cli import run as run_cli
     from shed_jax.student.config import parse_overrides
 
@@ -70,10 +71,10 @@ def test_ppo_overrides_reach_the_student_config_and_the_cli_flag():
     p = argparse.ArgumentParser()
     run_cli.add_arguments(p)
     args = p.parse_args(["--env", "lander", "--method", "dr", "--preset", "quick", "--ppo", "num_steps=32"])
-    assert run_cli.experiment_from_args(args, "cpu").ppo.num_steps == 32
-    assert run_cli._experiment_flags_given(p.parse_args(["--ppo", "num_steps=32"]))  # checked against a resume
+    assert xp.experiment_from_args(args, "cpu").ppo.num_steps == 32
+    assert xp.experiment_flags_given(p.parse_args(["--ppo", "num_steps=32"]))  # checked against a resume
     with pytest.raises(SystemExit, match="unknown field 'num_step'"):
-        run_cli.experiment_from_args(p.parse_args(["--ppo", "num_step=32"]), "cpu")
+        xp.experiment_from_args(p.parse_args(["--ppo", "num_step=32"]), "cpu")
     with pytest.raises(ValueError, match="PPOConfig.num_envs must be a positive int"):  # PPOConfig validates
         build_experiment("lander", "dr", "paper", ppo_overrides={"num_envs": 0})
     with pytest.raises(ValueError, match="unknown field"):
@@ -81,23 +82,23 @@ def test_ppo_overrides_reach_the_student_config_and_the_cli_flag():
 
 
 def test_saved_configs_round_trip_and_older_ones_record_every_level():
-    from shed_jax.cli import run as run_cli
+    from shed_jax import experiment as xp
 
     e = build_experiment("walker", "dr", "paper")
     d = e.to_dict()
-    assert d["loop"]["max_recorded_levels"] == 256 and run_cli.experiment_from_dict(d) == e
+    assert d["loop"]["max_recorded_levels"] == 256 and xp.experiment_from_dict(d) == e
     # a config.json written before LoopSpec.max_recorded_levels existed keeps its old behaviour on
     # --resume: every level recorded, so the metrics arrays of its steps keep one shape
     del d["loop"]["max_recorded_levels"]
-    assert run_cli.experiment_from_dict(d).loop.max_recorded_levels is None
+    assert xp.experiment_from_dict(d).loop.max_recorded_levels is None
 
 
 def test_default_seeds_by_preset():
-    from shed_jax.cli import run as run_cli
+    from shed_jax import experiment as xp
 
-    assert run_cli.default_seeds(build_experiment("walker", "dr", "quick")) == 2  # CPU too, now the deadlock is avoided
-    assert run_cli.default_seeds(build_experiment("lander", "dr", "quick")) == 2
-    assert run_cli.default_seeds(build_experiment("walker", "shed", "paper")) == 5
+    assert xp.default_seeds(build_experiment("walker", "dr", "quick")) == 2  # CPU too, now the deadlock is avoided
+    assert xp.default_seeds(build_experiment("lander", "dr", "quick")) == 2
+    assert xp.default_seeds(build_experiment("walker", "shed", "paper")) == 5
 
 
 def test_default_chunk_keeps_walker_progress_under_a_minute():

@@ -1,5 +1,5 @@
 """Reporting and the results-comparison tool: statistics, records, table text and plots on
-hand-computed synthetic runs written the way ``shed_jax/cli/run.py`` writes them."""
+hand-computed synthetic runs written the way ``shed_jax/driver.py`` writes them."""
 import csv
 import json
 import math
@@ -10,8 +10,7 @@ import pytest
 from PIL import Image
 
 from experiments import compare
-from shed_jax import reporting
-from shed_jax.cli import run as run_cli
+from shed_jax import driver, reporting
 from shed_jax.methods.base import StepInfo
 from shed_jax.presets import build_experiment
 
@@ -70,7 +69,7 @@ def test_text_formatting():
 
 
 # --------------------------------------------------------------------------------------------
-# synthetic run directories, written with cli/run.py's own writers
+# synthetic run directories, written with shed_jax/driver.py's own writers
 # --------------------------------------------------------------------------------------------
 
 LANDER_LOW = np.array([-11.99, 0.0, 0.0])
@@ -117,7 +116,7 @@ def _write_run(out: pathlib.Path, method: str, final: list[float], *, episodes: 
         reporting.append_jsonl(out / "metrics.jsonl", reporting.step_records(flat, range(S)))
     hist = {k: np.concatenate(v, axis=1) for k, v in history.items()}
     if with_summary:
-        (out / "summary.json").write_text(json.dumps(run_cli.summarize(exp, hist, wall, S), indent=2))
+        (out / "summary.json").write_text(json.dumps(driver.summarize(exp, hist, wall, S), indent=2))
 
 
 @pytest.fixture()
@@ -203,9 +202,9 @@ def test_compare_partial_run_and_duplicate_methods(runs):
 def _write_named_eval(run_dir: pathlib.Path, returns: np.ndarray, labels: list[str], threshold: float = 230.0) -> None:
     """``final_eval_named.json`` with the per-level statistics of ``eval.level_table`` (the numbers
     ``run --final-eval named`` writes), for hand-made returns [seeds, levels, episodes]."""
-    from shed_jax.cli import eval as eval_cli
+    from shed_jax import evaluation
 
-    t = eval_cli.level_table(returns, threshold=threshold)
+    t = evaluation.level_table(returns, threshold=threshold)
     (run_dir / "final_eval_named.json").write_text(json.dumps({
         "levels": "named", "labels": labels, "seeds": returns.shape[0], "solved_threshold": threshold,
         "returns": returns.tolist(),

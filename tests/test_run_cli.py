@@ -23,7 +23,8 @@ import numpy as np
 import pytest
 
 from shed_jax import checkpoint as ck
-from shed_jax import reporting
+from shed_jax import driver, errors, reporting, rundir
+from shed_jax import experiment as xp
 from shed_jax.cli import run as run_cli
 from shed_jax.loop import make_run
 
@@ -57,7 +58,7 @@ def finished(patched, tmp_path_factory):
 
     a = tmp_path_factory.mktemp("run") / "A"
     events = []
-    original_worker, original_bar = run_cli._in_worker, tqdm.tqdm
+    original_worker, original_bar = driver.in_worker, tqdm.tqdm
 
     def worker(fn, name="compile", **kwargs):
         events.append("compile")
@@ -68,7 +69,7 @@ def finished(patched, tmp_path_factory):
         return original_bar(*args, **kw)
 
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(run_cli, "_in_worker", worker)
+        mp.setattr(driver, "in_worker", worker)
         mp.setattr(tqdm, "tqdm", bar)
         code, out, err = run(["--out", str(a), *BASE, "--final-eval", "test", "--final-eval-episodes", "3"])
     assert code == 0, err
@@ -111,12 +112,12 @@ def test_progress_says_compiling_and_each_post_run_stage(finished):
 
 
 def test_chunk_sizes_compiled_ahead():
-    assert run_cli.chunk_sizes(1, 0, 4) == [1]
-    assert run_cli.chunk_sizes(3, 0, 4) == [3, 1]
-    assert run_cli.chunk_sizes(4, 0, 8) == [4]
-    assert run_cli.chunk_sizes(3, 2, 4) == [2]
-    assert run_cli.chunk_sizes(5, 0, 4) == [4]
-    assert run_cli.chunk_sizes(2, 4, 4) == []
+    assert driver.chunk_sizes(1, 0, 4) == [1]
+    assert driver.chunk_sizes(3, 0, 4) == [3, 1]
+    assert driver.chunk_sizes(4, 0, 8) == [4]
+    assert driver.chunk_sizes(3, 2, 4) == [2]
+    assert driver.chunk_sizes(5, 0, 4) == [4]
+    assert driver.chunk_sizes(2, 4, 4) == []
 
 
 def test_per_level_plot_is_small_multiples(finished, monkeypatch, tmp_path):
@@ -133,7 +134,7 @@ def test_per_level_plot_is_small_multiples(finished, monkeypatch, tmp_path):
     monkeypatch.setattr(reporting, "plot_per_level", spy)
     import envs
 
-    run_cli.make_plots(tiny_experiment(), envs.make("cartpole"), hist, tmp_path)
+    driver.make_plots(tiny_experiment(), envs.make("cartpole"), hist, tmp_path)
     assert seen["shape"] == (SEEDS, 4, 2) and seen["path"] == tmp_path / "test_return_per_level.png"
     np.testing.assert_array_equal(seen["x"], np.cumsum(hist["info/env_steps_train"][0].astype(np.float64)))
     from PIL import Image
@@ -199,7 +200,7 @@ def test_damaged_newest_checkpoint_is_named_and_older_ones_continue(finished, pa
         f.write_bytes(f.read_bytes()[: f.stat().st_size // 2])
     code, _, err = run(["--resume", str(d)])
     line = error_line(err)
-    assert code == run_cli.EXIT_CHECKPOINT
+    assert code == errors.EXIT_CHECKPOINT
     assert f"checkpoint {d}/checkpoints/4 is damaged" in line
     assert "intact older checkpoint(s): 3, 2" in line and f"--resume {d} --from-step 3" in line
     assert len(line) < 1000 and "tensorstore_spec" not in line
@@ -207,10 +208,10 @@ def test_damaged_newest_checkpoint_is_named_and_older_ones_continue(finished, pa
     code, out, err = run(["--resume", str(d), "--from-step", "3"])
     assert code == 0, err
     assert "moved checkpoint(s) 4 to" in out and "resuming" in out and "from budget step 3/4" in out
-    assert (d / run_cli.DISCARDED_DIR / "4" / "state").is_dir()
+    assert (d / rundir.DISCARDED_DIR / "4" / "state").is_dir()
     same_records(a, d)
-    target = jax.eval_shape(jax.vmap(make_run(*run_cli.build(tiny_experiment())[1:], tiny_experiment().loop)[0]),
-                            run_cli.seed_keys(0, SEEDS))
+    target = jax.eval_shape(jax.vmap(make_run(*xp.build(tiny_experiment())[1:], tiny_experiment().loop)[0]),
+                            xp.seed_keys(0, SEEDS))
     with ck.RunCheckpointer(a, create=False) as ra, ck.RunCheckpointer(d, create=False) as rd:
         x, y = ra.restore(target), rd.restore(target)
     for p, u, v in zip(jax.tree_util.tree_leaves_with_path(x.state), jax.tree_util.tree_leaves(x.state),
@@ -243,7 +244,7 @@ def signal_during_compile(signum):
         t.start()
         while t.is_alive():
             t.join(0.05)
-        time.sleep(1.0)  # the handler runs in this wait, as in _in_worker's
+        time.sleep(1.0)  # the handler runs in this wait, as in driver.in_worker's
         raise AssertionError("the signal did not stop the start-up")
 
     return worker
@@ -253,7 +254,7 @@ def signal_during_compile(signum):
 def test_signal_during_startup_stops_at_once_and_keeps_nothing(patched, tmp_path, monkeypatch, signum):
     e = tmp_path / "E"
     before = signal.getsignal(signum)
-    monkeypatch.setattr(run_cli, "_in_worker", signal_during_compile(signum))
+    monkeypatch.setattr(driver, "in_worker", signal_during_compile(signum))
     code, out, err = run(["--out", str(e), *BASE])
     assert code == 128 + signum
     assert f"[shed_jax] {signal.Signals(signum).name} during start-up, before the first budget step: stopped; nothing was kept" in err
@@ -266,7 +267,7 @@ def test_signal_during_resume_startup_names_the_resume(finished, patched, tmp_pa
     (d / "summary.json").unlink()
     shutil.rmtree(d / "checkpoints" / "4")  # a run stopped at budget step 3
     ckpts = snapshot(d / "checkpoints")
-    monkeypatch.setattr(run_cli, "_in_worker", signal_during_compile(signal.SIGTERM))
+    monkeypatch.setattr(driver, "in_worker", signal_during_compile(signal.SIGTERM))
     code, _, err = run(["--resume", str(d)])
     assert code == 143 and f"SIGTERM during start-up, before the first budget step: stopped; continue it with: " \
                            f"python -m shed_jax run --resume {d}" in err
@@ -291,7 +292,7 @@ def test_disk_full_is_reported_at_its_chunk_with_what_is_safe(finished, patched,
     monkeypatch.setattr(ck.RunCheckpointer, "save", failing_save(3, OSError(errno.ENOSPC, "No space left on device")))
     code, out, err = run(["--out", str(f), *BASE, "--no-gif"])
     line = error_line(err)
-    assert code == run_cli.EXIT_IO == 74
+    assert code == errors.EXIT_IO == 74
     assert line == (f"shed_jax: error: disk full (No space left on device) while saving checkpoint 3 in {f}/checkpoints; "
                      f"safe on disk: checkpoint 2 in {f}/checkpoints (and metrics.jsonl up to it); after freeing space "
                      f"continue with: python -m shed_jax run --resume {f}")
@@ -338,14 +339,14 @@ def test_metrics_rebuild_names_only_a_backup_it_wrote(finished, tmp_path):
     with ck.RunCheckpointer(a, create=False) as reader:
         hist = reader.read_history()
     path = tmp_path / "metrics.jsonl"
-    note = run_cli.reconcile_metrics_jsonl(path, hist, 3, SEEDS)  # no file at all
+    note = rundir.reconcile_metrics_jsonl(path, hist, 3, SEEDS)  # no file at all
     assert "there was no metrics.jsonl" in note and ".bak" not in note
     assert sorted(p.name for p in tmp_path.iterdir()) == ["metrics.jsonl"]
     lines = (a / "metrics.jsonl").read_text().splitlines(keepends=True)
     records = [json.loads(x) for x in lines[: 3 * SEEDS]]  # rebuilt from the history: the same records
     assert [json.loads(x) for x in path.read_text().splitlines()] == records
     path.write_text("".join(lines[SEEDS: 3 * SEEDS]))  # step 0 missing
-    note = run_cli.reconcile_metrics_jsonl(path, hist, 3, SEEDS)
+    note = rundir.reconcile_metrics_jsonl(path, hist, 3, SEEDS)
     assert "old file kept as metrics.jsonl.bak-3" in note
     assert (tmp_path / "metrics.jsonl.bak-3").read_text() == "".join(lines[SEEDS: 3 * SEEDS])
     assert [json.loads(x) for x in path.read_text().splitlines()] == records
@@ -353,7 +354,7 @@ def test_metrics_rebuild_names_only_a_backup_it_wrote(finished, tmp_path):
 
 def test_compile_heartbeat_keeps_start_up_from_going_silent(capsys):
     # a 0.35 s "compile" with a 0.1 s heartbeat: a line at about 0.1, 0.2 and 0.3 s, and the result
-    assert run_cli._in_worker(lambda: time.sleep(0.35) or 7, heartbeat=0.1) == 7
+    assert driver.in_worker(lambda: time.sleep(0.35) or 7, heartbeat=0.1) == 7
     lines = [l for l in capsys.readouterr().out.splitlines() if l.startswith("[shed_jax] still compiling")]
     assert 2 <= len(lines) <= 4, lines
-    assert run_cli._in_worker(lambda: 8) == 8 and "still" not in capsys.readouterr().out  # no heartbeat asked
+    assert driver.in_worker(lambda: 8) == 8 and "still" not in capsys.readouterr().out  # no heartbeat asked

@@ -19,9 +19,8 @@ import pytest
 from flax import struct
 
 import envs
-from shed_jax import sharding
-from shed_jax.cli import run as run_cli
-from shed_jax.cli import sweep
+from shed_jax import driver, sharding, sweep
+from shed_jax.cli import sweep as sweep_cli
 from shed_jax.loop import LoopSpec
 from shed_jax.methods.shed import SHED, SHEDConfig, SHEDHyperparams
 from shed_jax.presets import Experiment
@@ -300,7 +299,7 @@ def test_end_to_end_sweep_writes_run_files(tmp_path):
         # the run CLI's summary fields, plus the point
         hist = {k: np.asarray([[x[k] for x in records]]) for k in ("test_return", "test_return_per_level", "episode", "step",
                                                                     "info/env_steps_train", "info/env_steps_eval")}
-        expect = run_cli.summarize(_tiny_experiment("shed", {}, {}), hist, summary["wall_time_s"], 1)
+        expect = driver.summarize(_tiny_experiment("shed", {}, {}), hist, summary["wall_time_s"], 1)
         assert set(expect) <= set(summary)
         for k in ("final_test_return_mean", "student_env_steps_total", "eval_env_steps_total", "budget_steps"):
             assert summary[k] == pytest.approx(expect[k]), k
@@ -387,7 +386,7 @@ def test_resume_reads_the_saved_arguments(tmp_path):
     import argparse
 
     p = argparse.ArgumentParser()
-    sweep.add_arguments(p)
+    sweep_cli.add_arguments(p)
     start = p.parse_args(["--env", "lander", "--methods", "shed", "--seeds", "3", "--grid", "eta=0,10",
                           "--test-episode-every", "4", "--out", str(tmp_path)])
     (tmp_path / sweep.ARGS_FILE).write_text(json.dumps({k: getattr(start, k) for k in sweep.SAVED_ARGS}))

@@ -2,25 +2,11 @@
 
     python -m shed_jax ppo --env lander --total-steps 3000000 --seeds 8 --out runs/ppo_lander
 
-The compiled training (``vmap`` over seeds of ``student.run_updates``) is called on consecutive
-chunks of updates for the progress bar; it is compiled once (ahead of time, so the compile time is
-reported separately from the steps/s). Writes DIR/summary.json and DIR/learning_curve.png.
-The helpers here (`resolve_level`, `train_seeds`) are reused by experiments/ppo_sweep.py and
-experiments/bench_ppo.py.
+Writes DIR/summary.json and DIR/learning_curve.png (``shed_jax.training.train_fixed_level``).
 """
 from __future__ import annotations
 
 import argparse
-import importlib
-import json
-import math
-import pathlib
-import time
-import warnings
-
-import jax
-import jax.numpy as jnp
-import numpy as np
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -38,170 +24,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", default=None, help="output directory (default runs/ppo_<env>)")
 
 
-def find_levels(env) -> dict | None:
-    """The LEVELS dict of the env's module or package (name -> params, or builder -> params)."""
-    module = type(env).__module__
-    candidates = [module, module.rsplit(".", 1)[0], module.rsplit(".", 1)[0] + ".levels"]
-    for name in candidates:
-        try:
-            mod = importlib.import_module(name)
-        except ModuleNotFoundError:
-            continue
-        if isinstance(getattr(mod, "LEVELS", None), dict):
-            return mod.LEVELS
-    return None
-
-
-def resolve_level(env, name: str | None):
-    """One level (unbatched params): the env's default, or LEVELS[name] (a params object or a builder)."""
-    if name is None:
-        return env.default_params
-    levels = find_levels(env)
-    if levels is None:
-        raise ValueError(f"{env.name} defines no named LEVELS; omit --level")
-    if name not in levels:
-        raise ValueError(f"{env.name}: unknown level {name!r}; known: {', '.join(levels)}")
-    level = levels[name]
-    return level() if callable(level) else level
-
-
-def train_seeds(student, keys, hparams, level, num_updates: int, chunks: int, progress: bool = True, on_chunk=None,
-                start_chunk: int = 0, restore=None):
-    """Train one student per row of `keys` (and of `hparams`, which has the same leading axis).
-
-    Returns (states, metrics with leaves [B, updates_done], timing dict). `num_updates` is
-    rounded up to a multiple of the chunk size so every chunk is the same compiled call.
-    ``on_chunk(c, states, metrics_of_chunk)`` runs after each chunk; if it returns True the
-    training stops there (an early stop, e.g. once a target return is reached), and the timing
-    and metrics cover the chunks done. To continue an interrupted run, pass ``start_chunk`` (the
-    chunks already done) and ``restore(states) -> states``, which puts the saved learning state
-    into the freshly initialised (and freshly reset) states; the chunk keys are the same as in
-    the uninterrupted run.
-    """
-    from tqdm import tqdm
-
-    chunks = max(1, min(chunks, num_updates))
-    per_chunk = math.ceil(num_updates / chunks)
-    levels = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[None], level)
-
-    def init_one(key, hp):
-        k_init, k_assign = jax.random.split(key)
-        return student.assign_levels(student.init(k_init, hp), k_assign, levels)
-
-    def chunk_one(state, key):
-        return student.run_updates(state, key, per_chunk)
-
-    t0 = time.perf_counter()
-    states = jax.jit(jax.vmap(init_one))(keys, hparams)
-    if restore is not None:
-        states = restore(states)
-    chunk_keys = jax.vmap(lambda k: jax.random.split(jax.random.fold_in(k, 1), chunks))(keys)  # [B, chunks]
-    if start_chunk < chunks:  # else nothing is left to train (a finished run, restored to be evaluated)
-        compiled = jax.jit(jax.vmap(chunk_one)).lower(states, chunk_keys[:, 0]).compile()
-    jax.block_until_ready(states)
-    compile_s = time.perf_counter() - t0
-    history = []
-    t1 = time.perf_counter()
-    bar = tqdm(range(start_chunk, chunks), desc=f"ppo {student.env.name}", disable=not progress)
-    for c in bar:
-        states, m = compiled(states, chunk_keys[:, c])
-        m = jax.device_get(m)
-        history.append(m)
-        with warnings.catch_warnings():  # chunks in which no episode ended give NaN
-            warnings.simplefilter("ignore", RuntimeWarning)
-            ret = np.nanmean(m["episode_return"][:, -max(1, per_chunk // 4):], axis=1)
-        bar.set_postfix(ret=f"{np.nanmedian(ret):.1f}", steps=f"{(c + 1) * per_chunk * student.env_steps_per_update:.3g}")
-        if on_chunk is not None and on_chunk(c, states, m):
-            break
-    run_s = time.perf_counter() - t1
-    metrics = jax.tree_util.tree_map(lambda *xs: np.concatenate(xs, axis=1), *history) if history else {}
-    run_updates = len(history) * per_chunk
-    timing = {
-        "compile_s": compile_s,
-        "train_s": run_s,
-        "updates": (start_chunk + len(history)) * per_chunk,  # in total, earlier runs included
-        "updates_this_run": run_updates,
-        "env_steps_per_seed": (start_chunk + len(history)) * per_chunk * student.env_steps_per_update,
-        "env_steps_per_s": run_updates * student.env_steps_per_update * keys.shape[0] / run_s if run_updates else float("nan"),
-    }
-    return states, metrics, timing
-
-
-def smoothed(x: np.ndarray, window: int) -> np.ndarray:
-    """NaN-aware trailing moving average along the last axis (updates without finished episodes are NaN)."""
-    x = np.asarray(x, np.float64)
-    ok = np.isfinite(x)
-    c = np.cumsum(np.where(ok, x, 0.0), axis=-1)
-    n = np.cumsum(ok, axis=-1)
-    c = np.concatenate([np.zeros(x.shape[:-1] + (1,)), c], axis=-1)
-    n = np.concatenate([np.zeros(x.shape[:-1] + (1,)), n], axis=-1)
-    idx = np.arange(x.shape[-1]) + 1
-    lo = np.maximum(idx - window, 0)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return (c[..., idx] - c[..., lo]) / (n[..., idx] - n[..., lo])
-
-
 def main(args) -> int:
-    import envs
-    from shed_jax import reporting
-    from shed_jax.student import PPOConfig, PPOHyperparams, make_student
+    from shed_jax.errors import UsageError
+    from shed_jax.training import train_fixed_level
 
     if args.total_steps < 1 or args.seeds < 1:
-        from shed_jax.cli.errors import UsageError
-
         raise UsageError(f"--total-steps and --seeds must be >= 1, got {args.total_steps} and {args.seeds}")
-    env = envs.make(args.env)
-    config = PPOConfig.for_env(args.env)
-    if args.num_envs is not None:
-        config = config.replace(num_envs=args.num_envs)
-    hp = config.hparams if args.lr is None else config.hparams.replace(lr=args.lr)
-    student = make_student(env, config)
-    level = resolve_level(env, args.level)
-    out = pathlib.Path(args.out or f"runs/ppo_{args.env}")
-    out.mkdir(parents=True, exist_ok=True)
-
-    num_updates = math.ceil(args.total_steps / student.env_steps_per_update)
-    keys = jax.random.split(jax.random.PRNGKey(args.seed), args.seeds)
-    hps = PPOHyperparams.stack([hp] * args.seeds)
-    t0 = time.perf_counter()
-    states, metrics, timing = train_seeds(student, keys, hps, level, num_updates, args.chunks)
-
-    levels = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[None], level)
-    eval_keys = jax.vmap(lambda k: jax.random.fold_in(k, 2))(keys)
-    evaluate = jax.jit(jax.vmap(lambda s, k: student.evaluate(s, k, levels, args.eval_episodes)))
-    final = np.asarray(evaluate(states, eval_keys))[:, 0, :]  # [seeds, episodes]
-    wall = time.perf_counter() - t0
-
-    x = (np.arange(timing["updates"]) + 1) * student.env_steps_per_update
-    curve = smoothed(metrics["episode_return"], 10)
-    reporting.plot_curves(
-        {args.env + (f" / {args.level}" if args.level else ""): (x, curve)},
-        out / "learning_curve.png",
-        xlabel="env steps per seed",
-        ylabel="training episode return (10-update average)",
-        title=f"PPO on {args.env}: mean and SE over {args.seeds} seeds",
-    )
-    summary = {
-        "env": args.env,
-        "level": args.level,
-        "seeds": args.seeds,
-        "config": {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(config).items() if k != "hparams"},
-        "hparams": {k: float(getattr(hp, k)) for k in ("lr", "ent_coef", "clip_eps", "vf_coef", "gamma", "gae_lambda", "max_grad_norm")},
-        "final_return_mean": final.mean(axis=1).tolist(),
-        "final_return_episodes": args.eval_episodes,
-        "final_train_return": np.nanmean(np.asarray(metrics["episode_return"])[:, -10:], axis=1).tolist(),
-        "env_steps": timing["env_steps_per_seed"],
-        "env_steps_total": timing["env_steps_per_seed"] * args.seeds,
-        "wall_time_s": wall,
-        "compile_s": timing["compile_s"],
-        "train_s": timing["train_s"],
-        "steps_per_s": timing["env_steps_per_s"],
-        "device": str(jax.devices()[0]),
-        "curve": {"env_steps": x[:: max(1, len(x) // 200)].tolist(),
-                  "mean_return": np.nanmean(curve, axis=0)[:: max(1, len(x) // 200)].tolist()},
-    }
-    (out / "summary.json").write_text(json.dumps(summary, indent=2, default=float))
-    print(f"final return per seed: {np.round(final.mean(axis=1), 1).tolist()}  "
-          f"({timing['env_steps_per_seed']:.3g} steps/seed, {timing['env_steps_per_s']:.3g} steps/s, wall {wall:.1f}s)")
-    print(f"wrote {out / 'summary.json'} and {out / 'learning_curve.png'}")
+    train_fixed_level(args)
     return 0

@@ -1,0 +1,822 @@
+"""The host driver: every run and every sweep group is trained, checked, saved and reported here.
+
+A :class:`Batch` is one compiled program: the points of one shape group (a run is a group of one
+point) times the seeds, laid out point-major (row = point * seeds + seed) on one leading axis and
+split over a device mesh (``shed_jax.sharding``; a run uses a mesh of one device, a sweep every
+visible device). The compiled part is ``shed_jax.loop`` (PureJaxRL's ``make_train`` for UED); this
+module is the host side around it:
+
+* ``compile_batch``: the initial state and every chunk length, compiled ahead of time in a worker
+  thread ("compiling ...", a "still compiling (N s)" line every 45 s, "compiled in N s"), so that
+  SIGINT/SIGTERM during start-up stop at once (:class:`StopRequest`);
+* ``train``: the chunks of budget steps. After each, the host checks the chunk for non-finite values
+  (``checkpoint.find_nonfinite``; the chunk is not saved), appends each point's records to its
+  ``metrics.jsonl``, saves a checkpoint of the whole batch and waits for it (a failed write is
+  reported at its chunk: :class:`shed_jax.errors.WriteFailedError`, naming what is safe on disk),
+  calls the caller's :class:`Reporter` (Brax's ``progress_fn`` split: the run prints its progress
+  line, the sweep its per-point returns) and stops at a chunk boundary on a signal, ``--stop-after``
+  or a deadline (:class:`StopRules`);
+* ``write_results``: each point's plots, final evaluations and, last, ``summary.json`` (a point with
+  a summary is finished).
+
+``run`` is ``python -m shed_jax run`` on these; ``shed_jax.sweep.run_group`` is a sweep's group.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import pathlib
+import signal
+import sys
+import threading
+import time
+from typing import Any, Callable
+
+import numpy as np
+
+from shed_jax import errors
+from shed_jax import experiment as xp
+from shed_jax import rundir
+from shed_jax.errors import EXIT_NONFINITE, EXIT_STOPPED, UsageError, WriteFailedError
+
+HEARTBEAT_S = 45.0  # a "still compiling" line at least this often
+
+
+# ---------------------------------------------------------------------------------------------
+# signals, the compile worker, stopping
+# ---------------------------------------------------------------------------------------------
+
+class StartupInterrupted(Exception):
+    """SIGINT/SIGTERM before the first chunk ran: the run stops at once (nothing to save yet)."""
+
+    def __init__(self, signum: int):
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
+
+
+class StopRequest:
+    """SIGINT/SIGTERM set ``signum``; the loop finishes its chunk, saves and exits 128 + signum.
+
+    While ``startup`` is true (validation, building, compiling: before the first chunk runs) a
+    signal raises :class:`StartupInterrupted` in the main thread instead; the compile runs in a
+    worker thread meanwhile (``in_worker``), so this happens at once. A second signal aborts at
+    once (the last complete checkpoint stays). Handlers are installed only in the main thread and
+    restored on exit.
+    """
+
+    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+    def __init__(self):
+        self.signum: int | None = None
+        self.startup = True
+        self._previous: dict = {}
+
+    def __enter__(self):
+        if threading.current_thread() is threading.main_thread():
+            for s in self.SIGNALS:
+                self._previous[s] = signal.signal(s, self._handle)
+        return self
+
+    def __exit__(self, *exc):
+        for s, handler in self._previous.items():
+            signal.signal(s, handler)
+        self._previous.clear()
+        return False
+
+    def _handle(self, signum, frame):
+        if self.signum is not None:
+            if signum == signal.SIGINT:
+                raise KeyboardInterrupt
+            raise SystemExit(128 + signum)
+        self.signum = signum
+        if self.startup:
+            raise StartupInterrupted(signum)
+        print(f"\n[shed_jax] {signal.Signals(signum).name}: finishing the current chunk, then saving "
+              f"(send it again to stop at once without saving)", file=sys.stderr, flush=True)
+
+    def poll(self) -> int | None:
+        """The signal received so far (checked once per chunk)."""
+        return self.signum
+
+
+@dataclasses.dataclass
+class StopRules:
+    """When training stops at a chunk boundary (checked in this order); ``stopped`` records why."""
+
+    signals: StopRequest | None = None
+    stop_after: int | None = None  # budget steps
+    deadline: float | None = None  # a time.time() value
+    time_limit: float | None = None  # the seconds the deadline came from (for the message)
+    stopped: tuple | None = None  # (exit code, reason) once a rule fired
+
+    def check(self, done: int) -> tuple[int, str] | None:
+        if self.signals is not None and self.signals.poll() is not None:
+            self.stopped = (128 + self.signals.signum, f"interrupted by {signal.Signals(self.signals.signum).name}")
+        elif self.stop_after is not None and done >= self.stop_after:
+            self.stopped = (EXIT_STOPPED, f"--stop-after {self.stop_after} reached")
+        elif self.deadline is not None and time.time() >= self.deadline:
+            self.stopped = (EXIT_STOPPED, f"--time-limit {self.time_limit:g}s reached")
+        return self.stopped
+
+    def signalled(self) -> bool:
+        """A signal came (checked before a sweep's next group trains)."""
+        if self.signals is not None and self.signals.poll() is not None:
+            self.stopped = (128 + self.signals.signum, f"interrupted by {signal.Signals(self.signals.signum).name}")
+            return True
+        return False
+
+
+def in_worker(fn, name: str = "compile", heartbeat: float | None = None, what: str = "compiling"):
+    """``fn()`` in a worker thread while the main thread waits, so that SIGINT/SIGTERM are handled at
+    once (a compile inside XLA would hold off the Python handlers until it returns). With
+    ``heartbeat`` (seconds), a "still <what>" line every so often, so the run is never silent longer."""
+    box: dict = {}
+
+    def work():
+        try:
+            box["value"] = fn()
+        except BaseException as err:  # noqa: BLE001 - re-raised in the main thread
+            box["error"] = err
+
+    worker = threading.Thread(target=work, name=f"shed_jax-{name}", daemon=True)  # __main__._exit knows the prefix
+    worker.start()
+    start = time.time()
+    beat = start + heartbeat if heartbeat else float("inf")
+    while worker.is_alive():
+        worker.join(0.1)
+        if time.time() >= beat and worker.is_alive():
+            print(f"[shed_jax] still {what} ({time.time() - start:.0f} s)...", flush=True)
+            beat += heartbeat
+    if "error" in box:
+        raise box["error"]
+    return box["value"]
+
+
+def startup_interrupted(signum: int, resume: str | None, made: list) -> int:
+    """The line for a signal during start-up: how to continue (``resume``), or what was removed; 128 + signum."""
+    name = signal.Signals(signum).name
+    if resume is not None:
+        what = f"continue it with: {resume}"
+    else:
+        removed = rundir.remove_made(made)
+        what = f"nothing was kept (removed {removed})" if removed else "nothing was written"
+    print(f"[shed_jax] {name} during start-up, before the first budget step: stopped; {what}", file=sys.stderr, flush=True)
+    return 128 + signum
+
+
+# ---------------------------------------------------------------------------------------------
+# a batch: what one compiled program runs
+# ---------------------------------------------------------------------------------------------
+
+@dataclasses.dataclass
+class Batch:
+    """The points of one shape group x seeds, built (every value validated) and ready to compile."""
+
+    exp: Any  # presets.Experiment shared by the points
+    env: Any
+    student: Any
+    method: Any
+    tests: Any  # test levels
+    student_hparams: Any  # PPOHyperparams stacked over the points [P]
+    method_hparams: Any  # the method's hyperparameters stacked [P], or None (it has none)
+    num_points: int
+    num_seeds: int
+    root_seed: int
+    chunk: int
+    init: Callable = None  # shed_jax.loop.make_run's, for one run
+    run: Callable = None
+
+    @property
+    def total(self) -> int:
+        return self.exp.loop.total_steps
+
+    def rows(self, tree, p: int):
+        """Point ``p``'s rows of a batched tree or flat dict (leading axis point * seeds + seed)."""
+        S = self.num_seeds
+        if isinstance(tree, dict):
+            return {k: v[p * S:(p + 1) * S] for k, v in tree.items()}
+        import jax
+
+        return jax.tree_util.tree_map(lambda x: x[p * S:(p + 1) * S], tree)
+
+
+def make_batch(exp, parts, overrides: list[tuple[dict, dict]], *, num_seeds: int, root_seed: int,
+               chunk: int | None = None) -> Batch:
+    """A :class:`Batch` of ``parts`` (``experiment.build(exp)``'s env, student, method, test levels).
+
+    ``overrides``: per point, ``(student hyperparameters, method hyperparameters)`` to set over the
+    experiment's (a run: one point, ``[({}, {})]``). Values are checked here (ValueError).
+    """
+    from shed_jax.loop import make_run
+    from shed_jax.student.config import PPOHyperparams
+
+    env, student, method, tests = parts
+    shp = PPOHyperparams.stack([exp.ppo.hparams.replace(**_floats(s, exp.method, "ppo.")) for s, _ in overrides])
+    mhp = None
+    if hasattr(method, "default_hparams"):
+        base = method.default_hparams
+        mhp = type(base).stack([base.replace(**_floats(m, exp.method)) for _, m in overrides])
+    elif any(m for _, m in overrides):
+        raise ValueError(f"method {exp.method!r} has no dynamic hyperparameters")
+    init, run = make_run(student, method, tests, exp.loop)
+    return Batch(exp, env, student, method, tests, shp, mhp, len(overrides), num_seeds, root_seed,
+                 chunk or exp.loop.steps_per_episode, init, run)
+
+
+def _floats(values: dict, method: str, prefix: str = "") -> dict:
+    out = {}
+    for k, v in values.items():
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            raise ValueError(f"method {method!r}: hyperparameter {prefix}{k} needs a number, got {v!r}")
+        out[k] = float(v)
+    return out
+
+
+def batch_init(init: Callable, method) -> Callable:
+    """``(key, student_hparams, method_hparams) -> RunState``: the loop's init, then the method's hparams."""
+
+    def init_point(key, student_hp, method_hp):
+        state = init(key, student_hp)
+        if method_hp is not None:
+            state = state.replace(method=method.with_hparams(state.method, method_hp))
+        return state
+
+    return init_point
+
+
+def batch_inputs(batch: Batch):
+    """Host arrays (keys [B, 2], student hparams [B], method hparams [B] or None), row = point * S + seed.
+
+    Seed i of every point has ``experiment.seed_keys``'s key i (common random numbers).
+    """
+    import jax
+
+    S = batch.num_seeds
+    keys = np.tile(np.asarray(xp.seed_keys(batch.root_seed, S)), (batch.num_points, 1))
+    rep = lambda tree: None if tree is None else jax.tree_util.tree_map(lambda x: np.repeat(np.asarray(x), S, axis=0), tree)
+    return keys, rep(batch.student_hparams), rep(batch.method_hparams)
+
+
+@dataclasses.dataclass
+class Placed:
+    """A batch's inputs placed for a mesh: padded to a multiple of its size (``n`` runs are real)."""
+
+    mesh: Any
+    inputs: tuple
+    n: int
+
+    @property
+    def size(self) -> int:
+        from shed_jax import sharding
+
+        return sharding.batch_size(self.inputs)
+
+
+def place(batch: Batch, mesh, pad: bool = True) -> Placed:
+    from shed_jax import sharding
+
+    inputs, n = sharding.pad_batch(batch_inputs(batch), mesh.size, pad=pad)
+    return Placed(mesh, inputs, n)
+
+
+def state_target(batch: Batch, placed: Placed):
+    """The shapes and dtypes of the batch's initial state (a checkpoint's restore target), nothing computed."""
+    import jax
+
+    return jax.eval_shape(jax.vmap(batch_init(batch.init, batch.method)), *placed.inputs)
+
+
+def on_mesh(state, placed: Placed):
+    """A (restored) state split over the mesh as the compiled chunks take it."""
+    import jax
+
+    from shed_jax import sharding
+
+    return jax.device_put(state, sharding.batch_sharding(placed.mesh))
+
+
+def chunk_sizes(chunk: int, done: int, total: int) -> list[int]:
+    """The distinct chunk lengths a run from ``done`` to ``total`` calls: full chunks, then a shorter last one."""
+    left = total - done
+    if left <= 0:
+        return []
+    sizes = [min(chunk, left)]
+    if left > chunk and left % chunk:
+        sizes.append(left % chunk)
+    return sizes
+
+
+def say(text: str) -> None:
+    print(text, flush=True)
+
+
+def compile_batch(batch: Batch, placed: Placed, done: int, state=None, say: Callable = say):
+    """``(state, {chunk length: compiled chunk})``: the initial state when ``state`` is None, and every
+    chunk length from budget step ``done`` to the end, compiled ahead of time in a worker thread."""
+    from shed_jax import sharding
+
+    fresh = state is None
+    sizes = chunk_sizes(batch.chunk, done, batch.total)
+    if not sizes and not fresh:
+        return state, {}
+    t0 = time.time()
+    chunks = (f"a chunk of {sizes[0]} budget step(s)" if len(sizes) == 1 else
+              f"chunks of {sizes[0]} and {sizes[1]} budget steps" if sizes else "")
+    what = " and ".join(x for x in ("the initial state" if fresh else "", chunks) if x)
+    say(f"[shed_jax] compiling {what} (minutes for a large program on a CPU)...")
+    run_chunk = sharding.sharded_run(batch.run, placed.mesh)
+
+    def compile_all(state):
+        if state is None:
+            init = sharding.sharded_init(batch_init(batch.init, batch.method), placed.mesh)
+            state = init(*sharding.put_batch(placed.inputs, placed.mesh))
+        return state, {n: run_chunk.lower(state, n, done).compile() for n in sizes}
+
+    state, compiled = in_worker(lambda: compile_all(state), heartbeat=HEARTBEAT_S)
+    say(f"[shed_jax] compiled in {time.time() - t0:.1f} s")
+    return state, compiled
+
+
+# ---------------------------------------------------------------------------------------------
+# training
+# ---------------------------------------------------------------------------------------------
+
+@dataclasses.dataclass
+class Progress:
+    """Where a batch's training stands (host side)."""
+
+    state: Any
+    done: int = 0  # budget steps done
+    history: dict = dataclasses.field(default_factory=dict)  # flat metrics [B, done, ...]
+    previous_wall: float = 0.0  # wall time of earlier processes (from the checkpoint)
+    t0: float = dataclasses.field(default_factory=time.time)  # this process's start (compile included)
+    first_chunk_s: float | None = None  # compile plus first chunk
+    saved: int | None = None  # the last checkpoint known to be complete on disk
+
+    def wall(self) -> float:
+        return self.previous_wall + time.time() - self.t0
+
+
+class Reporter:
+    """The caller's side of training: called once before the first chunk, after every chunk, at the end."""
+
+    def begin(self, progress: Progress, total: int) -> None:
+        pass
+
+    def chunk(self, progress: Progress, steps: int, flat: dict) -> None:
+        pass
+
+    def end(self) -> None:
+        pass
+
+    def write(self, text: str, **kw) -> None:
+        print(text, **kw)
+
+
+class Writes:
+    """Names the write in progress (``stage``); a failed write (disk full, ...) leaving the block
+    becomes one :class:`WriteFailedError`: '<reason> while <stage>; <what is safe on disk>'."""
+
+    def __init__(self, safe: Callable[[], str], stage: str = ""):
+        self.safe, self.stage = safe, stage
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, typ, err, tb):
+        if isinstance(err, Exception) and not isinstance(err, UsageError) and errors.is_write_failure(err):
+            raise WriteFailedError(f"{errors.io_reason(err)} while {self.stage}; {self.safe()}") from err
+        return False
+
+
+@dataclasses.dataclass
+class Output:
+    """Where a batch's files go and how its checkpoints are kept."""
+
+    dirs: list  # per point: its run directory (metrics.jsonl, summary.json, plots, final evaluations)
+    names: list  # per point: its name (messages)
+    ckpt_dir: pathlib.Path | None  # RunCheckpointer's run_dir (checkpoints/ under it); None: no checkpoints
+    keep: int
+    config: dict  # saved in every checkpoint
+    extra: Callable[[Progress], dict]  # caller extras saved in every checkpoint (wall time, ...)
+    label: str | None = None  # a sweep group's label (message prefix); None for a run
+    writer: bool = True  # this process writes (process 0 of several hosts)
+
+
+def train(batch: Batch, compiled: dict, progress: Progress, out: Output, stop: StopRules, reporter: Reporter,
+          safe: Callable[[], str]) -> tuple[int, str] | None:
+    """Run the chunks from ``progress.done`` to the end (see the module doc).
+
+    Returns None when the batch finished, ``(exit code, reason)`` when a stop rule fired (the last
+    chunk is saved) or the non-finite guard stopped it (``EXIT_NONFINITE``; that chunk is not saved).
+    Raises WriteFailedError for a failed write.
+    """
+    from shed_jax.checkpoint import RunCheckpointer
+
+    if stop.signals is not None:
+        stop.signals.startup = False
+    ckpt = None
+    with Writes(safe, "opening the checkpoint directory") as w:
+        try:
+            if out.ckpt_dir is not None:
+                ckpt = RunCheckpointer(out.ckpt_dir, keep=out.keep, create=True)
+            reporter.begin(progress, batch.total)
+            outcome = _chunks(batch, compiled, progress, out, stop, reporter, ckpt, w)
+        except BaseException:
+            reporter.end()
+            if ckpt is not None:
+                _close_quietly(ckpt)
+            raise
+        reporter.end()
+        if ckpt is not None:
+            ckpt.close()
+    return outcome
+
+
+def _chunks(batch, compiled, progress, out, stop, reporter, ckpt, w) -> tuple[int, str] | None:
+    from shed_jax import reporting, sharding
+    from shed_jax.checkpoint import find_nonfinite
+
+    S, total = batch.num_seeds, batch.total
+    while progress.done < total:
+        done = progress.done
+        n = min(batch.chunk, total - done)
+        new_state, metrics = compiled[n](progress.state, done)
+        flat = reporting.flatten_tree(sharding.unpad(sharding.to_host(metrics), batch.num_points * S))
+        if progress.first_chunk_s is None:
+            progress.first_chunk_s = time.time() - progress.t0
+        problems = find_nonfinite(flat, new_state, done, batch.exp.loop.tests_at)
+        if problems:
+            w.stage = "writing nonfinite_chunk.jsonl"
+            paths = []
+            for p, d in enumerate(out.dirs if out.writer else ()):
+                paths.append(d / "nonfinite_chunk.jsonl")
+                paths[-1].unlink(missing_ok=True)
+                reporting.append_jsonl(paths[-1], reporting.step_records(batch.rows(flat, p), range(S)))
+            reporter.end()
+            if ckpt is not None:
+                ckpt.wait()  # the previous chunk's save may still be in flight
+            _report_nonfinite(batch, out, problems, done, n, paths, ckpt)
+            return EXIT_NONFINITE, "non-finite values"
+        progress.state = new_state
+        progress.history = flat if not progress.history else {
+            k: np.concatenate([progress.history[k], v], axis=1) for k, v in flat.items()}
+        for p, d in enumerate(out.dirs if out.writer else ()):
+            w.stage = f"writing the records of budget steps {done}-{done + n - 1} to {d / 'metrics.jsonl'}"
+            reporting.append_jsonl(d / "metrics.jsonl", reporting.step_records(batch.rows(flat, p), range(S)))
+        progress.done += n
+        if ckpt is not None:
+            w.stage = f"saving checkpoint {progress.done} in {ckpt.directory}"
+            ckpt.save(progress.done, progress.state, progress.history, out.config, extra=out.extra(progress))
+            ckpt.wait()  # a failed write is reported now, at this chunk, not at the next save
+            progress.saved = progress.done
+        reporter.chunk(progress, n, flat)
+        if progress.done >= total:
+            break
+        if stop.check(progress.done):
+            return stop.stopped
+    return None
+
+
+def _report_nonfinite(batch, out: Output, problems: list[str], done: int, n: int, paths: list, ckpt) -> None:
+    where = f"{out.label}: " if out.label else ""
+    last = ckpt.latest_step() if ckpt is not None else None
+    print(f"[shed_jax] {where}non-finite values in budget steps {done}-{done + n - 1}; stopping without saving this chunk:",
+          file=sys.stderr)
+    for line in problems:
+        print(f"  {line}", file=sys.stderr)
+    if batch.num_points > 1:
+        print(f"  (seed numbers above are rows of the batch: row = point x {batch.num_seeds} + seed; points: "
+              + ", ".join(f"{p} {name}" for p, name in enumerate(out.names)) + ")", file=sys.stderr)
+    metrics = str(paths[0]) if len(paths) == 1 else "nonfinite_chunk.jsonl in each point's directory"
+    print(f"[shed_jax] this chunk's metrics: {metrics}; "
+          + (f"the last good checkpoint is step {last} in {ckpt.directory}" if last is not None else "no checkpoint was saved"),
+          file=sys.stderr)
+
+
+def _close_quietly(ckpt) -> None:
+    try:
+        ckpt.close()
+    except Exception:  # noqa: BLE001 - the failure that got here is what is reported
+        pass
+
+
+# ---------------------------------------------------------------------------------------------
+# results: summary, plots, final evaluation, GIF
+# ---------------------------------------------------------------------------------------------
+
+def write_results(batch: Batch, progress: Progress, out: Output, w: Writes, *, wall: float, plots: bool = True,
+                  final_sets=(), final_episodes: int = 10, extras: list | None = None) -> list[dict]:
+    """Each point's plots and final evaluations, then its ``summary.json`` (with ``extras[p]``); the summaries.
+
+    A point with ``summary.json`` is finished: written last, so one cut off here gets them all again.
+    """
+    summaries = []
+    where = lambda d: f" of {d}" if out.label else ""  # noqa: E731
+    for p, d in enumerate(out.dirs):
+        w.stage = f"writing the plots{where(d)}"
+        hist = batch.rows(progress.history, p)
+        summary = summarize(batch.exp, hist, wall, batch.num_seeds)
+        summary.update(extras[p] if extras else {})
+        if out.writer:
+            if plots:
+                make_plots(batch.exp, batch.env, hist, d)
+            students = batch.rows(progress.state.student, p)
+            for resolved in final_sets:
+                w.stage = f"writing the final evaluation on {resolved[2]!r}{where(d)}"
+                final_eval(batch.exp, batch.env, batch.student, students, batch.num_seeds, resolved, d, progress.done,
+                           final_episodes)
+            w.stage = f"writing summary.json{where(d)}"
+            (d / "summary.json").write_text(json.dumps(summary, indent=2))
+        summaries.append(summary)
+    return summaries
+
+
+def summarize(exp, hist: dict, wall: float, num_seeds: int) -> dict:
+    """``summary.json`` of one run (``hist``: its flat metrics history [seeds, steps, ...])."""
+    from shed_jax import reporting
+
+    T = exp.loop.steps_per_episode
+    last = hist["test_return"][:, -1]
+    m, se = reporting.mean_se(last)
+    last_ep = hist["episode"][0] == hist["episode"][0, -1]
+    train_steps = hist["info/env_steps_train"].astype(np.float64)
+    return {
+        "env": exp.env, "method": exp.method, "preset": exp.preset, "seeds": num_seeds,
+        "budget_steps": int(hist["step"].shape[1]), "steps_per_episode": T,
+        "final_test_return_mean": float(m), "final_test_return_se": float(se),
+        "final_test_return_per_seed": [float(x) for x in last],
+        "final_test_return_per_level": [float(x) for x in np.nanmean(hist["test_return_per_level"][:, -1], axis=0)],
+        "student_env_steps_last_episode": float(train_steps[:, last_ep].sum(axis=1).mean()),
+        "student_env_steps_total": float(train_steps.sum(axis=1).mean()),
+        "eval_env_steps_total": float(hist["info/env_steps_eval"].astype(np.float64).sum(axis=1).mean()),
+        "wall_time_s": wall,
+        "wall_time_per_seed_s": wall / num_seeds,
+    }
+
+
+def make_plots(exp, env, hist: dict, out: pathlib.Path) -> None:
+    """test_return.png, test_return_per_level.png and generated_levels.png of one run."""
+    from shed_jax import reporting
+
+    episode = hist["episode"][0]
+    last = episode == episode[-1]
+    x = np.cumsum(hist["info/env_steps_train"][0, last].astype(np.float64))
+    y = hist["test_return"][:, last]
+    label = f"{exp.method} (last teacher episode)" if exp.loop.num_episodes > 1 else exp.method
+    reporting.plot_curves({label: (x, y)}, out / "test_return.png", xlabel="student env steps", ylabel="mean test return",
+                          title=f"{exp.method} on {exp.env}: test return (mean ± SE over seeds)")
+    per_level = hist["test_return_per_level"][:, last]  # [S, steps, L]
+    # one small panel per level, shared axes (ten overlaid bands could not be told apart)
+    reporting.plot_per_level(x, per_level, out / "test_return_per_level.png", xlabel="student env steps",
+                             ylabel="test return", title=f"{exp.method} on {exp.env}: per test level (mean ± SE over seeds)")
+    levels = hist.get("info/levels")
+    if levels is not None and levels.ndim == 4 and levels.shape[-1] == env.param_space.dim:
+        xs = np.arange(levels.shape[1])
+        reporting.plot_parameters(xs, levels, env.param_space.names, out / "generated_levels.png",
+                                  title=f"{exp.method} on {exp.env}: generated level parameters per budget step")
+
+
+def final_eval(exp, env, student, student_state, num_seeds: int, resolved, out: pathlib.Path, step: int,
+               episodes: int) -> None:
+    """Evaluate the final students on one level set (as ``eval`` does) and write final_eval_<set>.json.
+
+    The episode cap is the test set's (``LoopSpec.test_max_steps``). The run's results are already
+    written, so a failure here is reported and does not fail the run. The JSON's ``wall_time_s`` is
+    the evaluation's own time, compile included; the run's ``summary.json`` wall time stops before it.
+    """
+    from shed_jax.evaluation import evaluate_students
+
+    t0 = time.time()
+    levels = len(resolved[1])
+    print(f"[shed_jax] final evaluation on {resolved[2]!r}: {levels} level(s) x {num_seeds} seed(s) x {episodes} "
+          f"episode(s) (compiling first)...", flush=True)
+    try:
+        body, text = evaluate_students(exp, env, student, student_state, num_seeds, resolved,
+                                       episodes=episodes, max_steps=exp.loop.test_max_steps)
+    except Exception as err:  # noqa: BLE001 - see the docstring
+        print(f"[shed_jax] final evaluation on {resolved[2]!r} failed: {type(err).__name__}: {err}", file=sys.stderr)
+        return
+    path = out / f"final_eval_{body['levels']}.json"
+    path.write_text(json.dumps({"run": str(out), "budget_step": step, "wall_time_s": time.time() - t0, **body},
+                               indent=2))
+    solved = f"solved: return > {body['solved_threshold']:g}" if body["solved_threshold"] is not None else "no solved threshold"
+    print(f"[shed_jax] final students on {body['levels']!r} ({num_seeds} seed(s) x {episodes} episode(s) per level, {solved}):")
+    print(text)
+    print(f"[shed_jax] wrote {path}")
+
+
+def gif(env, student, state, tests, out: pathlib.Path) -> None:
+    """final_student.gif of seed 0's final student on a test level; any failure but a full disk is one line."""
+    print("[shed_jax] rendering a GIF of seed 0's final student on a test level...", flush=True)
+    try:
+        from shed_jax.visualize import student_gif
+
+        path = student_gif(env, student, state, tests, out / "final_student.gif")
+        print(f"[shed_jax] wrote {path}")
+    except ImportError as err:  # the visualisation module is optional
+        print(f"[shed_jax] no GIF: shed_jax.visualize is not available ({err})")
+    except NotImplementedError as err:  # an env without a renderer
+        print(f"[shed_jax] no GIF: {err}")
+    except OSError as err:
+        if errors.is_disk_full(err):
+            raise  # reported by the caller with what is safe on disk
+        print(f"[shed_jax] no GIF: {type(err).__name__}: {err}")
+    except Exception as err:  # noqa: BLE001 - the results are written; a GIF failure must not fail the run
+        print(f"[shed_jax] no GIF: {type(err).__name__}: {err}")
+
+
+# ---------------------------------------------------------------------------------------------
+# python -m shed_jax run
+# ---------------------------------------------------------------------------------------------
+
+@dataclasses.dataclass
+class RunOptions:
+    """The run command's options (its flags; None: the preset's or the saved run's value)."""
+
+    env: str | None = None
+    method: str | None = None
+    preset: str | None = None
+    seeds: int | None = None
+    seed: int | None = None
+    episodes: int | None = None
+    steps_per_episode: int | None = None
+    test_episode_every: int | None = None
+    chunk: int | None = None
+    set: list = dataclasses.field(default_factory=list)
+    ppo: list = dataclasses.field(default_factory=list)
+    out: str | None = None
+    no_gif: bool = False
+    final_eval: str | None = None
+    final_eval_episodes: int = 10
+    resume: str | None = None
+    from_step: int | None = None
+    restart: bool = False
+    keep: int = 3
+    no_checkpoint: bool = False
+    stop_after: int | None = None
+    time_limit: float | None = None
+
+    #: the counts (argparse checks them too, for callers that build the options themselves)
+    COUNTS = ("seeds", "episodes", "steps_per_episode", "test_episode_every", "chunk", "keep", "final_eval_episodes",
+              "stop_after", "from_step")
+
+    @classmethod
+    def from_args(cls, args) -> "RunOptions":
+        return cls(**{f.name: getattr(args, f.name) for f in dataclasses.fields(cls) if hasattr(args, f.name)})
+
+    def check(self) -> None:
+        """UsageError for a count < 1, a bad time limit or flags that do not go together."""
+        for name in self.COUNTS:
+            value = getattr(self, name)
+            if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
+                raise UsageError(f"--{name.replace('_', '-')} must be an integer >= 1, got {value!r}")
+        if self.time_limit is not None and not 0 <= self.time_limit < math.inf:
+            raise UsageError(f"--time-limit must be a finite number of seconds >= 0, got {self.time_limit!r}")
+        if self.from_step is not None and not self.resume:
+            raise UsageError("--from-step N chooses the checkpoint that --resume DIR continues from; give --resume DIR as well")
+        if self.restart:
+            if self.resume:
+                raise UsageError("--restart starts the run in --out DIR over, --resume DIR continues it: give one of them")
+            if self.out is None:
+                raise UsageError("--restart clears the run directory given with --out DIR: give --out")
+
+
+def run(opts: RunOptions) -> int:
+    """``python -m shed_jax run``: one UED method on one environment, seeds vmapped, end to end.
+
+    Every option is checked before the run directory is made (UsageError; CheckpointError for a
+    checkpoint that cannot be used). Returns the exit status: 0, EXIT_NONFINITE, EXIT_STOPPED or
+    128 + signal; a failed write raises WriteFailedError.
+    """
+    import jax
+
+    opts.check()
+    backend = jax.default_backend()
+    plan = None
+    made: list = []  # what this process created before the first chunk (removed if start-up is interrupted)
+    with StopRequest() as signals:
+        try:
+            plan = rundir.plan_resume(opts, backend) if opts.resume else rundir.plan_fresh(opts, backend)
+            started = _start_run(opts, plan, made)
+            if started is None:
+                return 0
+        except StartupInterrupted as sig:
+            resuming = plan is not None and plan.resume_step is not None
+            return startup_interrupted(sig.signum, rundir.resume_command(plan.out) if resuming else None, made)
+        batch, placed, progress, compiled, final_sets = started
+        stop = StopRules(signals, opts.stop_after, None if opts.time_limit is None else progress.t0 + opts.time_limit,
+                         opts.time_limit)
+        return _train_run(opts, plan, batch, compiled, progress, final_sets, stop)
+
+
+def _start_run(opts: RunOptions, plan: rundir.RunPlan, made: list):
+    """Everything before the first chunk: build (checked), restore or create the run directory, compile.
+
+    None for a finished run (said): its checkpoint is read back to check it, nothing is written.
+    """
+    import jax
+
+    from shed_jax import sharding
+    from shed_jax.evaluation import final_level_sets
+
+    exp, out = plan.exp, plan.out
+    fresh = plan.resume_step is None
+    parts = xp.build_checked(exp, fresh)
+    final_sets = final_level_sets(opts.final_eval, exp, parts[0], parts[3])
+    batch = make_batch(exp, parts, [({}, {})], num_seeds=plan.num_seeds, root_seed=plan.root_seed, chunk=plan.chunk)
+    placed = place(batch, sharding.batch_mesh(jax.devices()[:1]))  # a run: a mesh of one device
+    total = batch.total
+    progress = Progress(state=None)
+    if not fresh:
+        restored = rundir.restore(plan, state_target(batch, placed))
+        progress = Progress(on_mesh(restored.state, placed), restored.step, restored.history,
+                            float(restored.extra.get("wall_time_s", 0.0)), saved=restored.step)
+        if plan.finished:
+            print(f"[shed_jax] {out} holds a finished run (budget step {progress.done}/{total}, summary.json written, the last "
+                  f"checkpoint intact): nothing to do; `python -m shed_jax eval --run {out}` evaluates its students")
+            return None
+        rundir.discard_newer(plan)
+        print(f"[shed_jax] resuming {out} from budget step {progress.done}/{total}")
+        print(f"[shed_jax] {rundir.reconcile_metrics_jsonl(out / 'metrics.jsonl', progress.history, progress.done, plan.num_seeds)}")
+    else:
+        rundir.create_run_dir(plan, made)
+    print(f"[shed_jax] {exp.method} on {exp.env}: {exp.loop.num_episodes} episode(s) x {exp.loop.steps_per_episode} "
+          f"budget steps, {plan.num_seeds} seed(s), ~{exp.env_steps_per_budget_step:,} student env steps per budget step -> {out}")
+    progress.t0 = time.time()  # this session's wall clock, compile included (summary.json's wall_time_s)
+    progress.state, compiled = compile_batch(batch, placed, progress.done, progress.state)
+    return batch, placed, progress, compiled, final_sets
+
+
+class _RunReporter(Reporter):
+    """The run's progress bar (steps; created after the compile, so its rate and ETA count training only)
+    and one line per chunk."""
+
+    def __init__(self, exp, num_seeds: int):
+        self.exp, self.num_seeds, self.bar = exp, num_seeds, None
+
+    def begin(self, progress, total):
+        from tqdm import tqdm
+
+        self.total = total
+        self.bar = tqdm(total=total, initial=progress.done, unit="step", desc=f"{self.exp.method}/{self.exp.env}",
+                        dynamic_ncols=True)
+
+    def chunk(self, progress, steps, flat):
+        from shed_jax import reporting
+
+        self.bar.update(steps)
+        steps_train = progress.history["info/env_steps_train"].astype(np.float64).sum(axis=1).mean()
+        tr = flat["test_return"][:, -1]
+        teacher_r = np.nanmean(flat["info/teacher_reward"]) if np.any(np.isfinite(flat["info/teacher_reward"])) else math.nan
+        # the test set runs only in some teacher episodes (--test-episode-every): say so, not "nan"
+        test = (f"test return {np.nanmean(tr):8.1f} ± {reporting.mean_se(tr)[1]:.1f}" if np.any(np.isfinite(tr))
+                else "test return  (not run in this episode)")
+        self.bar.write(f"step {progress.done:5d}/{self.total}  episode {int(flat['episode'][0, -1])}  "
+                       f"student env steps/seed {steps_train:,.0f}  {test}  teacher reward {teacher_r:8.3f}  "
+                       f"{steps_train * self.num_seeds / max(progress.wall(), 1e-9):,.0f} train steps/s")
+
+    def end(self):
+        if self.bar is not None:
+            self.bar.close()
+
+
+def _train_run(opts, plan, batch, compiled, progress, final_sets, stop) -> int:
+    """The chunks (checked, written, saved), then the summary, plots, final evaluation and GIF."""
+    out, total = plan.out, batch.total
+    checkpointing = not opts.no_checkpoint
+
+    def safe() -> str:
+        if progress.saved is not None:
+            return (f"safe on disk: checkpoint {progress.saved} in {out / 'checkpoints'} (and metrics.jsonl up to it); "
+                    f"after freeing space continue with: {rundir.resume_command(out)}")
+        if checkpointing:
+            return f"no checkpoint was saved yet; after freeing space start over with: python -m shed_jax run --out {out} --restart ..."
+        return "nothing resumable (--no-checkpoint)"
+
+    output = Output([out], [out.name], out if checkpointing else None, opts.keep, plan.config,
+                    lambda p: {"wall_time_s": p.wall()})
+    stopped = train(batch, compiled, progress, output, stop, _RunReporter(batch.exp, batch.num_seeds), safe)
+    if stopped is not None:
+        code, reason = stopped
+        if code != EXIT_NONFINITE:
+            print(f"[shed_jax] {reason}: stopped at budget step {progress.done}/{total}")
+            if checkpointing:
+                print(f"[shed_jax] checkpoint saved in {out / 'checkpoints' / str(progress.done)}; resume with:\n"
+                      f"  {rundir.resume_command(out)}")
+            else:
+                print("[shed_jax] no checkpoint was written (--no-checkpoint): this run cannot be resumed")
+        return code
+    wall = progress.wall()
+    with Writes(safe, "writing the plots") as w:
+        print(f"[shed_jax] training done ({progress.done}/{total} budget steps); writing the plots and summary.json...",
+              flush=True)
+        summary, = write_results(batch, progress, output, w, wall=wall, final_sets=final_sets,
+                                 final_episodes=opts.final_eval_episodes)
+        if not opts.no_gif:
+            w.stage = "writing final_student.gif"
+            gif(batch.env, batch.student, progress.state, batch.tests, out)
+    print(json.dumps({k: summary[k] for k in ("final_test_return_mean", "final_test_return_se", "wall_time_s")}, indent=2))
+    print(f"[shed_jax] results in {out}")
+    return 0
