@@ -133,7 +133,7 @@ def bench_student(env_name, total_steps, seeds, out, level_name=None, chunks=20,
     target)."""
     import envs
     from shed_jax import reporting
-    from shed_jax.cli.ppo import resolve_level, smoothed, train_seeds
+    from shed_jax.training import resolve_level, smoothed, train_seeds
     from shed_jax.student import PPOHyperparams, make_student
 
     env = envs.make(env_name)
@@ -316,7 +316,7 @@ def bench_brax(env_name, total_steps, seeds, ours, level_name=None, overrides=No
     from brax.training.agents.ppo import networks as ppo_networks
     from brax.training.agents.ppo import train as ppo
 
-    from shed_jax.cli.ppo import resolve_level
+    from shed_jax.training import resolve_level
 
     _brax_compat()
     env = envs.make(env_name)

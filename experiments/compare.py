@@ -2,10 +2,10 @@
 
     python -m experiments.compare runs/lander-shed-paper-* runs/lander-dr-paper-* --out docs/results/lander --paper lander
 
-Each RUN_DIR holds what ``shed_jax/cli/run.py`` writes: ``config.json`` (the experiment, seeds,
-backend), ``metrics.jsonl`` (one record per budget step and seed) and ``summary.json`` (final
-numbers; missing if the run did not finish, in which case the table uses the last step in
-``metrics.jsonl`` and marks the row "partial").
+Each RUN_DIR holds what ``python -m shed_jax run`` (``shed_jax/driver.py``) writes: ``config.json``
+(the experiment, seeds, backend), ``metrics.jsonl`` (one record per budget step and seed) and
+``summary.json`` (final numbers; missing if the run did not finish, in which case the table uses
+the last step in ``metrics.jsonl`` and marks the row "partial").
 
 Writes to OUT:
 
@@ -16,8 +16,8 @@ Writes to OUT:
   then links to the plots;
 * ``curves_<env>.png``: mean test return ± SE vs student env steps, all methods of that env on one
   axis; for episodic methods (shed, hmdp: several teacher episodes) the last teacher episode, as
-  ``make_plots`` in cli/run.py does. With ``--paper`` the paper's digitised curves are drawn dashed,
-  with x = update x env steps per paper update (see ``PAPER_STEPS_PER_UPDATE``);
+  ``make_plots`` in shed_jax/driver.py does. With ``--paper`` the paper's digitised curves are drawn
+  dashed, with x = update x env steps per paper update (see ``PAPER_STEPS_PER_UPDATE``);
 * ``per_level_<env>_<label>.png``: one panel per test level (the reported student, as the curves);
 * ``params_<env>_<label>.png``: the parameters each method's teacher generated, per budget step;
 * ``eval_vector_<env>_<label>.png``: SHED/h-MDP's performance vector (teacher state) per budget step;
@@ -413,7 +413,7 @@ def named_results(runs: list[Run]) -> list[tuple[Run, dict]]:
 def _named_eval(r: Run) -> dict | None:
     """The run's ``final_eval_named.json`` (None without one). For a pooled run, its parts' files
     with the returns of all seeds side by side and the statistics recomputed over them."""
-    from shed_jax.cli import eval as eval_cli
+    from shed_jax import evaluation
 
     def read(run):
         path = run.path / "final_eval_named.json"
@@ -432,9 +432,9 @@ def _named_eval(r: Run) -> dict | None:
             raise ValueError(f"{p.path / 'final_eval_named.json'} differs from {r.parts[0].path / 'final_eval_named.json'} "
                              f"in one of {list(same)}: their named evaluations cannot be pooled")
     returns = np.concatenate([np.asarray(ev["returns"], np.float64) for ev in evs], axis=0)
-    table = eval_cli.level_table(returns, evs[0].get("solved_threshold"), evs[0].get("cvar_alpha", eval_cli.CVAR_ALPHA))
+    table = evaluation.level_table(returns, evs[0].get("solved_threshold"), evs[0].get("cvar_alpha", evaluation.CVAR_ALPHA))
     return {**evs[0], "seeds": int(returns.shape[0]), "returns": returns.tolist(),
-            **eval_cli.table_json(evs[0]["labels"], table)}
+            **evaluation.table_json(evs[0]["labels"], table)}
 
 
 def _set_a(ev: dict, field: str) -> list[float]:

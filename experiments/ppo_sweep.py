@@ -23,7 +23,7 @@ import numpy as np
 def main(argv=None) -> int:
     import envs
     from shed_jax import reporting
-    from shed_jax.cli.ppo import resolve_level, smoothed, train_seeds
+    from shed_jax.training import resolve_level, smoothed, train_seeds
     from shed_jax.student import PPOConfig, PPOHyperparams, make_student
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])

@@ -41,7 +41,7 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
 
     from shed_jax import eval_sets
-    from shed_jax.cli.run import build, seed_keys
+    from shed_jax.experiment import build, seed_keys
     from shed_jax.presets import build_experiment
     from shed_jax.student.config import parse_overrides
 

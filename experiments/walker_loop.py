@@ -31,7 +31,7 @@ import numpy as np
 
 def time_steps(method: str, seeds: int, repeats: int, preset: str = "paper") -> dict:
     """Compile one budget step of ``method`` on a walker preset and time each step kind."""
-    from shed_jax.cli.run import build, seed_keys
+    from shed_jax.experiment import build, seed_keys
     from shed_jax.loop import make_run
     from shed_jax.presets import build_experiment
 
