@@ -102,7 +102,8 @@ class StopRequest:
 
 @dataclasses.dataclass
 class StopRules:
-    """When training stops at a chunk boundary (checked in this order); ``stopped`` records why."""
+    """When training stops at a chunk boundary (checked in this order); ``stopped`` records why (the
+    non-finite guard's stop included)."""
 
     signals: StopRequest | None = None
     stop_after: int | None = None  # budget steps
@@ -184,20 +185,18 @@ class Batch:
     num_seeds: int
     root_seed: int
     chunk: int
-    init: Callable = None  # shed_jax.loop.make_run's, for one run
-    run: Callable = None
+    init: Callable  # shed_jax.loop.make_run's, for one run
+    run: Callable
 
     @property
     def total(self) -> int:
         return self.exp.loop.total_steps
 
     def rows(self, tree, p: int):
-        """Point ``p``'s rows of a batched tree or flat dict (leading axis point * seeds + seed)."""
-        S = self.num_seeds
-        if isinstance(tree, dict):
-            return {k: v[p * S:(p + 1) * S] for k, v in tree.items()}
+        """Point ``p``'s rows of a batched tree (leading axis point * seeds + seed)."""
         import jax
 
+        S = self.num_seeds
         return jax.tree_util.tree_map(lambda x: x[p * S:(p + 1) * S], tree)
 
 
@@ -370,9 +369,6 @@ class Reporter:
     def end(self) -> None:
         pass
 
-    def write(self, text: str, **kw) -> None:
-        print(text, **kw)
-
 
 class Writes:
     """Names the write in progress (``stage``); a failed write (disk full, ...) leaving the block
@@ -458,7 +454,8 @@ def _chunks(batch, compiled, progress, out, stop, reporter, ckpt, w) -> tuple[in
             if ckpt is not None:
                 ckpt.wait()  # the previous chunk's save may still be in flight
             _report_nonfinite(batch, out, problems, done, n, paths, ckpt)
-            return EXIT_NONFINITE, "non-finite values"
+            stop.stopped = (EXIT_NONFINITE, "non-finite values")
+            return stop.stopped
         progress.state = new_state
         progress.history = flat if not progress.history else {
             k: np.concatenate([progress.history[k], v], axis=1) for k, v in flat.items()}
@@ -522,7 +519,7 @@ def write_results(batch: Batch, progress: Progress, out: Output, w: Writes, *, w
         if out.writer:
             if plots:
                 make_plots(batch.exp, batch.env, hist, d)
-            students = batch.rows(progress.state.student, p)
+            students = batch.rows(progress.state.student, p) if final_sets else None
             for resolved in final_sets:
                 w.stage = f"writing the final evaluation on {resolved[2]!r}{where(d)}"
                 final_eval(batch.exp, batch.env, batch.student, students, batch.num_seeds, resolved, d, progress.done,

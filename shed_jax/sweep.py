@@ -38,6 +38,7 @@ import json
 import math
 import pathlib
 import re
+import sys
 import time
 from typing import Any, Callable
 
@@ -342,7 +343,11 @@ def run_group(built: BuiltGroup, *, out: pathlib.Path, mesh, pad: bool = True, p
     stop = stop or driver.StopRules()
     exp, group, batch = built.exp, built.group, built.batch
     P, S, total = len(group.points), batch.num_seeds, batch.total
-    say = bar.write if bar is not None else log
+
+    def say(text: str) -> None:
+        (bar.write if bar is not None else log)(text)
+        sys.stdout.flush()  # a compile may follow: the line must not wait in a pipe's buffer
+
     if stop.signalled():
         return None
     t0 = time.time()
