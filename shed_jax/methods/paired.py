@@ -33,9 +33,8 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
-from shed_jax.methods.base import StepInfo
-from shed_jax.methods.dr import LevelCodec, mean_metrics, teacher_space, warn_if_rollouts_cut_episodes
-from shed_jax.methods.mutations import new_seeds
+from shed_jax.levels import LevelCodec, new_seeds, slot_returns, teacher_space
+from shed_jax.methods.base import StepInfo, mean_metrics, warn_if_rollouts_cut_episodes
 from shed_jax.student import losses
 from shed_jax.student.config import PPOHyperparams
 from shed_jax.student.networks import Actor, Critic, gaussian_entropy, gaussian_log_prob
@@ -81,20 +80,6 @@ class PAIREDConfig:
 def regret(antagonist_max: jax.Array, protagonist_mean: jax.Array) -> jax.Array:
     """DCD's PAIRED regret, clipped at 0: max(max_ep R_A - mean_ep R_P, 0)."""
     return jnp.maximum(antagonist_max - protagonist_mean, 0.0)
-
-
-def slot_returns(traj, final_episode_return: jax.Array):
-    """Per-slot (mean, max) undiscounted return of the episodes completed in a rollout [num_envs].
-
-    Slots that completed no episode use ``final_episode_return`` (the unfinished episode's return
-    at the end of the rollout) for both.
-    """
-    done = traj.dones.astype(bool)
-    count = done.sum(axis=0)
-    mean = jnp.where(done, traj.episode_returns, 0.0).sum(axis=0) / jnp.maximum(count, 1)
-    best = jnp.where(done, traj.episode_returns, -jnp.inf).max(axis=0)
-    none = count == 0
-    return jnp.where(none, final_episode_return, mean), jnp.where(none, final_episode_return, best)
 
 
 @struct.dataclass
