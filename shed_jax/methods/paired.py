@@ -39,6 +39,7 @@ from shed_jax.student import losses
 from shed_jax.student.config import PPOHyperparams
 from shed_jax.student.networks import Actor, Critic, gaussian_entropy, gaussian_log_prob
 from shed_jax.student.normalization import RunningMeanStd
+from shed_jax.student.sgd import minibatch_sgd
 
 
 @dataclasses.dataclass(frozen=True)
@@ -128,8 +129,6 @@ class Adversary:
         rms = astate.regret_rms.update(rewards)
         r = rewards / jnp.sqrt(rms.var + 1e-8)
         adv = r - old_values  # one-step episode: GAE = reward - V(z)
-        n = z.shape[0]
-        mb = n // c.minibatches
         batch = (z, x, old_log_prob, old_values, adv, r)
 
         def loss_fn(params, b):
@@ -141,20 +140,8 @@ class Adversary:
                 btarget, gaussian_entropy(log_std), self.hparams, False,
             )
 
-        def minibatch(carry, b):
-            params, opt_state = carry
-            grads, aux = jax.grad(loss_fn, has_aux=True)(params, b)
-            updates, opt_state = self.tx.update(grads, opt_state, params)
-            return (optax.apply_updates(params, updates), opt_state), aux
-
-        def epoch(carry, k):
-            perm = jax.random.permutation(k, n)[: mb * c.minibatches]
-            mbs = jax.tree_util.tree_map(lambda a: a[perm].reshape((c.minibatches, mb) + a.shape[1:]), batch)
-            return jax.lax.scan(minibatch, carry, mbs)
-
-        (params, opt_state), aux = jax.lax.scan(
-            epoch, (astate.params, astate.opt_state), jax.random.split(key, c.epochs)
-        )
+        (params, opt_state), aux = minibatch_sgd(loss_fn, self.tx, astate.params, astate.opt_state, batch, key,
+                                                 c.epochs, c.minibatches)
         metrics = jax.tree_util.tree_map(jnp.mean, aux)
         metrics["normalised_reward"] = r.mean()
         return AdversaryState(params=params, opt_state=opt_state, regret_rms=rms), metrics
