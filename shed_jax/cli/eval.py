@@ -6,8 +6,9 @@ Loads the run's latest checkpoint (or ``--step``), rebuilds its experiment from 
 saved with it, evaluates every seed's student (seeds vmapped, one compile) for ``--episodes``
 episodes per level and prints one row per level: the mean return (mean over seeds of each seed's
 mean), its standard error over seeds, the solved rate (fraction of all episodes with return
-> ``--solved-threshold``, by default the env's ``ued.solved_threshold``: lander 200, walker 230) and the CVaR at 10 % (mean of the
-worst ceil(0.1 n) of the n = seeds x episodes returns). Writes ``DIR/eval_<levels>.json``.
+> ``--solved-threshold``, by default the env's ``ued.solved_threshold``: lander 200, walker 230)
+and the CVaR at 10 % (mean of the worst ceil(0.1 n) of the n = seeds x episodes returns). Writes
+``DIR/eval_<levels>.json``.
 
 Level sets (``--levels``):
 
