@@ -38,7 +38,6 @@ from shed_jax.cli import errors
 from shed_jax.cli import eval as eval_cli
 from shed_jax.cli.errors import UsageError
 
-TEST_SETS = ("lander-test", "walker-test-a", "walker-test-b")
 ENVS = ("lander", "lander-continuous", "walker")  # the environments with UED presets (shed_jax/presets.py)
 
 EXIT_CHECKPOINT = 2  # a checkpoint could not be used (missing, damaged, other configuration)
@@ -221,15 +220,9 @@ def check_bounds(config: dict, env) -> None:
 
 
 def test_levels(name: str, env):
-    from shed_jax import eval_sets
+    from shed_jax import levels
 
-    if name == "lander-test":
-        return eval_sets.lander_test_set().to_params(env.default_params)
-    if name == "walker-test-b":
-        return eval_sets.walker_test_set_b().to_params(env.default_params)
-    if name == "walker-test-a":
-        return eval_sets.walker_test_set_a()
-    raise ValueError(f"unknown test set {name!r}; known: {', '.join(TEST_SETS)}")
+    return levels.test_set(env, name)[0]  # the env's own test set (env.ued.test_sets)
 
 
 def _method_config_class(name: str):

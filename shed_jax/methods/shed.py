@@ -35,10 +35,8 @@ import numpy as np
 import optax
 from flax import struct
 
-from shed_jax import eval_sets
-from shed_jax.methods.base import EvalRequest, StepInfo
-from shed_jax.methods.dr import LevelCodec, mean_metrics, teacher_space
-from shed_jax.methods.mutations import new_seeds
+from shed_jax.levels import LevelCodec, evaluation_set, new_seeds, teacher_space
+from shed_jax.methods.base import EvalRequest, StepInfo, mean_metrics
 from shed_jax.teacher.buffers import (
     RingBuffer,
     Transition,
@@ -217,16 +215,7 @@ def evaluation_levels(env, config: SHEDConfig):
 
 
 def _evaluation_levels(env, config: SHEDConfig):
-    if env.name.startswith("lander"):
-        if config.eval_set == "official":
-            ls = eval_sets.official_lander_eval_set(config.num_eval_levels)
-        else:
-            ls = eval_sets.lander_paper_eval_set(config.num_eval_levels)
-        return ls.to_params(env.default_params), int(np.max(ls.fields["max_steps"]))
-    if env.name == "walker":
-        ls = eval_sets.walker_eval_set(config.num_eval_levels)
-        return ls.to_params(env.default_params), None
-    raise ValueError(f"SHED has no evaluation set for environment {env.name!r}")
+    return evaluation_set(env, config.eval_set, config.num_eval_levels)  # the env's own set (env.ued)
 
 
 @dataclasses.dataclass(frozen=True)
