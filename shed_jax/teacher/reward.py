@@ -120,23 +120,26 @@ def zscore(r, eps: float = 1e-6) -> jax.Array:
 
 
 def _masked_zscore(r, mask, eps: float) -> jax.Array:
-    """``zscore`` over the entries of the last axis where ``mask`` holds, written back there (others: 0)."""
+    """``zscore`` over the entries of ``r`` [B] where ``mask`` holds, written back there (others: 0)."""
     w = mask.astype(jnp.float32)
-    n = jnp.maximum(jnp.sum(w, axis=-1, keepdims=True), 1.0)
-    mean = jnp.sum(w * r, axis=-1, keepdims=True) / n
-    std = jnp.sqrt(jnp.sum(w * (r - mean) ** 2, axis=-1, keepdims=True) / n)
+    n = jnp.maximum(jnp.sum(w), 1.0)
+    mean = jnp.sum(w * r) / n
+    std = jnp.sqrt(jnp.sum(w * (r - mean) ** 2) / n)
     return jnp.where(mask, (r - mean) / (std + eps), 0.0)
 
 
 def zscore_mixed(r, real_mask, eps: float = 1e-6) -> jax.Array:
     """Z-score the real entries (``real_mask``) and the synthetic ones (the rest) of a mixed batch separately.
 
-    ``real_mask`` is a bool per entry of the last axis; it may be traced (the real share psi is a
-    dynamic hyperparameter, ``buffers.sample_mixed``). Either part may be empty. An all-true mask
-    gives the per-batch ``zscore`` (up to float32 rounding); the DDPG update uses it so for real batches.
+    ``r`` is one batch of rewards [B] (``vmap`` for more axes); ``real_mask`` a bool per entry, which
+    may be traced (the real share psi is a dynamic hyperparameter, ``buffers.sample_mixed``). Either
+    part may be empty. An all-true mask gives the per-batch ``zscore`` up to float32 rounding; the
+    DDPG update uses it so for real batches. (The sums are over the whole batch: with ``axis=-1,
+    keepdims=True`` XLA rounded them differently inside the lander SHED program.)
     """
     r = jnp.asarray(r, jnp.float32)
     real_mask = jnp.asarray(real_mask, bool)
-    if real_mask.shape != r.shape[-1:]:
-        raise ValueError(f"real_mask must hold one flag per reward, shape {r.shape[-1:]}, got shape {real_mask.shape}")
+    if r.ndim != 1 or real_mask.shape != r.shape:
+        raise ValueError(f"zscore_mixed takes rewards [B] and real_mask [B] (one flag per reward), got shapes "
+                         f"{r.shape} and {real_mask.shape}")
     return _masked_zscore(r, real_mask, eps) + _masked_zscore(r, ~real_mask, eps)
