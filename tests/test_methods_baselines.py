@@ -93,7 +93,7 @@ def test_registry_knows_every_method_and_validates(setup):
     with pytest.raises(ValueError, match="updates_per_step"):
         make_method("dr", env, student, {"updates_per_step": 0})
     with pytest.raises(ValueError, match="hmdp"):
-        make_method("hmdp", env, student)  # delegated to shed_jax.methods.shed
+        make_method("hmdp", env, student)  # built by shed_jax.methods.hierarchical
     assert make_method("accel", env, student).config.sampler.replay_prob == 0.9
     assert make_method("plr", env, student).config.sampler.replay_prob == 0.5
 

@@ -228,9 +228,9 @@ def test_levels(name: str, env):
 def _method_config_class(name: str):
     """The method's config dataclass (None for an unknown method: make_method reports it)."""
     if name in ("shed", "hmdp"):
-        from shed_jax.methods.shed import SHEDConfig
+        from shed_jax.methods.registry import config_class
 
-        return SHEDConfig
+        return config_class(name)
     import importlib
 
     from shed_jax.methods import registry
