@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from envs.core import Box, Discrete, EnvParams, EnvState, Environment, ParamSpace
+from envs.core import Box, Discrete, EnvParams, EnvState, Environment, ParamSpace, UEDSpec
 
 
 @struct.dataclass
@@ -62,8 +62,19 @@ LEVEL_FIELDS = {
 LEVELS = {name: functools.partial(_default_params, **fields) for name, fields in LEVEL_FIELDS.items()}
 
 
+def named_levels(base):
+    """Every level of ``LEVELS``, stacked (leading level axis), with their names."""
+    built = [build() for build in LEVELS.values()]
+    return jax.tree_util.tree_map(lambda *xs: jnp.stack([jnp.asarray(x) for x in xs]), *built), list(LEVELS)
+
+
+# No teacher box or evaluation set of its own: Θ is the whole param_space (tests pass their own levels).
+UED = UEDSpec(named_levels=named_levels, solved_threshold=475.0)  # Gymnasium's CartPole-v1 threshold
+
+
 class CartPole(Environment):
     name = "cartpole"
+    ued = UED
 
     @property
     def default_params(self) -> CartPoleParams:

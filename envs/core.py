@@ -16,12 +16,14 @@ before the reset, for bootstrapping on time limits) and, on the done step, ``epi
 ``episode_length`` (zero on other steps).
 
 Subclasses implement ``reset_env`` and ``step_env`` (no auto-reset, no time-limit bookkeeping),
-``default_params``, ``observation_space``, ``action_space`` and ``param_space``.
+``default_params``, ``observation_space``, ``action_space`` and ``param_space``; an environment for
+unsupervised environment design also sets ``ued`` (:class:`UEDSpec`: teacher box, training time
+limit, evaluation/test/named level sets, solved threshold).
 """
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -180,6 +182,94 @@ class ParamSpace:
 
 
 # --------------------------------------------------------------------------------------------
+# What UED methods need to know about an environment
+# --------------------------------------------------------------------------------------------
+
+FIXED, UNIFORM = "fixed", "uniform"
+
+
+@dataclasses.dataclass(frozen=True)
+class EditTable:
+    """ACCEL's per-parameter edit steps and EASY box for one environment (``param_space`` order)."""
+
+    steps: tuple[float, ...]
+    kinds: tuple[str, ...]  # FIXED: dir * step; UNIFORM: dir * U(0, step)
+    easy_low: tuple[float, ...]
+    easy_high: tuple[float, ...]
+
+    def __post_init__(self):
+        d = len(self.steps)
+        for name in ("kinds", "easy_low", "easy_high"):
+            if len(getattr(self, name)) != d:
+                raise ValueError(f"EditTable.{name} has {len(getattr(self, name))} entries, expected {d} (one per parameter)")
+        bad = [k for k in self.kinds if k not in (FIXED, UNIFORM)]
+        if bad:
+            raise ValueError(f"EditTable.kinds must be {FIXED!r} or {UNIFORM!r}, got {bad}")
+        if any(s < 0 for s in self.steps):
+            raise ValueError(f"EditTable.steps must be >= 0, got {self.steps}")
+        if any(lo > hi for lo, hi in zip(self.easy_low, self.easy_high)):
+            raise ValueError(f"EditTable EASY box has low > high: {self.easy_low} vs {self.easy_high}")
+
+    @property
+    def dim(self) -> int:
+        return len(self.steps)
+
+
+@dataclasses.dataclass(frozen=True)
+class UEDSpec:
+    """An environment's unsupervised-environment-design data; methods, presets and CLIs ask this
+    (``env.ued``) instead of testing the environment's name. Every field is optional.
+
+    * ``theta_low``/``theta_high``: the teacher box Θ in ``param_space`` order (None: the whole space).
+    * ``train_max_steps``, ``train_fields``: the time limit and the other ``(field, value)`` settings
+      every generated training level gets (the lander: 600 steps, wind on).
+    * ``edit_table``: ACCEL's edit steps and EASY box (None: a generic table of the box).
+    * ``editor``: the environment's own level editor ``(key, params, num_edits) -> params`` over the
+      whole ``param_space``, or None.
+    * ``code_dr``: ``(mean, std, clip low, clip high)`` per parameter of the environment's reference
+      code's Gaussian domain randomisation (the lander's "hard" DR), or None.
+    * ``eval_set(kind, m) -> LevelSet``: the teacher's m evaluation levels (``kind``: the SHED
+      config's ``eval_set``; an environment with one construction ignores it), or None.
+    * ``test_sets``: ``((name, build), ...)``; ``named_levels``: one ``build``; a ``build(base_params)``
+      returns (params with a leading level axis, one label per level).
+    * ``solved_threshold``: the return above which an episode counts as solved, or None.
+    """
+
+    theta_low: tuple[float, ...] | None = None
+    theta_high: tuple[float, ...] | None = None
+    train_max_steps: int | None = None
+    train_fields: tuple[tuple[str, Any], ...] = ()
+    edit_table: EditTable | None = None
+    editor: Callable | None = None
+    code_dr: tuple[tuple[float, float, float, float], ...] | None = None
+    eval_set: Callable | None = None
+    test_sets: tuple[tuple[str, Callable], ...] = ()
+    named_levels: Callable | None = None
+    solved_threshold: float | None = None
+
+    def __post_init__(self):
+        if (self.theta_low is None) != (self.theta_high is None):
+            raise ValueError("UEDSpec: give both theta_low and theta_high, or neither")
+        if self.theta_low is not None and len(self.theta_low) != len(self.theta_high):
+            raise ValueError(f"UEDSpec: theta_low has {len(self.theta_low)} entries, theta_high {len(self.theta_high)}")
+
+    def training_params(self, base):
+        """``base`` with the training-level settings (``train_fields``, then ``train_max_steps``),
+        each cast to the field's dtype."""
+        fields = dict(self.train_fields)
+        if self.train_max_steps is not None:
+            fields["max_steps"] = self.train_max_steps
+        return base.replace(**{k: jnp.asarray(v, jnp.asarray(getattr(base, k)).dtype) for k, v in fields.items()})
+
+    def test_set(self, name: str) -> Callable:
+        """The ``build`` of the test set ``name`` (ValueError naming the known ones)."""
+        sets = dict(self.test_sets)
+        if name not in sets:
+            raise ValueError(f"unknown test set {name!r}; known: {', '.join(sets) or 'none'}")
+        return sets[name]
+
+
+# --------------------------------------------------------------------------------------------
 # Environment base class
 # --------------------------------------------------------------------------------------------
 
@@ -196,9 +286,11 @@ class Environment:
       * ``step_env(key, state, action, params) -> (obs, state, reward, terminated, info)``; must
         not touch ``time``/``episode_return`` (the base class does) and must not auto-reset.
       * ``observation_space(params)``, ``action_space(params)``
+      * optionally ``ued`` (a :class:`UEDSpec`): the teacher box, training time limit and level sets
     """
 
     name: str = "env"
+    ued: UEDSpec = UEDSpec()  # what UED methods need to know (subclasses set their own)
 
     # --- to be provided by subclasses ---
     @property

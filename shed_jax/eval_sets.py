@@ -22,7 +22,8 @@ Sets here:
   difficulty ladder over the DCD FULL ranges, each level with its own fixed terrain seed.
 * ``walker_test_set_a``: DCD's named test levels, from ``envs.walker.levels.LEVELS`` (imported lazily).
 
-All generation is host-side numpy (run once, at set-up); the result is fixed data.
+All generation is host-side numpy (run once, at set-up); the result is fixed data. Each environment
+points to its own sets (``env.ued``: ``envs/lander/levels.py``, ``envs/walker/levels.py``).
 """
 from __future__ import annotations
 
@@ -71,6 +72,12 @@ class LevelSet:
         base = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(jnp.asarray(x), (m,) + jnp.shape(x)), base)
         new = {n: jnp.asarray(v, jnp.asarray(getattr(base, n)).dtype) for n, v in self.fields.items()}
         return base.replace(**new)
+
+
+def concat_sets(sets: Sequence[LevelSet]) -> LevelSet:
+    """The levels of ``sets`` one after another (the first set's fields; every set must have them)."""
+    keys = list(sets[0].fields)
+    return LevelSet({k: np.concatenate([s.fields[k] for s in sets]) for k in keys})
 
 
 # --------------------------------------------------------------------------------------------

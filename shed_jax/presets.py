@@ -34,7 +34,7 @@ class Experiment:
     ppo: PPOConfig
     method_config: dict  # field overrides for the method's own config (see methods.registry)
     loop: LoopSpec
-    test_set: str  # a name in shed_jax.cli.run.TEST_SETS
+    test_set: str  # a name in the env's ued.test_sets (envs.core.UEDSpec)
 
     def to_dict(self) -> dict:
         out = dataclasses.asdict(self)

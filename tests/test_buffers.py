@@ -58,8 +58,8 @@ def test_sampling_uses_only_valid_entries_uniformly():
 def test_mixed_batch_ratio_and_layout():
     real = buffer_add_many(buffer_init(make_transition(2, 3), 40), make_transition(2, 3, (40,)).replace(r=jnp.ones(40)))
     syn = buffer_add_many(buffer_init(make_transition(2, 3), 40), make_transition(2, 3, (40,)).replace(r=-jnp.ones(40)))
-    batch, n_real = sample_mixed(real, syn, jax.random.PRNGKey(1), 32, 0.75)
-    assert n_real == 24
+    batch, real_mask = sample_mixed(real, syn, jax.random.PRNGKey(1), 32, 0.75)
+    np.testing.assert_array_equal(real_mask, [True] * 24 + [False] * 8)
     np.testing.assert_array_equal(batch.r, [1.0] * 24 + [-1.0] * 8)
     assert num_real_in_batch(10, 0.33) == 3 and num_real_in_batch(5, 1.0) == 5 and num_real_in_batch(5, 0.0) == 0
     assert num_real_in_batch(10, 0.7) == 7  # floor, robust to 0.7 * 10 = 6.9999...

@@ -81,13 +81,46 @@ def test_reward_normalisation_per_part():
     st = jax.jit(agent.init)(jax.random.PRNGKey(0))
     b = _batch(jax.random.PRNGKey(1)).replace(r=jnp.array([1.0, 2.0, 3.0, 4.0, 100.0, 200.0, 300.0, 400.0]))
     _, m_all = jax.jit(agent.update)(st, b)
-    _, m_mixed = jax.jit(agent.update, static_argnums=2)(st, b, 4)
+    _, m_mixed = jax.jit(agent.update)(st, b, jnp.arange(8) < 4)  # real items first, as buffers.sample_mixed lays out
     # targets are z-scores: mean zero either way; but per-part scaling changes the critic loss
     assert abs(float(m_all["target_mean"])) < 1e-5 and abs(float(m_mixed["target_mean"])) < 1e-5
     actor, critic = Actor(2, (32, 32)), Critic((32, 32))
     q = np.asarray(critic.apply(st.critic_params, b.s, b.u))
     z = np.concatenate([(np.arange(1, 5) - 2.5) / (np.sqrt(1.25) + 1e-6)] * 2)
     assert float(m_mixed["critic_loss"]) == pytest.approx(float(np.mean((q - z) ** 2)), rel=1e-4)
+
+
+def test_learning_rates_come_from_the_config_and_may_be_traced():
+    """Adam's first step moves a weight by lr * |g| / (|g| + eps), about lr: the config's learning
+    rates set the step size; ``with_learning_rates`` swaps in traced ones, so a vmap over learning
+    rates is one program whose rows equal agents built with those rates."""
+    b = _batch(jax.random.PRNGKey(1))
+    slow = make_ddpg(DDPGConfig(3, 2, **SMALL))  # 1e-3 both
+    fast = make_ddpg(DDPGConfig(3, 2, actor_lr=1e-2, critic_lr=3e-2, **SMALL))
+    st = jax.jit(slow.init)(jax.random.PRNGKey(0))
+    st_fast = jax.jit(fast.init)(jax.random.PRNGKey(0))
+    jax.tree_util.tree_map(np.testing.assert_array_equal, st.actor_params, st_fast.actor_params)  # lrs change no weights
+    new_slow, new_fast = jax.jit(slow.update)(st, b)[0], jax.jit(fast.update)(st_fast, b)[0]
+
+    def largest_step(new, old):
+        return max(float(jnp.max(jnp.abs(a - o))) for a, o in zip(jax.tree_util.tree_leaves(new), jax.tree_util.tree_leaves(old)))
+
+    for new, (lr_a, lr_c) in ((new_slow, (1e-3, 1e-3)), (new_fast, (1e-2, 3e-2))):
+        assert largest_step(new.critic_params, st.critic_params) == pytest.approx(lr_c, rel=1e-3)
+        assert largest_step(new.actor_params, st.actor_params) == pytest.approx(lr_a, rel=1e-3)
+    lrs = lambda s: (float(s.actor_opt_state.hyperparams["learning_rate"]), float(s.critic_opt_state.hyperparams["learning_rate"]))
+    assert lrs(st) == pytest.approx((1e-3, 1e-3)) and lrs(st_fast) == pytest.approx((1e-2, 3e-2))
+
+    @jax.jit
+    @jax.vmap
+    def update_at(actor_lr, critic_lr):
+        return slow.update(slow.with_learning_rates(st, actor_lr, critic_lr), b)[0]
+
+    rows = update_at(jnp.array([1e-3, 1e-2]), jnp.array([1e-3, 3e-2]))
+    for i, expect in enumerate((new_slow, new_fast)):
+        for a, e in zip(jax.tree_util.tree_leaves(rows), jax.tree_util.tree_leaves(expect)):
+            np.testing.assert_allclose(np.asarray(a)[i], np.asarray(e), rtol=1e-5, atol=1e-7)  # vmap: float32 rounding
+    assert update_at._cache_size() == 1
 
 
 def test_config_validation():

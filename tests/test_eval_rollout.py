@@ -204,18 +204,18 @@ def test_lander_early_stop_equals_the_full_scan():
 
 def _shed_loop(fused: bool, spec):
     from shed_jax.loop import make_run
-    from shed_jax.methods.shed import SHED, SHEDConfig
+    from shed_jax.methods.hierarchical import HierarchicalTeacher, HMDPConfig
 
-    class SeparateTests(SHED):
+    class SeparateTests(HierarchicalTeacher):
         fuses_test_eval = False  # the loop evaluates the test set after the step, as before fusion
 
     env = envs.make("cartpole")
     student = make_student(env, PPOConfig.for_env("cartpole", num_envs=4, num_steps=8, num_minibatches=1, update_epochs=1))
-    cfg = SHEDConfig(updates_per_step=1, num_levels=2, num_eval_levels=3, num_eval_episodes=2, eval_max_steps=40,
+    cfg = HMDPConfig(updates_per_step=1, num_levels=2, num_eval_levels=3, num_eval_episodes=2, eval_max_steps=40,
                      budget_steps=2, ddpg_batch=4, real_capacity=16, ddpg_threshold=1)
-    # h-MDP: SHED without the diffusion model (cheaper to compile), the same evaluation code
-    method = (SHED if fused else SeparateTests)(env, student, cfg, use_diffusion=False, name="hmdp",
-                                                eval_levels=env.param_space.sample(jax.random.PRNGKey(42), (3,)))
+    # h-MDP: the teacher without SHED's diffusion synthesiser (cheaper to compile), the same evaluation code
+    method = (HierarchicalTeacher if fused else SeparateTests)(env, student, cfg, name="hmdp",
+                                                               eval_levels=env.param_space.sample(jax.random.PRNGKey(42), (3,)))
     assert method.fuses_test_eval is fused
     init, run = make_run(student, method, env.param_space.sample(jax.random.PRNGKey(7), (2,)), spec)
     run = jax.jit(jax.vmap(run, in_axes=(0, None, None)), static_argnums=1)

@@ -16,10 +16,12 @@ from flax import struct
 
 import envs
 from envs.core import EnvParams, ParamSpace
+from envs.lander import LunarLander
+from shed_jax.levels import slot_returns
 from shed_jax.methods.accel import dcd_easy_parents, rank_probabilities
 from shed_jax.methods.dr import DR, DRConfig
 from shed_jax.methods.level_sampler import LevelSamplerConfig
-from shed_jax.methods.paired import Adversary, PAIREDConfig, regret, slot_returns
+from shed_jax.methods.paired import Adversary, PAIREDConfig, regret
 from shed_jax.methods.registry import METHODS, make_method
 from shed_jax.student import PPOConfig, make_student
 
@@ -91,7 +93,7 @@ def test_registry_knows_every_method_and_validates(setup):
     with pytest.raises(ValueError, match="updates_per_step"):
         make_method("dr", env, student, {"updates_per_step": 0})
     with pytest.raises(ValueError, match="hmdp"):
-        make_method("hmdp", env, student)  # delegated to shed_jax.methods.shed
+        make_method("hmdp", env, student)  # built by shed_jax.methods.hierarchical
     assert make_method("accel", env, student).config.sampler.replay_prob == 0.9
     assert make_method("plr", env, student).config.sampler.replay_prob == 0.5
 
@@ -237,7 +239,7 @@ class _LanderLike(EnvParams):
 def test_dr_code_distribution_and_lander_theta():
     names = ("gravity", "wind_power", "turbulence_power")
     space = ParamSpace(names, [-11.99, 0.0, 0.0], [-0.01, 20.0, 2.0], _LanderLike(max_steps=jnp.int32(600), gravity=jnp.float32(-10.0), enable_wind=jnp.bool_(False), wind_power=jnp.float32(15.0), turbulence_power=jnp.float32(1.5)))
-    env = types.SimpleNamespace(name="lander", param_space=space)
+    env = types.SimpleNamespace(name="lander", param_space=space, ued=LunarLander.ued)
     uniform = DR(env, None, DRConfig())
     vecs, params = uniform.sample_levels(jax.random.PRNGKey(0), 4000)
     v = np.asarray(vecs)
@@ -269,7 +271,7 @@ def test_native_methods_warn_when_rollouts_cut_training_episodes():
     with a rollout shape of the same update size that holds one; block mode never warns."""
     import warnings
 
-    from shed_jax.methods.dr import RolloutTruncationWarning
+    from shed_jax.methods.base import RolloutTruncationWarning
 
     lander = envs.make("lander")
     paper = make_student(lander, PPOConfig.for_env("lander"))  # 40 x 128; lander training episodes: 600

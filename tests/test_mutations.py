@@ -6,8 +6,15 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from envs import cartpole
 from envs.core import ParamSpace
-from shed_jax.methods.mutations import LANDER_TABLE, WALKER_TABLE, EditTable, Mutator, new_seeds, table_for
+from envs.lander import levels as lander_levels
+from envs.walker import levels as walker_levels
+from shed_jax.levels import new_seeds
+from shed_jax.methods.mutations import EditTable, Mutator, table_for
+
+LANDER_TABLE, WALKER_TABLE = lander_levels.EDIT_TABLE, walker_levels.EDIT_TABLE
+UED = {"lander": lander_levels.UED, "walker": walker_levels.UED, "cartpole": cartpole.UED}
 
 LANDER_THETA = ParamSpace(("gravity", "wind_power", "turbulence_power"), [-9.0, 0.01, 0.01], [-0.01, 12.0, 1.5], None)
 WALKER_FULL = ParamSpace(
@@ -19,7 +26,8 @@ WALKER_FULL = ParamSpace(
 
 
 def _env(name, space):
-    return types.SimpleNamespace(name=name, param_space=space)
+    """A stand-in with the real environment's UED data (edit table, editor) over ``space``."""
+    return types.SimpleNamespace(name=name, param_space=space, ued=UED[name])
 
 
 @pytest.mark.parametrize("name, space", [("lander", LANDER_THETA), ("walker", WALKER_FULL)])

@@ -1,22 +1,32 @@
 """SHED / h-MDP method: one jitted scan of budget steps on a tiny CartPole student (cheap to
 compile; the lander/walker evaluation sets are tested in test_eval_sets.py), checking the official
-schedule (buffer growth, diffusion/synthesis threshold, DDPG branch), rewards and accounting."""
+schedule (buffer growth, diffusion/synthesis threshold, DDPG branch), rewards and accounting, and
+the composition (h-MDP: the DDPG teacher alone; SHED: plus the diffusion synthesiser)."""
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 import envs
+from shed_jax.methods.hierarchical import HMDPConfig, TeacherHyperparams, make_hmdp
 from shed_jax.methods.registry import make_method
-from shed_jax.methods.shed import SHED, SHEDConfig
+from shed_jax.methods.shed import SHEDConfig, SHEDHyperparams, make_shed
 from shed_jax.student import make_student
 from shed_jax.student.config import PPOConfig
+from shed_jax.teacher.buffers import buffer_add_many, buffer_init, make_transition, sample_mixed
 from shed_jax.teacher.reward import RewardConfig, teacher_reward
 
-TINY = dict(
-    updates_per_step=1, num_eval_episodes=1, eval_max_steps=8, budget_steps=2, ddpg_batch=4, real_capacity=16,
-    syn_capacity=16, diffusion_threshold=1, diffusion_steps=2, num_syn=2, syn_threshold=2, ddpg_threshold=1,
+TINY_TEACHER = dict(
+    updates_per_step=1, num_eval_episodes=1, eval_max_steps=8, budget_steps=2, ddpg_batch=4, real_capacity=16, ddpg_threshold=1,
 )
+TINY = dict(**TINY_TEACHER, syn_capacity=16, diffusion_threshold=1, diffusion_steps=2, num_syn=2, syn_threshold=2)
+
+
+def _build(name, env, student, eval_levels, **overrides):
+    """SHED or h-MDP with the tiny settings (h-MDP takes the teacher's only)."""
+    if name == "shed":
+        return make_shed(env, student, SHEDConfig(**{**TINY, **overrides}), eval_levels=eval_levels)
+    return make_hmdp(env, student, HMDPConfig(**{**TINY_TEACHER, **overrides}), eval_levels=eval_levels)
 
 
 def _cartpole():
@@ -28,8 +38,7 @@ def _cartpole():
 
 def _run(name, steps=4, **overrides):
     env, student, eval_levels = _cartpole()
-    method = SHED(env, student, SHEDConfig(**{**TINY, **overrides}), use_diffusion=name == "shed", name=name,
-                  eval_levels=eval_levels)
+    method = _build(name, env, student, eval_levels, **overrides)
 
     @jax.jit
     def run(key):
@@ -85,19 +94,19 @@ def test_shed_schedule_rewards_and_accounting():
 
 def test_hmdp_has_no_diffusion_and_two_real_updates():
     method, (m, s0, info, _) = _run("hmdp")
-    assert m.diffusion is None and m.syn is None
+    assert m.synth is None and method.synthesiser is None
     np.testing.assert_array_equal(info.extras["ddpg_branch"], [0, 1, 1, 1])
+    np.testing.assert_array_equal(info.extras["syn_size"], [0] * 4)  # recorded as 0, as SHED's keys
     assert int(m.ddpg.num_updates) == 6
-    assert method.capacity == 16
+    assert method.teacher.capacity == 16
 
 
 def test_shed_and_hmdp_are_one_process_until_the_teacher_learns():
     """With the thresholds out of reach (no DDPG update, no diffusion), SHED and h-MDP must draw the
     same keys for the same things: equal levels, teacher states, rewards and students, bit for bit
     on one backend. Paired seeds across the two methods rely on this."""
-    far = dict(ddpg_threshold=100, diffusion_threshold=100, syn_threshold=100)
-    _, (m_a, s0_a, info_a, student_a) = _run("shed", **far)
-    _, (m_b, s0_b, info_b, student_b) = _run("hmdp", **far)
+    _, (m_a, s0_a, info_a, student_a) = _run("shed", ddpg_threshold=100, diffusion_threshold=100, syn_threshold=100)
+    _, (m_b, s0_b, info_b, student_b) = _run("hmdp", ddpg_threshold=100)
     np.testing.assert_array_equal(info_a.extras["ddpg_branch"], [0, 0, 0, 0])
     np.testing.assert_array_equal(info_a.extras["syn_size"], [0, 0, 0, 0])
     np.testing.assert_array_equal(s0_a, s0_b)
@@ -111,14 +120,18 @@ def test_shed_and_hmdp_are_one_process_until_the_teacher_learns():
 def test_config_errors():
     env, student, eval_levels = _cartpole()
     with pytest.raises(ValueError, match="evaluation levels"):
-        SHED(env, student, SHEDConfig(**TINY, num_eval_levels=5), eval_levels=eval_levels)
+        make_shed(env, student, SHEDConfig(**TINY, num_eval_levels=5), eval_levels=eval_levels)
     with pytest.raises(ValueError, match="no evaluation set"):
         make_method("shed", env, student, TINY)
     env = envs.make("lander")
     student = make_student(env, PPOConfig.for_env("lander", num_envs=5, num_steps=4, num_minibatches=1, update_epochs=1))
-    assert make_method("hmdp", env, student).capacity == 10000 and make_method("shed", env, student).capacity == 2048
+    assert make_method("hmdp", env, student).teacher.capacity == 10000 and make_method("shed", env, student).teacher.capacity == 2048
     with pytest.raises(ValueError, match="unknown config field"):
         make_method("shed", env, student, {"bogus": 1})
+    with pytest.raises(ValueError, match=r"method 'hmdp': unknown config field\(s\) \['psi', 'syn_capacity'\]"):
+        make_method("hmdp", env, student, {"psi": 0.5, "syn_capacity": 10})  # h-MDP has no synthesiser
+    with pytest.raises(TypeError, match="config must be None, a dict or a HMDPConfig, got SHEDConfig"):
+        make_method("hmdp", env, student, SHEDConfig())
     # the reward's fields (eta, form, ...) live one level down; the error says where
     with pytest.raises(ValueError, match=r"\['eta'\] are fields of the teacher reward.*reward=\{\"eta\": <value>\}"):
         make_method("shed", env, student, {"eta": 10})
@@ -126,3 +139,41 @@ def test_config_errors():
         make_method("shed", env, student, {"eval_set": "random"})
     with pytest.raises(ValueError, match="multiple of num_levels"):
         make_method("shed", env, student, {"num_levels": 3})
+
+
+def test_composition_hmdp_is_the_teacher_alone_and_shed_mixes_floor_psi_b_real_items():
+    """h-MDP: no synthesiser, no synthetic state, no psi. SHED: its mixed-update rule runs
+    ``num_mixed_updates`` DDPG updates on batches of floor(psi * B) real items then synthetic ones,
+    psi taken from the hyperparameters; below the synthetic threshold it runs 3 real updates."""
+    env, student, eval_levels = _cartpole()
+    hmdp = _build("hmdp", env, student, eval_levels)
+    m = hmdp.init(jax.random.PRNGKey(0))
+    assert m.synth is None and type(m.hparams) is TeacherHyperparams and hmdp.hparam_names == (
+        "eta", "actor_lr", "critic_lr", "explore_sigma")
+    with pytest.raises(TypeError, match="hparams must be a TeacherHyperparams, got SHEDHyperparams"):
+        hmdp.init(jax.random.PRNGKey(0), SHEDHyperparams())
+
+    shed = _build("shed", env, student, eval_levels, ddpg_batch=8, syn_threshold=3)
+    m = shed.init(jax.random.PRNGKey(0), SHEDHyperparams(psi=0.4))
+    assert "psi" in shed.hparam_names and float(m.hparams.psi) == pytest.approx(0.4)
+    assert int(m.synth.syn.count) == 0 and m.synth.syn.capacity == 16
+    ex = make_transition(shed.state_dim, shed.action_dim)
+    fill = lambda r, n: buffer_add_many(buffer_init(ex, 16), make_transition(shed.state_dim, shed.action_dim, (n,)).replace(
+        r=jnp.arange(n, dtype=jnp.float32) * r, s_next=jnp.ones((n, shed.state_dim))))
+    real, syn = fill(1.0, 5), fill(-3.0, 4)
+    synth, teacher, key = shed.synthesiser, shed.teacher, jax.random.PRNGKey(3)
+    rule = jax.jit(lambda st, syn, psi: synth.updates(key, teacher, st, real, m.synth.replace(syn=syn), psi))
+
+    st, branch = rule(m.ddpg, syn, 0.4)
+    assert int(branch) == 2 and int(st.num_updates) == 2
+    expect = m.ddpg
+    for k in jax.random.split(key, 2):  # by hand: floor(0.4 * 8) = 3 real items, 5 synthetic
+        batch, mask = sample_mixed(real, syn, k, 8, 0.4)
+        np.testing.assert_array_equal(mask, [True] * 3 + [False] * 5)
+        assert np.all(np.asarray(batch.r[3:]) <= 0) and np.all(np.asarray(batch.r[:3]) >= 0)
+        expect = teacher.update(expect, batch, mask)
+    for a, b in zip(jax.tree_util.tree_leaves(st), jax.tree_util.tree_leaves(expect)):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-6, atol=1e-7)
+
+    st, branch = rule(m.ddpg, fill(-3.0, 3), 0.4)  # |B_syn| = 3, not > 3: real updates only
+    assert int(branch) == 1 and int(st.num_updates) == 3

@@ -22,21 +22,22 @@ import envs
 from shed_jax import driver, sharding, sweep
 from shed_jax.cli import sweep as sweep_cli
 from shed_jax.loop import LoopSpec
-from shed_jax.methods.shed import SHED, SHEDConfig, SHEDHyperparams
+from shed_jax.methods.hierarchical import HMDPConfig, TeacherHyperparams, make_hmdp
+from shed_jax.methods.shed import SHEDConfig, SHEDHyperparams, make_shed
 from shed_jax.presets import Experiment
 from shed_jax.student.config import PPOConfig, PPOHyperparams
-from shed_jax.teacher.buffers import Transition, buffer_add_many, buffer_init, make_transition
-from shed_jax.teacher.reward import coefficient_of_variation
+from shed_jax.teacher.buffers import Transition, buffer_add_many, buffer_init, make_transition, sample_mixed
+from shed_jax.teacher.reward import coefficient_of_variation, zscore_mixed
 
-TINY = dict(
-    updates_per_step=1, num_eval_episodes=1, eval_max_steps=8, budget_steps=3, ddpg_batch=4, real_capacity=16,
-    syn_capacity=16, diffusion_threshold=1, diffusion_steps=2, num_syn=2, syn_threshold=2, ddpg_threshold=1,
-)
+TINY_TEACHER = dict(updates_per_step=1, num_eval_episodes=1, eval_max_steps=8, budget_steps=3, ddpg_batch=4, real_capacity=16,
+                    ddpg_threshold=1)
+TINY = dict(**TINY_TEACHER, syn_capacity=16, diffusion_threshold=1, diffusion_steps=2, num_syn=2, syn_threshold=2)
 SHED_SPACE = sweep.KeySpace(
     method="shed", method_hparams=("eta", "psi", "actor_lr"), student_hparams=("lr", "ent_coef"),
     method_config=("num_eval_levels", "psi", "updates_per_step"), student_config=("num_envs",),
 )
-HMDP_SPACE = dataclasses.replace(SHED_SPACE, method="hmdp", method_hparams=("eta", "actor_lr"), inert=("psi",))
+HMDP_SPACE = dataclasses.replace(SHED_SPACE, method="hmdp", method_hparams=("eta", "actor_lr"),
+                                 method_config=("num_eval_levels", "updates_per_step"))
 DR_SPACE = sweep.KeySpace(method="dr", student_hparams=("lr",), method_config=("num_levels",), student_config=("num_envs",))
 
 
@@ -73,7 +74,9 @@ def test_classify():
     assert sweep.classify("num_eval_levels", SHED_SPACE) == ("method_config", "num_eval_levels")
     assert sweep.classify("ppo.lr", SHED_SPACE) == ("student_hparam", "lr")
     assert sweep.classify("ppo.num_envs", SHED_SPACE) == ("student_config", "num_envs")
-    assert sweep.classify("psi", HMDP_SPACE) == ("inert", "psi")
+    # h-MDP has no psi (no synthesiser): an unknown key like any other, one line naming the method
+    with pytest.raises(ValueError, match=r"^method 'hmdp' has no hyperparameter or config field 'psi'; known keys: actor_lr, eta, "):
+        sweep.classify("psi", HMDP_SPACE)
     with pytest.raises(ValueError, match=r"method 'dr' has no hyperparameter or config field 'eta'.*known keys: num_levels, ppo.lr"):
         sweep.classify("eta", DR_SPACE)
     with pytest.raises(ValueError, match=r"write ppo.lr"):
@@ -96,10 +99,11 @@ def test_plan_groups_dynamic_points_and_splits_static():
     assert g5.label == "shed[num_eval_levels=5,ppo.num_envs=8]"
 
 
-def test_plan_drops_inert_keys_and_dedupes():
-    groups, notes = sweep.plan(HMDP_SPACE, {"eta": [0, 10], "psi": [0.25, 0.5]})
-    assert notes == ["hmdp: ignores 'psi' (it has no effect on this method)"]
-    assert len(groups) == 1
+def test_plan_refuses_a_key_the_method_lacks():
+    with pytest.raises(ValueError, match="method 'hmdp' has no hyperparameter or config field 'psi'"):
+        sweep.plan(HMDP_SPACE, {"eta": [0, 10], "psi": [0.25, 0.5]})
+    groups, notes = sweep.plan(HMDP_SPACE, {"eta": [0, 10]})
+    assert notes == [] and len(groups) == 1
     assert [p.name for p in groups[0].points] == ["eta=0", "eta=10"]
     assert [p.method_hparams for p in groups[0].points] == [{"eta": 0}, {"eta": 10}]
     groups, _ = sweep.plan(SHED_SPACE, {"eta": [0, 10], "psi": [0.25, 0.5]})
@@ -169,7 +173,7 @@ def _cartpole(num_envs=5):
 def test_hparams_defaults_validation_and_init():
     env, student, ev = _cartpole()
     cfg = SHEDConfig(**TINY, psi=0.5, explore_sigma=0.2, actor_lr=3e-4)
-    method = SHED(env, student, cfg, eval_levels=ev)
+    method = make_shed(env, student, cfg, eval_levels=ev)
     assert method.default_hparams == SHEDHyperparams(eta=0.05, psi=0.5, actor_lr=3e-4, critic_lr=1e-3, explore_sigma=0.2)
     hp = SHEDHyperparams(eta=10.0, psi=0.25, actor_lr=2e-4)
     m = jax.jit(method.init)(jax.random.PRNGKey(0), hp)
@@ -185,28 +189,26 @@ def test_hparams_defaults_validation_and_init():
         SHEDHyperparams.stack([SHEDHyperparams(actor_lr=0.0)])
     with pytest.raises(ValueError, match="SHEDConfig.critic_lr"):
         SHEDConfig(critic_lr=-1.0)
-    assert SHED(env, student, SHEDConfig(**TINY), use_diffusion=False, name="hmdp", eval_levels=ev).hparam_names == (
-        "eta", "actor_lr", "critic_lr", "explore_sigma")
+    hmdp = make_hmdp(env, student, HMDPConfig(**TINY_TEACHER), eval_levels=ev)
+    assert hmdp.hparam_names == ("eta", "actor_lr", "critic_lr", "explore_sigma")
+    assert hmdp.default_hparams == TeacherHyperparams(eta=0.05, actor_lr=1e-3, critic_lr=1e-3, explore_sigma=0.1)
 
 
 def test_mixed_batch_real_part_follows_dynamic_psi():
     env, student, ev = _cartpole()
-    method = SHED(env, student, SHEDConfig(**{**TINY, "ddpg_batch": 32, "real_capacity": 32}), eval_levels=ev)
     ex = make_transition(3, 2)
     items = lambda r: Transition(s=jnp.zeros((4, 3)), u=jnp.zeros((4, 2)), r=jnp.full((4,), r), s_next=jnp.zeros((4, 3)), done=jnp.zeros(4))
     real = buffer_add_many(buffer_init(ex, 8), items(1.0))
     syn = buffer_add_many(buffer_init(ex, 8), items(2.0))
     psis = jnp.asarray([0.0, 0.25, 0.75, 0.3, 1.0])
-    batch, mask = jax.jit(jax.vmap(lambda p: method.sample_mixed(real, syn, jax.random.PRNGKey(0), p)))(psis)
+    batch, mask = jax.jit(jax.vmap(lambda p: sample_mixed(real, syn, jax.random.PRNGKey(0), 32, p)))(psis)
     expect = [0, 8, 24, 9, 32]  # floor(psi * 32): the official 24 + 8 at psi = 0.75
     np.testing.assert_array_equal(np.asarray(mask).sum(axis=1), expect)
     for i, n in enumerate(expect):  # real items first, then synthetic ones
         np.testing.assert_array_equal(np.asarray(batch.r[i]), [1.0] * n + [2.0] * (32 - n))
     # per-part z-scoring: each part has mean 0 (a constant part maps to 0)
-    from shed_jax.methods.shed import zscore_split
-
     r = jnp.asarray([1.0, 2.0, 3.0, 10.0, 30.0])
-    z = np.asarray(zscore_split(r, jnp.asarray([True, True, True, False, False])))
+    z = np.asarray(zscore_mixed(r, jnp.asarray([True, True, True, False, False])))
     np.testing.assert_allclose(z, [-1.2247, 0.0, 1.2247, -1.0, 1.0], atol=1e-4)
 
 
@@ -232,11 +234,11 @@ def test_vmap_over_eta_equals_separate_runs():
     # h-MDP: the same teacher code path as SHED minus the diffusion model (which compiles slowly on
     # CPU); SHED's dynamic psi is checked above and SHED runs vmapped in the end-to-end test
     env, student, ev = _cartpole()
-    method = SHED(env, student, SHEDConfig(**TINY), use_diffusion=False, name="hmdp", eval_levels=ev)
+    method = make_hmdp(env, student, HMDPConfig(**TINY_TEACHER), eval_levels=ev)
     run = _method_run(method, student, 3)
     etas = [0.0, 10.0]
     key = jax.random.PRNGKey(5)
-    hps = SHEDHyperparams.stack([method.default_hparams.replace(eta=e) for e in etas])
+    hps = TeacherHyperparams.stack([method.default_hparams.replace(eta=e) for e in etas])
     m_b, s0_b, info_b = jax.jit(jax.vmap(run, in_axes=(None, 0)))(key, hps)
     single = jax.jit(run)
     for i, eta in enumerate(etas):
@@ -261,7 +263,8 @@ def test_vmap_over_eta_equals_separate_runs():
 
 def _tiny_experiment(method, method_overrides, ppo_overrides):
     ppo = PPOConfig.for_env("cartpole", num_envs=5, num_steps=4, num_minibatches=1, update_epochs=1).replace(**ppo_overrides)
-    return Experiment(env="cartpole", method=method, preset="tiny", ppo=ppo, method_config={**TINY, **method_overrides},
+    own = TINY if method == "shed" else TINY_TEACHER
+    return Experiment(env="cartpole", method=method, preset="tiny", ppo=ppo, method_config={**own, **method_overrides},
                       loop=LoopSpec(steps_per_episode=3, num_episodes=1, test_episodes=1, test_max_steps=8),
                       test_set="cartpole-test")
 
@@ -269,8 +272,8 @@ def _tiny_experiment(method, method_overrides, ppo_overrides):
 def _tiny_build(exp):
     env = envs.make("cartpole")
     student = _StubStudent(env, _StubConfig(exp.ppo.num_envs))
-    method = SHED(env, student, SHEDConfig(**exp.method_config), use_diffusion=exp.method == "shed", name=exp.method,
-                  eval_levels=env.param_space.sample(jax.random.PRNGKey(42), (10,)))
+    make = make_shed if exp.method == "shed" else make_hmdp
+    method = make(env, student, dict(exp.method_config), eval_levels=env.param_space.sample(jax.random.PRNGKey(42), (10,)))
     return env, student, method, env.param_space.sample(jax.random.PRNGKey(7), (2,))
 
 

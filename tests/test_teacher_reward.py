@@ -80,15 +80,15 @@ def test_zscore_hand_values():
     std = math.sqrt(1.25)
     np.testing.assert_allclose(zscore(r), (np.array([1, 2, 3, 4]) - 2.5) / (std + 1e-6), rtol=1e-6)
     # mixed batch: real [1, 3] and synthetic [10, 20, 30] are normalised separately
-    z = zscore_mixed(jnp.array([1.0, 3.0, 10.0, 20.0, 30.0]), 2)
+    z = zscore_mixed(jnp.array([1.0, 3.0, 10.0, 20.0, 30.0]), jnp.arange(5) < 2)
     s_syn = math.sqrt(200 / 3)
     np.testing.assert_allclose(z, [-1 / (1 + 1e-6), 1 / (1 + 1e-6), -10 / (s_syn + 1e-6), 0.0, 10 / (s_syn + 1e-6)], rtol=1e-5)
-    np.testing.assert_allclose(zscore_mixed(r, 4), zscore(r), rtol=1e-6)
-    np.testing.assert_allclose(zscore_mixed(r, 0), zscore(r), rtol=1e-6)
+    np.testing.assert_allclose(zscore_mixed(r, jnp.ones(4, bool)), zscore(r), rtol=1e-6)
+    np.testing.assert_allclose(zscore_mixed(r, jnp.zeros(4, bool)), zscore(r), rtol=1e-6)
     # constant rewards map to zeros, not NaN
     np.testing.assert_array_equal(zscore(jnp.full(5, 3.0)), np.zeros(5))
-    with pytest.raises(ValueError, match="num_real"):
-        zscore_mixed(r, 5)
+    with pytest.raises(ValueError, match=r"real_mask \[B\] \(one flag per reward\), got shapes \(4,\) and \(5,\)"):
+        zscore_mixed(r, jnp.ones(5, bool))
 
 
 def test_config_validation():

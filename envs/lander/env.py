@@ -14,6 +14,7 @@ from flax import struct
 from envs import physics2d
 from envs.core import Box, Discrete, EnvParams, EnvState, Environment, ParamSpace
 from envs.lander import model as M
+from envs.lander.levels import UED
 
 
 @struct.dataclass
@@ -95,6 +96,8 @@ def assign_reward(shaped, crashed, asleep):
 
 class LunarLander(Environment):
     """Gymnasium LunarLander-v3 as a pure-JAX, level-parametric environment (see module docstring)."""
+
+    ued = UED  # teacher box Θ, 600-step training levels, official eval/test landers (envs/lander/levels.py)
 
     def __init__(self, continuous: bool = False, velocity_iterations: int = M.VELOCITY_ITERATIONS,
                  position_iterations: int = M.POSITION_ITERATIONS, unroll: int | None = None,

@@ -20,6 +20,7 @@ from mujoco import mjx
 
 from envs.core import Box, EnvState, Environment
 from envs.walker import constants as C
+from envs.walker import levels as LV
 from envs.walker import lidar as L
 from envs.walker import model as M
 from envs.walker import params as P
@@ -45,6 +46,7 @@ class BipedalWalker(Environment):
     """DCD's parametric BipedalWalker on MJX. Options: see ``WalkerOptions`` (all static)."""
 
     name = "walker"
+    ued = LV.UED  # Θ = FULL, ladder evaluation set, test sets A/B, named levels (envs/walker/levels.py)
 
     def __init__(self, **options):
         fields = {f.name for f in dataclasses.fields(WalkerOptions)}

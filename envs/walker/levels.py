@@ -1,4 +1,5 @@
-"""Named walker levels (DCD test levels, extras, POET Rose), the EASY/FULL samplers and DCD's edit.
+"""Named walker levels (DCD test levels, extras, POET Rose), the EASY/FULL samplers, DCD's edit and
+the walker's UED data (``UED``: ACCEL's edit table, evaluation, test and named level sets).
 
 ``LEVELS[name](**overrides) -> WalkerParams``; the field values are plain data in ``LEVEL_FIELDS``.
 """
@@ -10,6 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from envs.core import FIXED, UNIFORM, EditTable, UEDSpec
 from envs.walker.params import FULL_HIGH, FULL_LOW, PARAM_NAMES, WalkerParams, make_params, param_space
 
 
@@ -122,3 +124,57 @@ def mutate(key: jax.Array, params: WalkerParams, num_edits: int = 3) -> WalkerPa
     out = params.replace(**{n: vec[..., i].astype(jnp.asarray(getattr(params, n)).dtype) for i, n in enumerate(PARAM_NAMES)})
     seeds = jax.random.randint(keys[-1], shape, 0, 2**31 - 1, dtype=jnp.int32)
     return out.replace(terrain_seed=seeds)
+
+
+# --------------------------------------------------------------------------------------------
+# UED data (BipedalWalker.ued)
+# --------------------------------------------------------------------------------------------
+
+#: ACCEL's edit table on the 8-vector: the steps of ``mutate`` above and the ``sample_easy`` box [DCD].
+EDIT_TABLE = EditTable(
+    steps=(0.6, 0.4, 0.4, 0.2, 0.2, 0.2, 0.2, 1.0),
+    kinds=(UNIFORM,) + (FIXED,) * 7,
+    easy_low=(0.0, 0.0, 0.8, 0.0, 0.4, 0.0, 0.4, 1.0),
+    easy_high=(0.6, 0.0, 0.8, 0.0, 0.4, 0.0, 0.4, 1.0),
+)
+
+
+def eval_set(kind: str, m: int):
+    """The teacher's evaluation set: the docs/design.md §9.1 difficulty ladder (seed 92), whatever ``kind``."""
+    from shed_jax import eval_sets  # the level-set data lives with the other environments' sets
+
+    return eval_sets.walker_eval_set(m)
+
+
+def test_set_a(base):
+    """DCD's six test levels (docs/design.md §9.2 set A), fixed terrains."""
+    from shed_jax import eval_sets
+
+    return eval_sets.walker_test_set_a(), list(eval_sets.DCD_TEST_LEVELS)
+
+
+def test_set_b(base):
+    """Ten ladder levels of seed 2024 (docs/design.md §9.2 set B), labelled ladder-i."""
+    from shed_jax import eval_sets
+
+    ls = eval_sets.walker_test_set_b()
+    return ls.to_params(base), [f"ladder-{i}" for i in range(len(ls))]
+
+
+def named_levels(base):
+    """Every level of ``LEVELS`` (DCD's six first), fixed terrains of seeds 1000 + i."""
+    from shed_jax import eval_sets
+
+    names = tuple(LEVELS)
+    return eval_sets.walker_test_set_a(names), list(names)
+
+
+#: Θ is the whole FULL box and training levels keep their own 2,000-step limit (docs/design.md §13.2).
+UED = UEDSpec(
+    edit_table=EDIT_TABLE,
+    editor=mutate,
+    eval_set=eval_set,
+    test_sets=(("walker-test-b", test_set_b), ("walker-test-a", test_set_a)),
+    named_levels=named_levels,
+    solved_threshold=230.0,  # docs/design.md §9.3 [DCD]
+)

@@ -1,10 +1,10 @@
 """``python -m shed_jax sweep``: seeds x hyperparameter grid x methods, one compile per shape group.
 
     python -m shed_jax sweep --env lander --methods shed,hmdp --preset quick --seeds 2 \\
-        --grid eta=0,10 --grid psi=0.25,0.5 --out runs/sweep-eta-psi
+        --grid eta=0,10 --grid actor_lr=1e-3,3e-4 --out runs/sweep-eta-lr
 
 This module is the command's flags; ``shed_jax.sweep`` plans the groups (which grid keys are
-dynamic, static or inert for each method) and runs each through ``shed_jax.driver`` as ``run``
+dynamic or static for each method) and runs each through ``shed_jax.driver`` as ``run``
 runs one: the same compile lines, checkpoints, non-finite guard, signals and failed-write reports.
 See docs/sweeps.md.
 """

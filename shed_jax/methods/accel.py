@@ -25,11 +25,10 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from shed_jax.methods.base import StepInfo
-from shed_jax.methods.dr import LevelCodec, mean_metrics, teacher_space
+from shed_jax.levels import LevelCodec, new_seeds, slot_returns, teacher_space
+from shed_jax.methods.base import StepInfo, mean_metrics
 from shed_jax.methods.level_sampler import LevelBuffer, LevelSamplerConfig
-from shed_jax.methods.mutations import Mutator, new_seeds
-from shed_jax.methods.paired import slot_returns
+from shed_jax.methods.mutations import Mutator
 from shed_jax.methods.plr import PLR, PLRConfig
 
 

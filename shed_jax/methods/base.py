@@ -23,13 +23,20 @@ decides how: one block of C steps on n levels for SHED/h-MDP/ACCEL-NR, or a new 
 PPO rollout for DR/PLR/ACCEL/PAIRED), evaluates as the method needs, computes teacher rewards,
 stores experience and updates the teacher. All of it must be jittable and usable inside
 ``lax.scan``; nothing here touches the host.
+
+Shared by the methods: :func:`nan_like`, :func:`mean_metrics` and :func:`update_metrics_shape` for
+the PPO metrics of a step, and :func:`warn_if_rollouts_cut_episodes` (native mode resets every slot
+at each rollout, so it warns when a training episode can outlast a rollout). Level code is in
+``shed_jax.levels``.
 """
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from typing import Any, Protocol
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
@@ -99,3 +106,58 @@ class UEDMethod(Protocol):
     def begin_episode(self, key: jax.Array, mstate: Any, student_state: Any) -> tuple[Any, Any]: ...
 
     def step(self, key: jax.Array, mstate: Any, student_state: Any) -> tuple[Any, Any, StepInfo]: ...
+
+
+# --------------------------------------------------------------------------------------------
+# shared by the methods
+# --------------------------------------------------------------------------------------------
+
+
+def nan_like(tree: Any) -> Any:
+    """A pytree of NaNs (floats) / zeros (ints, bools) shaped like ``tree`` (or its ShapeDtypeStructs)."""
+
+    def fill(x):
+        dt = jnp.dtype(x.dtype)
+        return jnp.full(x.shape, jnp.nan if jnp.issubdtype(dt, jnp.floating) else 0, dt)
+
+    return jax.tree_util.tree_map(fill, tree)
+
+
+def mean_metrics(metrics: Any) -> Any:
+    """Mean over the leading (update) axis, ignoring NaN placeholders of skipped updates."""
+    return jax.tree_util.tree_map(lambda x: jnp.nanmean(jnp.asarray(x, jnp.float32), axis=0), metrics)
+
+
+def update_metrics_shape(student, sstate, key):
+    """Shapes of ``student.update``'s metrics, without running it (for NaN placeholders)."""
+    traj_shape = jax.eval_shape(student.rollout, sstate, key)[1]
+    return jax.eval_shape(student.update, sstate, key, traj_shape)[1]
+
+
+class RolloutTruncationWarning(UserWarning):
+    """A native-mode method whose rollouts are shorter than a training episode may last."""
+
+
+def warn_if_rollouts_cut_episodes(name: str, student, space, other_fix: str = "") -> None:
+    """Warn when native-mode rollouts cannot hold a whole training episode.
+
+    Native mode (docs/design.md §8.1) resets every slot onto its new level at the start of each rollout, so an
+    episode longer than ``student.config.num_steps`` is cut off and its end (a landing, the walker's
+    goal) is never seen in training. DCD's and JaxUED's rollouts are as long as an episode; the
+    lander (128 < 600) and walker (32 < 2000) presets' are not (docs/baselines.md).
+    """
+    limit = getattr(space.base, "max_steps", None) if space.base is not None else None
+    if limit is None or student is None:  # a method built without a student only samples levels
+        return
+    limit, steps = int(np.max(np.asarray(limit))), int(student.config.num_steps)
+    if steps >= limit:
+        return
+    batch = steps * int(student.config.num_envs)
+    longer = next((k * steps for k in range(-(-limit // steps), batch // steps + 1) if batch % (k * steps) == 0), None)
+    hint = (f", e.g. --ppo num_envs={batch // longer} --ppo num_steps={longer} (the same {batch:,} steps per update)"
+            if longer is not None else "")
+    warnings.warn(
+        f"{name}: native-mode rollouts of {steps} steps reset every slot, but a training episode may last "
+        f"{limit} steps; longer episodes are cut off and their ends never reach the student (docs/baselines.md, "
+        f"'Rollout length in native mode'). Rollouts of >= {limit} steps avoid it{hint}.{other_fix}",
+        RolloutTruncationWarning, stacklevel=3)

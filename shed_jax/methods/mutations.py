@@ -8,77 +8,34 @@ a per-environment table of edit steps (and the EASY box) differs. One edit (docs
 where ``step_i`` is a constant (``fixed``) or drawn from U(0, step_i) (``uniform``, the walker's
 roughness). ``num_edits`` edits are applied in sequence (3 [DCD]), so at most ``num_edits``
 coordinates change. Environments whose level also holds a terrain seed draw a fresh seed per child
-(:func:`new_seeds`), as DCD does.
+(``shed_jax.levels.new_seeds``), as DCD does.
 
-Tables [docs/design.md §8.5, §13.1 / §13.2]:
+Each environment's table is its ``env.ued.edit_table`` [docs/design.md §8.5, §13.1 / §13.2]:
 
-* lander (gravity, wind_power, turbulence_power): steps 0.36 / 0.48 / 0.06 (4 % of the teacher box
-  Θ), clipped to Θ; EASY g ~ U[-7, -3], wind ~ U[0.01, 1], turb ~ U[0.01, 0.1] [our choice].
-* walker (roughness, pit lo/hi, stump lo/hi, stair lo/hi, stair steps): steps U(0, 0.6), 0.4, 0.4,
-  0.2, 0.2, 0.2, 0.2, 1, clipped to FULL; EASY roughness ~ U[0, 0.6], pits 0/0.8, stumps 0/0.4,
-  stairs 0/0.4, steps 1 [DCD].
+* lander (gravity, wind_power, turbulence_power; ``envs/lander/levels.py``): steps 0.36 / 0.48 / 0.06
+  (4 % of the teacher box Θ), clipped to Θ; EASY g ~ U[-7, -3], wind ~ U[0.01, 1], turb ~ U[0.01, 0.1]
+  [our choice].
+* walker (roughness, pit lo/hi, stump lo/hi, stair lo/hi, stair steps; ``envs/walker/levels.py``):
+  steps U(0, 0.6), 0.4, 0.4, 0.2, 0.2, 0.2, 0.2, 1, clipped to FULL; EASY roughness ~ U[0, 0.6], pits
+  0/0.8, stumps 0/0.4, stairs 0/0.4, steps 1 [DCD].
 
-The walker package ships DCD's editor as ``envs.walker.levels.mutate`` (on ``WalkerParams``);
-:meth:`Mutator.for_env` uses it for the walker (through a vector <-> params round trip) so there
-is one walker editor in the project. The table above is the same operator on vectors, used for
-every other environment and as the fallback when the walker package has no ``mutate``.
+Environments without a table get :func:`generic_table`. An environment may also have its own editor
+on params (``env.ued.editor``; the walker's is DCD's ``envs.walker.levels.mutate``), which
+:meth:`Mutator.for_env` uses on the whole box (through a vector <-> params round trip), so there is
+one walker editor in the project; the table is the same operator on vectors, used for every other
+environment and for a sub-box Θ.
 """
 from __future__ import annotations
 
 import dataclasses
-import importlib
 from typing import Callable
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-FIXED, UNIFORM = "fixed", "uniform"
-
-
-@dataclasses.dataclass(frozen=True)
-class EditTable:
-    """Per-parameter edit steps and EASY box for one environment (``param_space`` order)."""
-
-    steps: tuple[float, ...]
-    kinds: tuple[str, ...]  # FIXED: dir * step; UNIFORM: dir * U(0, step)
-    easy_low: tuple[float, ...]
-    easy_high: tuple[float, ...]
-
-    def __post_init__(self):
-        d = len(self.steps)
-        for name in ("kinds", "easy_low", "easy_high"):
-            if len(getattr(self, name)) != d:
-                raise ValueError(f"EditTable.{name} has {len(getattr(self, name))} entries, expected {d} (one per parameter)")
-        bad = [k for k in self.kinds if k not in (FIXED, UNIFORM)]
-        if bad:
-            raise ValueError(f"EditTable.kinds must be {FIXED!r} or {UNIFORM!r}, got {bad}")
-        if any(s < 0 for s in self.steps):
-            raise ValueError(f"EditTable.steps must be >= 0, got {self.steps}")
-        if any(lo > hi for lo, hi in zip(self.easy_low, self.easy_high)):
-            raise ValueError(f"EditTable EASY box has low > high: {self.easy_low} vs {self.easy_high}")
-
-    @property
-    def dim(self) -> int:
-        return len(self.steps)
-
-
-LANDER_TABLE = EditTable(
-    steps=(0.36, 0.48, 0.06),
-    kinds=(FIXED, FIXED, FIXED),
-    easy_low=(-7.0, 0.01, 0.01),
-    easy_high=(-3.0, 1.0, 0.1),
-)
-
-WALKER_TABLE = EditTable(
-    steps=(0.6, 0.4, 0.4, 0.2, 0.2, 0.2, 0.2, 1.0),
-    kinds=(UNIFORM,) + (FIXED,) * 7,
-    easy_low=(0.0, 0.0, 0.8, 0.0, 0.4, 0.0, 0.4, 1.0),
-    easy_high=(0.6, 0.0, 0.8, 0.0, 0.4, 0.0, 0.4, 1.0),
-)
-
-# Environment name -> table. Unknown environments get a generic table (see ``table_for``).
-TABLES = {"lander": LANDER_TABLE, "lander-continuous": LANDER_TABLE, "walker": WALKER_TABLE}
+from envs.core import FIXED, UNIFORM, EditTable
+from shed_jax.levels import ued
 
 
 def generic_table(low, high, step_fraction: float = 0.04) -> EditTable:
@@ -96,9 +53,9 @@ def generic_table(low, high, step_fraction: float = 0.04) -> EditTable:
 
 
 def table_for(env, space=None) -> EditTable:
-    """The edit table of ``env`` (by ``env.name``), validated against its parameter space."""
+    """The edit table of ``env`` (``env.ued.edit_table``), validated against its parameter space."""
     space = env.param_space if space is None else space
-    table = TABLES.get(getattr(env, "name", ""))
+    table = ued(env).edit_table
     if table is None:
         return generic_table(space.low, space.high)
     if table.dim != space.dim:
@@ -175,20 +132,12 @@ class Mutator:
 
 
 def _env_editor(env, space):
-    """The environment's own editor on params, if its package has one and its box is FULL."""
-    if getattr(env, "name", "") != "walker" or not hasattr(space.base, "terrain_seed"):
+    """The environment's own editor on params (``env.ued.editor``), if it has one, its levels carry a
+    terrain seed and the box is its whole ``param_space``."""
+    fn = ued(env).editor
+    if fn is None or not hasattr(space.base, "terrain_seed"):
         return None
-    try:
-        levels = importlib.import_module("envs.walker.levels")
-    except ImportError:
-        return None
-    fn = getattr(levels, "mutate", None)
     full = env.param_space
-    if fn is None or not (np.array_equal(space.low, full.low) and np.array_equal(space.high, full.high)):
+    if not (np.array_equal(space.low, full.low) and np.array_equal(space.high, full.high)):
         return None  # a sub-box Θ needs clipping to Θ at every edit: use the vector editor
     return fn
-
-
-def new_seeds(key: jax.Array, num: int) -> jax.Array:
-    """Fresh terrain seeds for ``num`` edited or newly generated levels (int32, non-negative)."""
-    return jax.random.randint(key, (num,), 0, jnp.iinfo(jnp.int32).max, dtype=jnp.int32)

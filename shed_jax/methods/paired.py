@@ -33,13 +33,13 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
-from shed_jax.methods.base import StepInfo
-from shed_jax.methods.dr import LevelCodec, mean_metrics, teacher_space, warn_if_rollouts_cut_episodes
-from shed_jax.methods.mutations import new_seeds
+from shed_jax.levels import LevelCodec, new_seeds, slot_returns, teacher_space
+from shed_jax.methods.base import StepInfo, mean_metrics, warn_if_rollouts_cut_episodes
 from shed_jax.student import losses
 from shed_jax.student.config import PPOHyperparams
 from shed_jax.student.networks import Actor, Critic, gaussian_entropy, gaussian_log_prob
 from shed_jax.student.normalization import RunningMeanStd
+from shed_jax.student.sgd import minibatch_sgd
 
 
 @dataclasses.dataclass(frozen=True)
@@ -81,20 +81,6 @@ class PAIREDConfig:
 def regret(antagonist_max: jax.Array, protagonist_mean: jax.Array) -> jax.Array:
     """DCD's PAIRED regret, clipped at 0: max(max_ep R_A - mean_ep R_P, 0)."""
     return jnp.maximum(antagonist_max - protagonist_mean, 0.0)
-
-
-def slot_returns(traj, final_episode_return: jax.Array):
-    """Per-slot (mean, max) undiscounted return of the episodes completed in a rollout [num_envs].
-
-    Slots that completed no episode use ``final_episode_return`` (the unfinished episode's return
-    at the end of the rollout) for both.
-    """
-    done = traj.dones.astype(bool)
-    count = done.sum(axis=0)
-    mean = jnp.where(done, traj.episode_returns, 0.0).sum(axis=0) / jnp.maximum(count, 1)
-    best = jnp.where(done, traj.episode_returns, -jnp.inf).max(axis=0)
-    none = count == 0
-    return jnp.where(none, final_episode_return, mean), jnp.where(none, final_episode_return, best)
 
 
 @struct.dataclass
@@ -143,8 +129,6 @@ class Adversary:
         rms = astate.regret_rms.update(rewards)
         r = rewards / jnp.sqrt(rms.var + 1e-8)
         adv = r - old_values  # one-step episode: GAE = reward - V(z)
-        n = z.shape[0]
-        mb = n // c.minibatches
         batch = (z, x, old_log_prob, old_values, adv, r)
 
         def loss_fn(params, b):
@@ -156,20 +140,8 @@ class Adversary:
                 btarget, gaussian_entropy(log_std), self.hparams, False,
             )
 
-        def minibatch(carry, b):
-            params, opt_state = carry
-            grads, aux = jax.grad(loss_fn, has_aux=True)(params, b)
-            updates, opt_state = self.tx.update(grads, opt_state, params)
-            return (optax.apply_updates(params, updates), opt_state), aux
-
-        def epoch(carry, k):
-            perm = jax.random.permutation(k, n)[: mb * c.minibatches]
-            mbs = jax.tree_util.tree_map(lambda a: a[perm].reshape((c.minibatches, mb) + a.shape[1:]), batch)
-            return jax.lax.scan(minibatch, carry, mbs)
-
-        (params, opt_state), aux = jax.lax.scan(
-            epoch, (astate.params, astate.opt_state), jax.random.split(key, c.epochs)
-        )
+        (params, opt_state), aux = minibatch_sgd(loss_fn, self.tx, astate.params, astate.opt_state, batch, key,
+                                                 c.epochs, c.minibatches)
         metrics = jax.tree_util.tree_map(jnp.mean, aux)
         metrics["normalised_reward"] = r.mean()
         return AdversaryState(params=params, opt_state=opt_state, regret_rms=rms), metrics

@@ -31,9 +31,8 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from shed_jax.methods.base import StepInfo
-from shed_jax.methods.dr import (LevelCodec, mean_metrics, nan_like, teacher_space, update_metrics_shape,
-                                 warn_if_rollouts_cut_episodes)
+from shed_jax.levels import LevelCodec, teacher_space
+from shed_jax.methods.base import StepInfo, mean_metrics, nan_like, update_metrics_shape, warn_if_rollouts_cut_episodes
 from shed_jax.methods.level_sampler import LevelBuffer, LevelSampler, LevelSamplerConfig
 
 SCORES = ("pvl", "maxmc")
@@ -47,7 +46,7 @@ class PLRConfig:
     sampler: LevelSamplerConfig = LevelSamplerConfig()
     score: str = "pvl"
     reset_on_episode: bool = True  # empty the buffer when a fresh student starts a teacher episode
-    low: tuple[float, ...] | None = None  # Θ override (default: dr.teacher_space)
+    low: tuple[float, ...] | None = None  # Θ override (default: levels.teacher_space)
     high: tuple[float, ...] | None = None
 
     def __post_init__(self):

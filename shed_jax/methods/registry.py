@@ -1,7 +1,8 @@
 """``make_method(name, env, student, config)``: every UED method by name, behind one interface.
 
-Baselines live here (dr, plr, accel, accel-norevisit, paired); ``shed`` and ``hmdp`` come from
-``shed_jax.methods.shed`` (imported lazily, so the baselines work without the teacher's modules).
+Baselines live here (dr, plr, accel, accel-norevisit, paired); ``hmdp`` is the hierarchical DDPG
+teacher of ``shed_jax.methods.hierarchical`` and ``shed`` that teacher plus a diffusion synthesiser
+(``shed_jax.methods.shed``), imported lazily so the baselines work without the teacher's modules.
 
 ``config`` may be ``None`` (the method's defaults), the method's own config object, or a dict of
 field overrides for it (e.g. ``{"updates_per_step": 2}``); unknown fields raise a ValueError that
@@ -21,8 +22,12 @@ _BASELINES: dict[str, tuple[str, str, str]] = {
     "accel-norevisit": ("shed_jax.methods.accel", "ACCELNR", "ACCELNRConfig"),
     "paired": ("shed_jax.methods.paired", "PAIRED", "PAIREDConfig"),
 }
-_TEACHER_METHODS = ("shed", "hmdp")
-METHODS = tuple(_BASELINES) + _TEACHER_METHODS
+# name -> (module, builder taking (env, student, config), config class)
+_TEACHERS: dict[str, tuple[str, str, str]] = {
+    "shed": ("shed_jax.methods.shed", "make_shed", "SHEDConfig"),
+    "hmdp": ("shed_jax.methods.hierarchical", "make_hmdp", "HMDPConfig"),
+}
+METHODS = tuple(_BASELINES) + tuple(_TEACHERS)
 
 
 def _build_config(name: str, config_cls, config: Any):
@@ -39,11 +44,17 @@ def _build_config(name: str, config_cls, config: Any):
     raise TypeError(f"method {name!r}: config must be None, a dict or a {config_cls.__name__}, got {type(config).__name__}")
 
 
+def config_class(name: str):
+    """The config dataclass of method ``name``; None for an unknown name (``make_method`` reports it)."""
+    entry = _TEACHERS.get(name) or _BASELINES.get(name)
+    return None if entry is None else getattr(importlib.import_module(entry[0]), entry[2])
+
+
 def make_method(name: str, env, student, config: Any = None):
     """The UED method ``name`` for ``env`` and ``student`` (see ``shed_jax.methods.base``)."""
-    if name in _TEACHER_METHODS:
-        shed = importlib.import_module("shed_jax.methods.shed")
-        return shed.make_method(name, env, student, config)
+    if name in _TEACHERS:
+        module, builder, _ = _TEACHERS[name]
+        return getattr(importlib.import_module(module), builder)(env, student, config)
     if name not in _BASELINES:
         raise ValueError(f"unknown method {name!r}; known: {', '.join(METHODS)}")
     module, cls_name, cfg_name = _BASELINES[name]

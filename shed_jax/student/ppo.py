@@ -31,6 +31,7 @@ from shed_jax.student import losses
 from shed_jax.student.config import PPOConfig, PPOHyperparams
 from shed_jax.student.networks import Actor, Critic, dist_entropy, dist_log_prob, dist_mode, dist_sample
 from shed_jax.student.normalization import ReturnNormalizer, RunningMeanStd
+from shed_jax.student.sgd import minibatch_sgd
 
 
 @struct.dataclass
@@ -293,23 +294,8 @@ class PPOStudent:
                 cfg.clip_value_loss,
             )
 
-        def minibatch(carry, mb):
-            params, opt_state = carry
-            grads, aux = jax.grad(loss_fn, has_aux=True)(params, mb)
-            updates, opt_state = self.tx.update(grads, opt_state, params)
-            aux = dict(aux, grad_norm=optax.tree.norm(grads))
-            return (optax.apply_updates(params, updates), opt_state), aux
-
-        def epoch(carry, k):
-            perm = jax.random.permutation(k, cfg.batch_size)
-            mbs = jax.tree_util.tree_map(
-                lambda x: x[perm].reshape((cfg.num_minibatches, cfg.minibatch_size) + x.shape[1:]), batch
-            )
-            return jax.lax.scan(minibatch, carry, mbs)
-
-        (params, opt_state), aux = jax.lax.scan(
-            epoch, (state.params, opt_state), jax.random.split(key, cfg.update_epochs)
-        )
+        (params, opt_state), aux = minibatch_sgd(loss_fn, self.tx, state.params, opt_state, batch, key,
+                                                 cfg.update_epochs, cfg.num_minibatches, grad_norm=True)
         metrics = jax.tree_util.tree_map(jnp.mean, aux)
         metrics.update(self.episode_metrics(traj))
         metrics["learning_rate"] = lr

@@ -14,10 +14,9 @@ the (zero-initialised) storage; callers guard on ``count`` (the SHED thresholds 
 """
 from __future__ import annotations
 
-import math
-
 import jax
 import jax.numpy as jnp
+import numpy as np
 from flax import struct
 
 
@@ -81,22 +80,32 @@ def buffer_sample(buf: RingBuffer, key: jax.Array, batch_size: int):
     return jax.tree_util.tree_map(lambda d: d[idx], buf.data)
 
 
-def num_real_in_batch(batch_size: int, psi: float) -> int:
-    """floor(psi * batch_size): the real part of a mixed batch (24 of 32 for psi = 0.75)."""
-    if not 0.0 <= psi <= 1.0:
-        raise ValueError(f"real-data ratio psi must lie in [0, 1], got {psi}")
-    return int(math.floor(psi * batch_size + 1e-9))
+def num_real_in_batch(batch_size: int, psi) -> jax.Array:
+    """floor(psi * batch_size) as an int32 array: the real part of a mixed batch (24 of 32 for psi = 0.75).
 
-
-def sample_mixed(real: RingBuffer, syn: RingBuffer, key: jax.Array, batch_size: int, psi: float):
-    """A mixed batch: floor(psi*batch_size) real items first, then synthetic ones.
-
-    Returns ``(batch, num_real)``; ``num_real`` is a Python int so that per-part reward z-scoring
-    (``reward.zscore_mixed``) can split the batch statically.
+    ``psi`` may be traced (a dynamic hyperparameter); a concrete one outside [0, 1] raises. The
+    product is float32 with 1e-4 added, so that e.g. 0.75 * 32 and 0.7 * 10 floor to 24 and 7 in
+    any rounding.
     """
-    n_real = num_real_in_batch(batch_size, psi)
+    try:
+        v = np.asarray(psi, dtype=np.float64)
+    except Exception:  # a tracer: nothing to check at trace time
+        v = None
+    if v is not None and not np.all((v >= 0.0) & (v <= 1.0)):
+        raise ValueError(f"real-data ratio psi must lie in [0, 1], got {psi}")
+    return jnp.floor(jnp.asarray(psi, jnp.float32) * batch_size + 1e-4).astype(jnp.int32)
+
+
+def sample_mixed(real: RingBuffer, syn: RingBuffer, key: jax.Array, batch_size: int, psi):
+    """A mixed batch with a dynamic real share: floor(psi * batch_size) real items first, synthetic ones after.
+
+    Returns ``(batch, real_mask)``. The shapes are static for any psi: ``batch_size`` candidates
+    are drawn from each buffer and ``real_mask`` (bool [batch_size], a prefix) picks the real ones,
+    so psi can be traced and vmapped (a sweep over psi compiles once). ``reward.zscore_mixed`` takes
+    the mask to z-score the two parts separately [official code: 24 real + 8 synthetic of 32].
+    """
     k_real, k_syn = jax.random.split(key)
-    b_real = buffer_sample(real, k_real, n_real)
-    b_syn = buffer_sample(syn, k_syn, batch_size - n_real)
-    batch = jax.tree_util.tree_map(lambda x, y: jnp.concatenate([x, y], axis=0), b_real, b_syn)
-    return batch, n_real
+    mask = jnp.arange(batch_size) < num_real_in_batch(batch_size, psi)
+    b_real, b_syn = buffer_sample(real, k_real, batch_size), buffer_sample(syn, k_syn, batch_size)
+    pick = lambda x, y: jnp.where(mask.reshape((batch_size,) + (1,) * (x.ndim - 1)), x, y)
+    return jax.tree_util.tree_map(pick, b_real, b_syn), mask

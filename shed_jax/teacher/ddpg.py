@@ -6,8 +6,14 @@ Target y = r~ + gamma (1 - done) Q'(s', mu'(s')); critic loss MSE; actor loss -m
 the freshly updated critic; then soft target updates theta' <- tau theta + (1 - tau) theta' (optax's
 ``incremental_update``). Adam 1e-3 for both, no gradient clipping [official code].
 
-r~ is the batch's rewards z-scored per batch (real and synthetic parts separately in a mixed batch)
-when ``reward_norm`` is on [official code], else the raw rewards.
+r~ is the batch's rewards z-scored per batch (real and synthetic parts separately in a mixed batch,
+``real_mask``) when ``reward_norm`` is on [official code], else the raw rewards.
+
+The learning rates live in the optimiser states (``optax.inject_hyperparams``): the config's values
+at ``init``, replaced by ``with_learning_rates`` with traced values if wanted, so a ``vmap`` over
+learning rates is one compiled program. The exploration noise's std is the config's, or a traced
+``sigma`` given to ``act``. This is the project's only DDPG: the hierarchical teachers
+(``shed_jax.teacher.ddpg_teacher``) call it.
 
 Everything is a pure function of (config, state, ...); the config is a frozen, hashable dataclass so
 it can be a static argument of ``jax.jit``. Teacher actions stay in u-space; mapping u to level
@@ -28,7 +34,7 @@ import optax
 from flax import struct
 
 from shed_jax.teacher.buffers import Transition
-from shed_jax.teacher.reward import zscore, zscore_mixed
+from shed_jax.teacher.reward import zscore_mixed
 
 
 @dataclasses.dataclass(frozen=True)
@@ -38,11 +44,11 @@ class DDPGConfig:
     state_dim: int
     action_dim: int
     hidden: tuple = (400, 300)
-    actor_lr: float = 1e-3
+    actor_lr: float = 1e-3  # Adam learning rates at init; ``with_learning_rates`` replaces them
     critic_lr: float = 1e-3
     gamma: float = 0.99
     tau: float = 0.001
-    explore_sigma: float = 0.1  # Gaussian in u-space [our choice]; 0.0 = official code
+    explore_sigma: float = 0.1  # Gaussian in u-space [our choice]; 0.0 = official code; ``act(sigma=)`` overrides
     reward_norm: bool = True  # per-batch z-scoring of rewards [official code]
 
     def __post_init__(self):
@@ -102,11 +108,13 @@ def _nets(config: DDPGConfig):
 
 
 def _optims(config: DDPGConfig):
-    return optax.adam(config.actor_lr), optax.adam(config.critic_lr)
+    """Adam for the actor and the critic, each with its learning rate held in the optimiser state."""
+    adam = optax.inject_hyperparams(optax.adam)
+    return adam(learning_rate=config.actor_lr), adam(learning_rate=config.critic_lr)
 
 
 def ddpg_init(config: DDPGConfig, key: jax.Array) -> DDPGState:
-    """Fresh networks, identical target copies and Adam states."""
+    """Fresh networks, identical target copies and Adam states (learning rates from the config)."""
     actor, critic = _nets(config)
     k_a, k_c = jax.random.split(key)
     s = jnp.zeros((1, config.state_dim), jnp.float32)
@@ -125,12 +133,24 @@ def ddpg_init(config: DDPGConfig, key: jax.Array) -> DDPGState:
     )
 
 
-def ddpg_act(config: DDPGConfig, state: DDPGState, s, key: jax.Array | None = None) -> jax.Array:
-    """u = clip(mu(s) + N(0, sigma^2), -1, 1); deterministic mu(s) when ``key`` is None or sigma = 0."""
+def with_learning_rates(state: DDPGState, actor_lr, critic_lr) -> DDPGState:
+    """``state`` with these (possibly traced) Adam learning rates in its optimiser states."""
+    def put(opt_state, lr):
+        return opt_state._replace(hyperparams={**opt_state.hyperparams, "learning_rate": jnp.asarray(lr, jnp.float32)})
+
+    return state.replace(actor_opt_state=put(state.actor_opt_state, actor_lr), critic_opt_state=put(state.critic_opt_state, critic_lr))
+
+
+def ddpg_act(config: DDPGConfig, state: DDPGState, s, key: jax.Array | None = None, sigma=None) -> jax.Array:
+    """u = clip(mu(s) + N(0, sigma^2), -1, 1); deterministic mu(s) when ``key`` is None or sigma = 0.
+
+    ``sigma``: the noise std, ``config.explore_sigma`` when None; may be traced.
+    """
     actor, _ = _nets(config)
     u = actor.apply(state.actor_params, jnp.asarray(s, jnp.float32))
-    if key is not None and config.explore_sigma > 0:
-        u = u + config.explore_sigma * jax.random.normal(key, u.shape)
+    sigma = config.explore_sigma if sigma is None else sigma
+    if key is not None and not (isinstance(sigma, (int, float)) and sigma == 0):
+        u = u + sigma * jax.random.normal(key, u.shape)
     return jnp.clip(u, -1.0, 1.0)
 
 
@@ -140,17 +160,18 @@ def ddpg_q(config: DDPGConfig, state: DDPGState, s, u) -> jax.Array:
     return critic.apply(state.critic_params, s, u)
 
 
-def ddpg_update(config: DDPGConfig, state: DDPGState, batch: Transition, num_real: int | None = None):
+def ddpg_update(config: DDPGConfig, state: DDPGState, batch: Transition, real_mask=None):
     """One critic step, one actor step and one soft target update on ``batch`` (leading axis B).
 
-    ``num_real`` (static): for a mixed batch from ``buffers.sample_mixed``, the size of its real
-    prefix, so that rewards are z-scored per part. Returns (new state, metrics dict).
+    ``real_mask`` (bool [B], may be traced): for a mixed batch from ``buffers.sample_mixed``, which
+    items are real, so that rewards are z-scored per part; None: all real. The Adam learning rates
+    are the ones in ``state``'s optimiser states. Returns (new state, metrics dict).
     """
     actor, critic = _nets(config)
     opt_a, opt_c = _optims(config)
     r = batch.r.astype(jnp.float32)
     if config.reward_norm:
-        r = zscore(r) if num_real is None else zscore_mixed(r, num_real)
+        r = zscore_mixed(r, jnp.ones(r.shape[-1:], bool) if real_mask is None else real_mask)
     next_u = actor.apply(state.target_actor_params, batch.s_next)
     q_next = critic.apply(state.target_critic_params, batch.s_next, next_u)
     y = jax.lax.stop_gradient(r + config.gamma * (1.0 - batch.done) * q_next)
@@ -192,14 +213,17 @@ class DDPG:
     def init(self, key):
         return ddpg_init(self.config, key)
 
-    def act(self, state, s, key=None):
-        return ddpg_act(self.config, state, s, key)
+    def act(self, state, s, key=None, sigma=None):
+        return ddpg_act(self.config, state, s, key, sigma)
 
     def q(self, state, s, u):
         return ddpg_q(self.config, state, s, u)
 
-    def update(self, state, batch, num_real=None):
-        return ddpg_update(self.config, state, batch, num_real)
+    def update(self, state, batch, real_mask=None):
+        return ddpg_update(self.config, state, batch, real_mask)
+
+    def with_learning_rates(self, state, actor_lr, critic_lr):
+        return with_learning_rates(state, actor_lr, critic_lr)
 
 
 def make_ddpg(config: DDPGConfig) -> DDPG:

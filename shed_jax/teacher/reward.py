@@ -119,15 +119,27 @@ def zscore(r, eps: float = 1e-6) -> jax.Array:
     return (r - mean) / (std + eps)
 
 
-def zscore_mixed(r, num_real: int, eps: float = 1e-6) -> jax.Array:
-    """Z-score the first ``num_real`` entries (real) and the rest (synthetic) separately.
+def _masked_zscore(r, mask, eps: float) -> jax.Array:
+    """``zscore`` over the entries of ``r`` [B] where ``mask`` holds, written back there (others: 0)."""
+    w = mask.astype(jnp.float32)
+    n = jnp.maximum(jnp.sum(w), 1.0)
+    mean = jnp.sum(w * r) / n
+    std = jnp.sqrt(jnp.sum(w * (r - mean) ** 2) / n)
+    return jnp.where(mask, (r - mean) / (std + eps), 0.0)
 
-    ``num_real`` is static (the mixed batch layout is fixed by the batch size and psi). Either part
-    may be empty (pure real / pure synthetic batch).
+
+def zscore_mixed(r, real_mask, eps: float = 1e-6) -> jax.Array:
+    """Z-score the real entries (``real_mask``) and the synthetic ones (the rest) of a mixed batch separately.
+
+    ``r`` is one batch of rewards [B] (``vmap`` for more axes); ``real_mask`` a bool per entry, which
+    may be traced (the real share psi is a dynamic hyperparameter, ``buffers.sample_mixed``). Either
+    part may be empty. An all-true mask gives the per-batch ``zscore`` up to float32 rounding; the
+    DDPG update uses it so for real batches. (The sums are over the whole batch: with ``axis=-1,
+    keepdims=True`` XLA rounded them differently inside the lander SHED program.)
     """
     r = jnp.asarray(r, jnp.float32)
-    n = r.shape[-1]
-    if not 0 <= num_real <= n:
-        raise ValueError(f"num_real must lie in [0, {n}], got {num_real}")
-    parts = [zscore(p, eps) for p in (r[..., :num_real], r[..., num_real:]) if p.shape[-1] > 0]
-    return jnp.concatenate(parts, axis=-1)
+    real_mask = jnp.asarray(real_mask, bool)
+    if r.ndim != 1 or real_mask.shape != r.shape:
+        raise ValueError(f"zscore_mixed takes rewards [B] and real_mask [B] (one flag per reward), got shapes "
+                         f"{r.shape} and {real_mask.shape}")
+    return _masked_zscore(r, real_mask, eps) + _masked_zscore(r, ~real_mask, eps)

@@ -1,0 +1,416 @@
+"""Hierarchical teachers behind the UED method interface (docs/design.md §3): a DDPG teacher over performance vectors.
+
+A :class:`HierarchicalTeacher` is composed of a DDPG teacher (``shed_jax.teacher.ddpg_teacher``:
+acts, stores real transitions, updates on them) and an optional synthesiser
+(``shed_jax.teacher.synthesiser``: a diffusion model and a synthetic buffer, with its mixed-update
+rule). h-MDP is the teacher alone (:func:`make_hmdp`); SHED adds the diffusion synthesiser
+(``shed_jax.methods.shed.make_shed``).
+
+One budget step, top to bottom (all inside one jitted function, thresholds as ``lax.cond``):
+
+1. u = clip(actor(s / scale) + N(0, sigma^2), -1, 1); levels theta_i = affine(u_i) into the box Θ.
+2. Train the student ``updates_per_step`` PPO iterations on the n levels (slot j runs level j % n).
+3. s' = mean return of ``num_eval_episodes`` episodes on each of the m fixed evaluation levels.
+4. r = R(s, u, s') (``shed_jax.teacher.reward``); done = [t = T - 1]; store (s, u, r, s', done) in B_real.
+5. With a synthesiser: its ``grow`` (SHED: once |B_real| > 64, train the diffusion model 250 steps
+   and add 10 synthetic transitions to B_syn).
+6. DDPG updates: the synthesiser's rule if there is one (SHED: 2 mixed updates, 24 real + 8
+   synthetic, if |B_syn| > 500 and both buffers > 32, else 3 real updates if |B_real| > 32), else
+   the teacher's (h-MDP: 2 real updates if |B_real| > 32) [official code].
+
+Buffers hold raw performance vectors (returns); rewards are computed on them and z-scored per DDPG
+batch. The teacher's networks, the synthesiser and both buffers persist across teacher episodes;
+``begin_episode`` only evaluates the fresh student to get s_0 and resets the step counter.
+
+Static settings live in a frozen config (:class:`HMDPConfig` here, ``SHEDConfig`` for SHED); the
+hyperparameters one may sweep live in a pytree inside the method state (:class:`TeacherHyperparams`,
+``SHEDHyperparams`` adds psi), so a sweep over them is one ``vmap`` and one compile (as
+``PPOHyperparams`` for the student). ``method.init(key, hparams=None)`` takes overrides;
+``method.with_hparams(mstate, hparams)`` swaps them into an existing state.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any, ClassVar
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from shed_jax.levels import LevelCodec, evaluation_set, new_seeds, teacher_space
+from shed_jax.methods.base import EvalRequest, StepInfo, mean_metrics
+from shed_jax.teacher.buffers import RingBuffer, Transition
+from shed_jax.teacher.ddpg import DDPGConfig, DDPGState, make_ddpg
+from shed_jax.teacher.ddpg_teacher import DDPGTeacher
+from shed_jax.teacher.reward import RewardConfig, coefficient_of_variation, make_reward_fn
+
+
+# ---- configuration ---------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class TeacherConfig:
+    """Settings every hierarchical teacher has; defaults are docs/design.md §3 / §10.2 (official thresholds) and §10.3 (lander).
+
+    Use a method's own config: :class:`HMDPConfig` or ``shed_jax.methods.shed.SHEDConfig``.
+    """
+
+    updates_per_step: int = 10  # C in PPO iterations
+    num_levels: int = 5  # n (lander 5, walker 4)
+    budget_steps: int = 20  # T: done = 1 on the T-th transition
+    num_eval_episodes: int = 8  # E_eval
+    eval_set: str = "official"  # lander: 'official' (code's 10) or 'paper' (covering, any m); walker: ladder
+    num_eval_levels: int = 10  # m
+    eval_max_steps: int | None = None  # override the evaluation episode cap (default: the set's max_steps)
+    state_scale: float = 100.0  # the DDPG networks see s / state_scale
+    reward: RewardConfig = RewardConfig()
+    explore_sigma: float = 0.1  # default of the hyperparameter explore_sigma
+    actor_lr: float = 1e-3  # default of the hyperparameter actor_lr (Adam) [official code]
+    critic_lr: float = 1e-3  # default of the hyperparameter critic_lr (Adam) [official code]
+    ddpg_batch: int = 32
+    real_capacity: int = 10000  # |B_real|
+    ddpg_threshold: int = 32  # DDPG updates once |B_real| > this
+    low: tuple | None = None  # Θ override
+    high: tuple | None = None
+
+    #: fields that must be positive ints
+    POSITIVE: ClassVar[tuple] = ("updates_per_step", "num_levels", "budget_steps", "num_eval_episodes", "num_eval_levels",
+                                 "ddpg_batch", "real_capacity")
+
+    def __post_init__(self):
+        name = type(self).__name__
+        for field in self.POSITIVE:
+            v = getattr(self, field)
+            if not isinstance(v, int) or v < 1:
+                raise ValueError(f"{name}.{field} must be a positive int, got {v!r}")
+        if self.eval_set not in ("official", "paper"):
+            raise ValueError(f"{name}.eval_set must be 'official' or 'paper', got {self.eval_set!r}")
+        for field in ("actor_lr", "critic_lr"):
+            v = getattr(self, field)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise ValueError(f"{name}.{field} must be a finite number > 0, got {v!r}")
+        if not (isinstance(self.explore_sigma, (int, float)) and math.isfinite(self.explore_sigma) and self.explore_sigma >= 0):
+            raise ValueError(f"{name}.explore_sigma must be a finite number >= 0, got {self.explore_sigma!r}")
+        if not self.state_scale > 0:
+            raise ValueError(f"{name}.state_scale must be > 0, got {self.state_scale}")
+        if self.real_capacity < self.ddpg_batch:
+            raise ValueError(f"{name}.real_capacity must be >= ddpg_batch ({self.ddpg_batch}), got {self.real_capacity}")
+
+
+@dataclasses.dataclass(frozen=True)
+class HMDPConfig(TeacherConfig):
+    """h-MDP: the teacher's settings only (B_real holds 10,000 transitions [official code])."""
+
+
+def config_from(name: str, cls: type, config: Any):
+    """``config`` (None, a dict of field overrides or a ``cls``) as a ``cls``; one-line errors otherwise."""
+    if config is None:
+        return cls()
+    if isinstance(config, dict):
+        fields = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(config) - fields)
+        if unknown:
+            nested = [k for k in unknown if k in {f.name for f in dataclasses.fields(RewardConfig)}]
+            hint = (f"; {nested} are fields of the teacher reward, given inside it: reward={{\"{nested[0]}\": <value>}} "
+                    f"(on the command line: --set 'reward={{\"{nested[0]}\": <value>}}')" if nested else "")
+            raise ValueError(f"method {name!r}: unknown config field(s) {unknown}{hint}; known: {sorted(fields)}")
+        return cls(**config)
+    if type(config) is not cls:
+        raise TypeError(f"method {name!r}: config must be None, a dict or a {cls.__name__}, got {type(config).__name__}")
+    return config
+
+
+# ---- dynamic hyperparameters -----------------------------------------------------------------
+
+
+@struct.dataclass
+class TeacherHyperparams:
+    """Dynamic teacher hyperparameters: float scalars (or batches of them, for ``vmap``).
+
+    eta:           weight of the coefficient of variation in the paper's reward forms
+                   (R = gain - eta * cv). Ignored by ``RewardConfig(form='code_mean')``, which has no
+                   eta. Used for real rewards and for recomputed synthetic rewards alike.
+    actor_lr, critic_lr: Adam learning rates of the DDPG actor and critic, held in
+                   ``optax.inject_hyperparams`` optimiser states (written from here before the
+                   updates of every step, so this pytree is the one source of truth).
+    explore_sigma: std of the Gaussian exploration noise added to the actor's u in [-1, 1]^{n d}.
+
+    Defaults come from the method's config (``from_config``); ``as_arrays`` validates and gives
+    float32 leaves, ``stack`` a batch with a leading axis.
+    """
+
+    eta: Any = 0.05
+    actor_lr: Any = 1e-3
+    critic_lr: Any = 1e-3
+    explore_sigma: Any = 0.1
+
+    #: name -> (low, high, low_inclusive, high_inclusive)
+    RANGES: ClassVar[dict] = {
+        "eta": (0.0, math.inf, True, False),
+        "actor_lr": (0.0, math.inf, False, False),
+        "critic_lr": (0.0, math.inf, False, False),
+        "explore_sigma": (0.0, math.inf, True, False),
+    }
+
+    @classmethod
+    def names(cls) -> tuple[str, ...]:
+        return tuple(f.name for f in dataclasses.fields(cls))
+
+    @classmethod
+    def from_config(cls, config) -> "TeacherHyperparams":
+        return cls(eta=float(config.reward.eta), actor_lr=float(config.actor_lr), critic_lr=float(config.critic_lr),
+                   explore_sigma=float(config.explore_sigma))
+
+    def validate(self) -> "TeacherHyperparams":
+        """Raise ValueError naming the field for concrete values outside their valid range."""
+        for name in self.names():
+            lo, hi, lo_inc, hi_inc = self.RANGES[name]
+            value = getattr(self, name)
+            try:
+                v = np.asarray(value, dtype=np.float64)
+            except Exception:  # a tracer: nothing to check at trace time
+                continue
+            ok = (v >= lo if lo_inc else v > lo) & (v <= hi if hi_inc else v < hi) & np.isfinite(v)
+            if not np.all(ok):
+                interval = f"{'[' if lo_inc else '('}{lo}, {hi}{']' if hi_inc else ')'}"
+                raise ValueError(f"{type(self).__name__}.{name} must be a finite value in {interval}, got {value}")
+        return self
+
+    def as_arrays(self):
+        return self.validate().replace(**{f: jnp.asarray(getattr(self, f), jnp.float32) for f in self.names()})
+
+    @classmethod
+    def stack(cls, items: list) -> "TeacherHyperparams":
+        """A batch (leading axis) of hyperparameter sets, ready for ``jax.vmap``."""
+        items = [h.validate() for h in items]
+        return cls(**{f: jnp.asarray([getattr(h, f) for h in items], jnp.float32) for f in cls.names()})
+
+
+# ---- the method ------------------------------------------------------------------------------
+
+
+@struct.dataclass
+class HierarchicalState:
+    hparams: Any  # the method's hyperparameter pytree (TeacherHyperparams or a subclass)
+    ddpg: DDPGState
+    real: RingBuffer  # B_real
+    synth: Any  # the synthesiser's state (SHED: SynthState), None without one
+    s: jax.Array  # [m] current teacher state (raw mean returns)
+    t: jax.Array  # int32 step within the teacher episode
+    pending_eval_steps: jax.Array  # int32 eval env steps of begin_episode, charged to the next step
+
+
+def evaluation_levels(env, config: TeacherConfig):
+    """(params with leading m, max_steps for evaluation) of the teacher's evaluation set."""
+    params, cap = _evaluation_levels(env, config)
+    return params, (config.eval_max_steps or cap)
+
+
+def _evaluation_levels(env, config: TeacherConfig):
+    return evaluation_set(env, config.eval_set, config.num_eval_levels)  # the env's own set (env.ued)
+
+
+def teacher_dims(env, config: TeacherConfig) -> tuple[int, int]:
+    """(state_dim m, action_dim n * d) of the DDPG teacher: m evaluation levels, n levels of the box Θ."""
+    return config.num_eval_levels, config.num_levels * teacher_space(env, config.low, config.high).dim
+
+
+@dataclasses.dataclass(frozen=True)
+class HierarchicalTeacher:
+    """A DDPG teacher over performance vectors, with an optional synthesiser (see the module doc).
+
+    ``synthesiser``: None (h-MDP) or e.g. a ``DiffusionSynthesiser`` sized by ``teacher_dims``.
+    ``hparams_class``: the hyperparameter pytree; its defaults come from ``config``.
+    ``eval_levels``: optional explicit evaluation levels (params, leading axis m), e.g. for small envs.
+    """
+
+    env: Any
+    student: Any
+    config: TeacherConfig = HMDPConfig()
+    name: str = "hmdp"
+    eval_levels: Any = None
+    synthesiser: Any = None
+    hparams_class: type = TeacherHyperparams
+
+    def __post_init__(self):
+        cfg = self.config
+        n, e = cfg.num_levels, self.student.config.num_envs
+        if e % n:
+            raise ValueError(f"{self.name}: the student's num_envs ({e}) must be a multiple of num_levels ({n})")
+        codec = LevelCodec(teacher_space(self.env, cfg.low, cfg.high))
+        if self.eval_levels is None:
+            eval_params, eval_max = evaluation_levels(self.env, cfg)
+        else:
+            eval_params, eval_max = self.eval_levels, cfg.eval_max_steps
+            m = jax.tree_util.tree_leaves(eval_params)[0].shape[0]
+            if m != cfg.num_eval_levels:
+                raise ValueError(f"{self.name}: {m} evaluation levels given but num_eval_levels={cfg.num_eval_levels}")
+        m, da = cfg.num_eval_levels, n * codec.dim
+        if self.synthesiser is not None:
+            sc = self.synthesiser.model.config
+            if (sc.state_dim, sc.action_dim) != (m, da):
+                raise ValueError(f"{self.name}: the synthesiser models (s, u) of sizes ({sc.state_dim}, {sc.action_dim}), "
+                                 f"the teacher's are ({m}, {da})")
+        ddpg = make_ddpg(DDPGConfig(m, da, actor_lr=cfg.actor_lr, critic_lr=cfg.critic_lr, explore_sigma=cfg.explore_sigma))
+        teacher = DDPGTeacher(ddpg, capacity=cfg.real_capacity, batch_size=cfg.ddpg_batch, threshold=cfg.ddpg_threshold,
+                              state_scale=cfg.state_scale)
+        for k, v in dict(codec=codec, eval_params=eval_params, eval_max=eval_max, teacher=teacher,
+                         reward_fn=make_reward_fn(cfg.reward), state_dim=m, action_dim=da).items():
+            object.__setattr__(self, k, v)
+
+    # ---- hyperparameters -------------------------------------------------------------------
+
+    @property
+    def hparam_names(self) -> tuple[str, ...]:
+        """The dynamic hyperparameters of this method (a sweep's shared-compile keys)."""
+        return self.hparams_class.names()
+
+    @property
+    def default_hparams(self):
+        """The config's values as a hyperparameter pytree of Python floats."""
+        return self.hparams_class.from_config(self.config)
+
+    def _check_hparams(self, hparams):
+        if type(hparams) is not self.hparams_class:
+            raise TypeError(f"{self.name}: hparams must be a {self.hparams_class.__name__}, got {type(hparams).__name__}")
+        return hparams.validate()
+
+    def with_hparams(self, mstate: HierarchicalState, hparams) -> HierarchicalState:
+        """``mstate`` with ``hparams`` in place of its hyperparameters (optimiser states synced).
+
+        ``with_hparams(init(key), h)`` equals ``init(key, h)``: nothing random depends on them.
+        """
+        hp = jax.tree_util.tree_map(lambda x: jnp.asarray(x, jnp.float32), self._check_hparams(hparams))
+        return mstate.replace(hparams=hp, ddpg=self.teacher.ddpg.with_learning_rates(mstate.ddpg, hp.actor_lr, hp.critic_lr))
+
+    def reward_fn_for(self, eta) -> Any:
+        """``(s, a, s') -> R`` with a dynamic eta (the config's reward form and guards otherwise).
+
+        For the paper forms R = gain - eta * cv; the gain comes from the config's reward with eta = 0,
+        so this gives the same float32 numbers as ``make_reward_fn`` with that eta.
+        """
+        rc = self.config.reward
+        if rc.form == "code_mean":
+            return self.reward_fn
+        gain_fn = make_reward_fn(dataclasses.replace(rc, eta=0.0))
+        return lambda s, a, s_next: gain_fn(s, a, s_next) - eta * coefficient_of_variation(s, s_next, rc.cv_guard, rc.cv_clip)
+
+    # ---- evaluation ------------------------------------------------------------------------
+
+    def performance(self, key, sstate):
+        """s = mean return per evaluation level [m], and the env steps it cost."""
+        rets, info = self.student.evaluate_with_info(sstate, key, self.eval_params, self.config.num_eval_episodes, self.eval_max)
+        return rets.mean(axis=-1), jnp.asarray(info["env_steps"], jnp.int32)
+
+    def performance_and_test(self, key, sstate, test: EvalRequest):
+        """``performance`` plus the loop's test set as one rollout: (s, env steps, test returns [n, E]).
+
+        The test returns are NaN when ``test.run`` is false; then only the teacher's evaluation
+        runs. A traced ``test.run`` chooses with ``lax.cond``, a real branch as long as it is
+        unbatched (the loop's schedule is shared by all vmapped seeds); a Python bool chooses at
+        trace time. Every row's keys are drawn as ``performance(key, sstate)`` and a separate test
+        evaluation with ``test.key`` draw them; the results are theirs where the backend computes a
+        row the same at any batch size (``PPOStudent.evaluate_many``).
+        """
+        cfg = self.config
+        n_test = jax.tree_util.tree_leaves(test.levels)[0].shape[0]
+        steps = jnp.int32(self.student.eval_env_steps(cfg.num_eval_levels, cfg.num_eval_episodes, self.eval_max))
+
+        def both(s):
+            (rets, _), (test_rets, _) = self.student.evaluate_many(
+                s, [(key, self.eval_params, cfg.num_eval_episodes, self.eval_max),
+                    (test.key, test.levels, test.num_episodes, test.max_steps)])
+            return rets.mean(axis=-1), test_rets
+
+        def teacher_only(s):
+            return self.performance(key, s)[0], jnp.full((n_test, test.num_episodes), jnp.nan, jnp.float32)
+
+        if isinstance(test.run, bool):
+            s_next, test_rets = (both if test.run else teacher_only)(sstate)
+        else:
+            s_next, test_rets = jax.lax.cond(test.run, both, teacher_only, sstate)
+        return s_next, steps, test_rets
+
+    # ---- interface -------------------------------------------------------------------------
+
+    def init(self, key: jax.Array, hparams=None) -> HierarchicalState:
+        """Fresh teacher state; ``hparams`` overrides the config's hyperparameters (``default_hparams``)."""
+        hparams = self.default_hparams if hparams is None else hparams
+        self._check_hparams(hparams)  # before building anything, so a bad value fails fast
+        k_ddpg, k_synth = jax.random.split(key)
+        ddpg, real = self.teacher.init(k_ddpg)
+        state = HierarchicalState(
+            hparams=self.default_hparams,
+            ddpg=ddpg,
+            real=real,
+            synth=None if self.synthesiser is None else self.synthesiser.init(k_synth),
+            s=jnp.zeros((self.state_dim,), jnp.float32),
+            t=jnp.int32(0),
+            pending_eval_steps=jnp.int32(0),
+        )
+        return self.with_hparams(state, hparams)
+
+    def begin_episode(self, key: jax.Array, mstate: HierarchicalState, sstate):
+        s0, steps = self.performance(key, sstate)
+        return mstate.replace(s=s0, t=jnp.int32(0), pending_eval_steps=steps), sstate
+
+    def step(self, key: jax.Array, mstate: HierarchicalState, sstate):
+        return self._step(key, mstate, sstate, None)[:3]
+
+    @property
+    def fuses_test_eval(self) -> bool:
+        """Whether the loop may call ``step_with_test``: the student runs evaluations as one rollout."""
+        return hasattr(self.student, "evaluate_many")
+
+    def step_with_test(self, key: jax.Array, mstate: HierarchicalState, sstate, test: EvalRequest):
+        """``step`` whose evaluation also runs the loop's test set (``methods.base``): one rollout."""
+        return self._step(key, mstate, sstate, test)
+
+    def _step(self, key, mstate: HierarchicalState, sstate, test: EvalRequest | None):
+        cfg, student, hp = self.config, self.student, mstate.hparams
+        n, d = cfg.num_levels, self.codec.dim
+        reward_fn = self.reward_fn_for(hp.eta)
+        k_act, k_seed, k_train, k_eval, k_synth, k_ddpg = jax.random.split(key, 6)
+        u = self.teacher.act(mstate.ddpg, mstate.s, k_act, hp.explore_sigma)  # [n * d]
+        vecs = self.codec.space.from_unit(u.reshape(n, d))
+        sstate, ppo = student.train(sstate, k_train, self.codec.to_params(vecs, new_seeds(k_seed, n)), cfg.updates_per_step)
+        if test is None:
+            s_next, eval_steps = self.performance(k_eval, sstate)
+            test_rets = None
+        else:
+            s_next, eval_steps, test_rets = self.performance_and_test(k_eval, sstate, test)
+        r = reward_fn(mstate.s, u, s_next)
+        done = (mstate.t == cfg.budget_steps - 1).astype(jnp.float32)
+        real = self.teacher.store(mstate.real, Transition(s=mstate.s, u=u, r=r, s_next=s_next, done=done))
+        ddpg = self.teacher.ddpg.with_learning_rates(mstate.ddpg, hp.actor_lr, hp.critic_lr)
+        if self.synthesiser is None:
+            synth, synth_loss, syn_size = None, jnp.float32(jnp.nan), jnp.int32(0)
+            ddpg, branch = self.teacher.updates(k_ddpg, ddpg, real)
+        else:
+            synth, synth_loss = self.synthesiser.grow(k_synth, mstate.synth, real, reward_fn)
+            ddpg, branch = self.synthesiser.updates(k_ddpg, self.teacher, ddpg, real, synth, hp.psi)
+            syn_size = synth.syn.count
+        info = StepInfo(
+            levels=vecs,
+            env_steps_train=jnp.int32(cfg.updates_per_step * student.env_steps_per_update),
+            env_steps_eval=eval_steps + mstate.pending_eval_steps,
+            teacher_reward=r,
+            num_new_levels=jnp.int32(n),
+            extras={  # the same keys with or without a synthesiser (0 and NaN without)
+                "ppo": mean_metrics(ppo),
+                "teacher_state": s_next,
+                "real_size": real.count,
+                "syn_size": syn_size,
+                "ddpg_branch": branch,  # 0 none, 1 real-only, 2 mixed
+                "diffusion_loss": synth_loss,
+            },
+        )
+        mstate = mstate.replace(ddpg=ddpg, real=real, synth=synth, s=s_next, t=mstate.t + 1, pending_eval_steps=jnp.int32(0))
+        return mstate, sstate, info, test_rets
+
+
+def make_hmdp(env, student, config: Any = None, eval_levels=None, name: str = "hmdp") -> HierarchicalTeacher:
+    """h-MDP (docs/design.md §8.7): the DDPG teacher alone. ``config``: None, a dict or an :class:`HMDPConfig`."""
+    return HierarchicalTeacher(env, student, config_from(name, HMDPConfig, config), name=name, eval_levels=eval_levels)
