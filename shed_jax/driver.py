@@ -381,7 +381,7 @@ class Writes:
         return self
 
     def __exit__(self, typ, err, tb):
-        if isinstance(err, Exception) and not isinstance(err, UsageError) and errors.is_write_failure(err):
+        if isinstance(err, Exception) and errors.is_write_failure(err):  # not UsageError: a SystemExit
             raise WriteFailedError(f"{errors.io_reason(err)} while {self.stage}; {self.safe()}") from err
         return False
 
@@ -452,7 +452,7 @@ def _chunks(batch, compiled, progress, out, stop, reporter, ckpt, w) -> tuple[in
                 reporting.append_jsonl(paths[-1], reporting.step_records(batch.rows(flat, p), range(S)))
             reporter.end()
             if ckpt is not None:
-                ckpt.wait()  # the previous chunk's save may still be in flight
+                ckpt.wait()
             _report_nonfinite(batch, out, problems, done, n, paths, ckpt)
             stop.stopped = (EXIT_NONFINITE, "non-finite values")
             return stop.stopped
