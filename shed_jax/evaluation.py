@@ -3,16 +3,16 @@
 ``evaluate_students`` runs every seed's student (seeds vmapped, one compile) on a level set for a
 number of episodes per level and returns one row per level: the mean return (mean over seeds of
 each seed's mean), its standard error over seeds, the solved rate (fraction of all episodes with
-return > the solved threshold: lander 200, walker 230 by default) and the CVaR at 10 % (mean of the
+return > the solved threshold, by default the env's ``ued.solved_threshold``: lander 200, walker 230) and the CVaR at 10 % (mean of the
 worst ceil(0.1 n) of the n = seeds x episodes returns). ``python -m shed_jax eval`` and
 ``run --final-eval`` both use it, so the same state, levels and arguments give the same returns.
 
 Level sets (``resolve_levels``; ``eval --levels``, ``run --final-eval``):
 
 * ``test``: the run's own test set (lander: the 10 official test landers; walker: its test set);
-* ``named``: walker: every level of ``envs.walker.levels.LEVELS`` (fixed terrains, seeds 1000 + i);
-  lander: the official 10 evaluation landers then the 10 test landers (``shed_jax.eval_sets``);
-  other envs: the env module's ``LEVELS``;
+* ``named``: the environment's named levels (``env.ued.named_levels``). Walker: every level of
+  ``envs.walker.levels.LEVELS`` (fixed terrains, seeds 1000 + i); lander: the official 10 evaluation
+  landers then the 10 test landers (``shed_jax.eval_sets``); cartpole: its ``LEVELS``;
 * ``FILE.json``: a list of levels, each a parameter vector in ``env.param_space`` order or an object
   of params fields by name (missing fields take the env's defaults; an optional ``"label"``), or
   ``{"levels": [...]}``. Values are checked against the env's physical bounds, not clipped.
@@ -29,7 +29,6 @@ import numpy as np
 
 from shed_jax.errors import UsageError
 
-SOLVED_THRESHOLDS = {"lander": 200.0, "lander-continuous": 200.0, "walker": 230.0, "cartpole": 475.0}
 CVAR_ALPHA = 0.1
 # --final-eval when not given: the walker's named levels (DCD's six of docs/design.md §9.2 set A first) with solved rates
 DEFAULT_FINAL_EVAL = {"walker": "named"}
@@ -185,40 +184,21 @@ def load_level_file(path, env):
     return levels, labels
 
 
-def _concat_sets(sets):
-    from shed_jax.eval_sets import LevelSet
-
-    keys = list(sets[0].fields)
-    return LevelSet({k: np.concatenate([s.fields[k] for s in sets]) for k in keys})
-
-
 def resolve_levels(spec: str, env, exp, tests):
     """``--levels`` -> (params with a leading axis, labels, short name for the output file)."""
-    from shed_jax import eval_sets
+    from shed_jax import levels as L
 
     if spec == "test":
-        n_tests = int(np.shape(np.asarray(tests.max_steps))[0])
-        if exp.test_set == "walker-test-a":
-            labels = list(eval_sets.DCD_TEST_LEVELS)
-        else:
-            prefix = {"lander-test": "test", "walker-test-b": "ladder"}.get(exp.test_set, "test")
-            labels = [f"{prefix}-{i}" for i in range(n_tests)]
+        if exp.test_set in dict(L.ued(env).test_sets):  # the env's set: its own labels
+            labels = L.test_set(env, exp.test_set)[1]
+        else:  # a test set handed in from elsewhere (e.g. a test's own levels)
+            labels = [f"test-{i}" for i in range(int(np.shape(np.asarray(tests.max_steps))[0]))]
         return tests, labels, "test"
     if spec == "named":
-        if env.name.startswith("lander"):
-            ev, te = eval_sets.official_lander_eval_set(), eval_sets.lander_test_set()
-            labels = [f"eval-{i}" for i in range(len(ev))] + [f"test-{i}" for i in range(len(te))]
-            return _concat_sets([ev, te]).to_params(env.default_params), labels, "named"
-        if env.name == "walker":
-            from envs.walker.levels import LEVELS
-
-            names = tuple(LEVELS)
-            return eval_sets.walker_test_set_a(names), list(names), "named"
-        named = find_levels(env)
-        if not named:
+        named = L.named_levels(env)
+        if named is None:
             raise LevelFileError(f"{env.name} has no named levels; use --levels test or a FILE")
-        built = [lv() if callable(lv) else lv for lv in named.values()]
-        return eval_sets.stack_params(built), list(named), "named"
+        return named[0], named[1], "named"
     path = pathlib.Path(spec)
     if not path.exists():
         raise LevelFileError(f"--levels must be 'test', 'named' or an existing JSON file; {spec!r} is none of these")
@@ -244,8 +224,10 @@ def evaluate_students(exp, env, student, student_state, num_seeds: int, resolved
     """
     import jax
 
+    from shed_jax.levels import ued
+
     levels, labels, name = resolved
-    threshold = solved_threshold if solved_threshold is not None else SOLVED_THRESHOLDS.get(exp.env)
+    threshold = solved_threshold if solved_threshold is not None else ued(env).solved_threshold
     root = jax.random.PRNGKey(seed)
     keys = jax.vmap(lambda i: jax.random.fold_in(root, i))(np.arange(num_seeds))
     evaluate = jax.jit(jax.vmap(lambda s, k: student.evaluate(s, k, levels, episodes, max_steps, deterministic)))

@@ -19,7 +19,6 @@ import numpy as np
 
 from shed_jax.errors import UsageError
 
-TEST_SETS = ("lander-test", "walker-test-a", "walker-test-b")
 ENVS = ("lander", "lander-continuous", "walker")  # the environments with UED presets (shed_jax/presets.py)
 
 DEFAULT_ENV = "lander"
@@ -141,16 +140,9 @@ def _check_kinds(cls, values: dict, prefix: str) -> None:
 
 def method_config_class(name: str):
     """The method's config dataclass (None for an unknown method: make_method reports it)."""
-    if name in ("shed", "hmdp"):
-        from shed_jax.methods.shed import SHEDConfig
+    from shed_jax.methods.registry import config_class
 
-        return SHEDConfig
-    import importlib
-
-    from shed_jax.methods import registry
-
-    entry = registry._BASELINES.get(name)  # no public accessor yet
-    return None if entry is None else getattr(importlib.import_module(entry[0]), entry[2])
+    return config_class(name)
 
 
 def _restore_nested(cls, values: dict) -> dict:
@@ -193,16 +185,10 @@ def check_bounds(config: dict, env) -> None:
 
 
 def test_levels(name: str, env):
-    """The named test set's levels (a params pytree with a leading axis)."""
-    from shed_jax import eval_sets
+    """The named test set's levels (a params pytree with a leading axis), from the env (``env.ued.test_sets``)."""
+    from shed_jax import levels
 
-    if name == "lander-test":
-        return eval_sets.lander_test_set().to_params(env.default_params)
-    if name == "walker-test-b":
-        return eval_sets.walker_test_set_b().to_params(env.default_params)
-    if name == "walker-test-a":
-        return eval_sets.walker_test_set_a()
-    raise ValueError(f"unknown test set {name!r}; known: {', '.join(TEST_SETS)}")
+    return levels.test_set(env, name)[0]
 
 
 def build(exp):

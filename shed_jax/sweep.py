@@ -3,15 +3,13 @@
 Every method runs the cartesian product of the ``--grid`` axes, each point with ``--seeds`` seeds.
 A grid key is resolved per method (``classify``):
 
-* a dynamic hyperparameter -- the method's (SHED/h-MDP: ``eta``, ``psi``, ``actor_lr``,
+* a dynamic hyperparameter -- the method's (SHED/h-MDP: ``eta``, ``psi`` (SHED), ``actor_lr``,
   ``critic_lr``, ``explore_sigma``) or the student's (``ppo.lr``, ``ppo.ent_coef``, ... the fields of
   ``PPOHyperparams``): points that differ only in these share one program; the whole group
   (points x seeds) is one vmapped call, compiled once;
 * a static field -- of the method's config (``num_eval_levels``, ``updates_per_step``, ...) or of
   ``PPOConfig`` (``ppo.num_envs``, ...): it changes shapes or program structure, so each value forms
-  its own *shape group*, compiled once;
-* inert for this method (h-MDP has no synthetic data, so ``psi`` and the diffusion fields do
-  nothing): dropped from that method's points, which are de-duplicated (a note says so).
+  its own *shape group*, compiled once.
 
 Any other key is an error that names the method and the keys it knows. ``--set KEY=VALUE`` fixes a
 key for every point (resolved the same way, not part of point names).
@@ -47,7 +45,7 @@ import numpy as np
 from shed_jax import driver
 from shed_jax.errors import EXIT_NONFINITE, EXIT_STOPPED, UsageError
 
-KINDS = ("method_hparam", "student_hparam", "method_config", "student_config", "inert")
+KINDS = ("method_hparam", "student_hparam", "method_config", "student_config")
 STUDENT_PREFIX = "ppo."
 
 
@@ -124,7 +122,6 @@ class KeySpace:
     student_hparams: tuple = ()
     method_config: tuple = ()
     student_config: tuple = ()
-    inert: tuple = ()
 
     def known(self) -> list[str]:
         own = sorted(set(self.method_hparams) | set(self.method_config))
@@ -141,14 +138,13 @@ def key_space(method_name: str, method, ppo_config) -> KeySpace:
         student_hparams=tuple(f.name for f in dataclasses.fields(PPOHyperparams)),
         method_config=tuple(f.name for f in dataclasses.fields(method.config)),
         student_config=tuple(f.name for f in dataclasses.fields(ppo_config) if f.name != "hparams"),
-        inert=tuple(getattr(method, "inert_fields", ())),
     )
 
 
 def classify(key: str, space: KeySpace) -> tuple[str, str]:
     """``(kind, field)`` of a grid key for one method; ValueError naming the method otherwise.
 
-    Unprefixed keys belong to the method (inert, then dynamic, then static); ``ppo.``-prefixed
+    Unprefixed keys belong to the method (dynamic, then static); ``ppo.``-prefixed
     keys to the student (dynamic ``PPOHyperparams``, then static ``PPOConfig``).
     """
     if key.startswith(STUDENT_PREFIX):
@@ -159,8 +155,6 @@ def classify(key: str, space: KeySpace) -> tuple[str, str]:
             return "student_config", field
         raise ValueError(f"method {space.method!r}: the student has no hyperparameter or config field {field!r} "
                          f"(key {key!r}); known keys: {', '.join(space.known())}")
-    if key in space.inert:
-        return "inert", key
     if key in space.method_hparams:
         return "method_hparam", key
     if key in space.method_config:
@@ -195,7 +189,7 @@ def dir_name(name: str) -> str:
 @dataclasses.dataclass(frozen=True)
 class Point:
     name: str
-    values: dict  # the point's grid values (inert keys dropped)
+    values: dict  # the point's grid values
     method_hparams: dict  # field -> value overrides of the method's hyperparameters
     student_hparams: dict  # field -> value overrides of PPOHyperparams
 
@@ -218,37 +212,26 @@ class Group:
 def plan(space: KeySpace, grid: dict[str, list], fixed: dict | None = None) -> tuple[list[Group], list[str]]:
     """Split one method's grid into shape groups. Returns ``(groups, notes)``.
 
-    ``fixed`` (``--set``) applies to every point. Keys inert for the method are dropped (a note
-    each) and the points that then coincide are kept once.
+    ``fixed`` (``--set``) applies to every point.
     """
     fixed = dict(fixed or {})
     notes = []
     kinds = {k: classify(k, space) for k in list(grid) + list(fixed)}
-    for k, (kind, _) in kinds.items():
-        if kind == "inert":
-            notes.append(f"{space.method}: ignores {k!r} (it has no effect on this method)")
     base = {kind: {} for kind in KINDS}
     for k, v in fixed.items():
         kind, field = kinds[k]
         base[kind][field] = v
     groups: dict[str, dict] = {}
-    seen_points: set = set()
     for values in expand_grid(grid):
         parts = {kind: dict(base[kind]) for kind in KINDS}
-        shown = {}
         for k, v in values.items():
             kind, field = kinds[k]
             parts[kind][field] = v
-            if kind != "inert":
-                shown[k] = v
-        name = point_name(shown)
+        name = point_name(values)
         static = (json.dumps(parts["method_config"], sort_keys=True), json.dumps(parts["student_config"], sort_keys=True))
-        if name in seen_points:
-            continue  # only inert keys differed
-        seen_points.add(name)
         g = groups.setdefault(static[0] + "|" + static[1], {"method_config": parts["method_config"],
                                                            "student_config": parts["student_config"], "points": []})
-        g["points"].append(Point(name, shown, parts["method_hparam"], parts["student_hparam"]))
+        g["points"].append(Point(name, values, parts["method_hparam"], parts["student_hparam"]))
     out = [Group(space.method, g["method_config"], g["student_config"], tuple(g["points"])) for g in groups.values()]
     return out, notes
 
