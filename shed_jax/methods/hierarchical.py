@@ -36,7 +36,6 @@ from typing import Any, ClassVar
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 from flax import struct
 
 from shed_jax.levels import LevelCodec, evaluation_set, new_seeds, teacher_space
@@ -165,17 +164,9 @@ class TeacherHyperparams:
 
     def validate(self) -> "TeacherHyperparams":
         """Raise ValueError naming the field for concrete values outside their valid range."""
-        for name in self.names():
-            lo, hi, lo_inc, hi_inc = self.RANGES[name]
-            value = getattr(self, name)
-            try:
-                v = np.asarray(value, dtype=np.float64)
-            except Exception:  # a tracer: nothing to check at trace time
-                continue
-            ok = (v >= lo if lo_inc else v > lo) & (v <= hi if hi_inc else v < hi) & np.isfinite(v)
-            if not np.all(ok):
-                interval = f"{'[' if lo_inc else '('}{lo}, {hi}{']' if hi_inc else ')'}"
-                raise ValueError(f"{type(self).__name__}.{name} must be a finite value in {interval}, got {value}")
+        from shed_jax.ranges import check_ranges
+
+        check_ranges(self, {name: self.RANGES[name] for name in self.names()})
         return self
 
     def as_arrays(self):

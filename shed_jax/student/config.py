@@ -48,18 +48,9 @@ class PPOHyperparams:
 
     def validate(self) -> "PPOHyperparams":
         """Raise ValueError naming the field for concrete values outside their valid range."""
-        import numpy as np
+        from shed_jax.ranges import check_ranges
 
-        for name, (lo, hi, lo_inc, hi_inc) in _HPARAM_RANGES.items():
-            value = getattr(self, name)
-            try:
-                v = np.asarray(value, dtype=np.float64)
-            except Exception:  # a tracer: nothing to check at trace time
-                continue
-            ok = (v >= lo if lo_inc else v > lo) & (v <= hi if hi_inc else v < hi) & np.isfinite(v)
-            if not np.all(ok):
-                interval = f"{'[' if lo_inc else '('}{lo}, {hi}{']' if hi_inc else ')'}"
-                raise ValueError(f"PPOHyperparams.{name} must be a finite value in {interval}, got {value}")
+        check_ranges(self, _HPARAM_RANGES)
         return self
 
     def as_arrays(self) -> "PPOHyperparams":
