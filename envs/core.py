@@ -89,12 +89,35 @@ class Box:
 
 
 # --------------------------------------------------------------------------------------------
-# Level parameter space
+# Range checks (environment parameters here; the student's and the teacher's hyperparameters too)
 # --------------------------------------------------------------------------------------------
 
 
-def _is_concrete(x) -> bool:
-    return not isinstance(x, jax.core.Tracer)
+def check_ranges(obj, ranges: dict, label: Callable[[str], str] | None = None) -> None:
+    """ValueError naming the field for a concrete value outside ``ranges[field]``.
+
+    ``ranges``: field -> (low, high, low_inclusive, high_inclusive); values may be scalars or arrays
+    (every entry is checked, and the message shows the ones outside). ``label(field)`` names the
+    field in the message (default ``<Class>.<field>``). Traced values are skipped (nothing to check
+    at trace time).
+    """
+    for name, (lo, hi, lo_inc, hi_inc) in ranges.items():
+        value = getattr(obj, name)
+        try:
+            v = np.asarray(value, dtype=np.float64)
+        except Exception:  # a tracer
+            continue
+        with np.errstate(invalid="ignore"):
+            ok = (v >= lo if lo_inc else v > lo) & (v <= hi if hi_inc else v < hi) & np.isfinite(v)
+        if not np.all(ok):
+            interval = f"{'[' if lo_inc else '('}{lo}, {hi}{']' if hi_inc else ')'}"
+            what = label(name) if label is not None else f"{type(obj).__name__}.{name}"
+            raise ValueError(f"{what} must be a finite value in {interval}, got {v[~ok] if v.ndim else v}")
+
+
+# --------------------------------------------------------------------------------------------
+# Level parameter space
+# --------------------------------------------------------------------------------------------
 
 
 @dataclasses.dataclass(frozen=True)
@@ -352,17 +375,7 @@ class Environment:
     # --- validation ---
     def check_params(self, params) -> None:
         """Raise ValueError for concrete (eager) parameters outside their valid range."""
-        for name, (lo, hi, lo_inc, hi_inc) in self.param_bounds.items():
-            value = getattr(params, name)
-            if not _is_concrete(value):
-                continue
-            v = np.asarray(value)
-            ok_lo = v >= lo if lo_inc else v > lo
-            ok_hi = v <= hi if hi_inc else v < hi
-            if not np.all(ok_lo & ok_hi):
-                bad = v[~(ok_lo & ok_hi)] if v.ndim else v
-                interval = f"{'[' if lo_inc else '('}{lo}, {hi}{']' if hi_inc else ')'}"
-                raise ValueError(f"{self.name}: parameter '{name}' must lie in {interval}, got {bad}")
+        check_ranges(params, self.param_bounds, label=lambda name: f"{self.name}: parameter '{name}'")
 
     def check_action(self, action):
         """Static (trace-time) check of the action's shape and dtype for one env."""

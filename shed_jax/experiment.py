@@ -11,7 +11,6 @@ Bad values raise :class:`shed_jax.errors.UsageError` (one line naming the field 
 """
 from __future__ import annotations
 
-import copy
 import dataclasses
 import json
 
@@ -61,40 +60,30 @@ def _reward_fields() -> tuple[str, ...]:
     return tuple(f.name for f in dataclasses.fields(RewardConfig))
 
 
-def route_method_overrides(method: str, overrides: dict, base: dict | None = None) -> dict:
-    """``--set`` items -> method-config overrides, on top of ``base`` (a method config dict).
+def route_method_overrides(method: str, overrides: dict) -> dict:
+    """``--set`` items -> overrides of the method's config (``configs.with_overrides``).
 
     SHED and h-MDP keep the teacher reward's options (``eta``, ``form``, ... of
     ``shed_jax.teacher.reward.RewardConfig``) in their ``reward`` field: a key that is one of those
-    and no field of the method's own config is set inside ``reward`` (merged with what is there),
-    so ``--set eta=10`` means ``--set 'reward={"eta": 10}'``. A ``reward`` dict is merged the same
-    way. Other keys replace the value in ``base``.
+    and no field of the method's own config goes inside ``reward``, so ``--set eta=10`` means
+    ``--set 'reward={"eta": 10}'`` (a dict for a nested config is merged into it).
     """
-    out = copy.deepcopy(dict(base or {}))
     cls = method_config_class(method)
     own = {f.name for f in dataclasses.fields(cls)} if cls is not None else set()
-    nested = "reward" in own
+    out: dict = {}
     for key, value in overrides.items():
-        if nested and key not in own and key in _reward_fields():
-            out["reward"] = {**_as_dict(out.get("reward")), key: value}
-        elif nested and key == "reward" and isinstance(value, dict):
-            out["reward"] = {**_as_dict(out.get("reward")), **value}
+        if "reward" in own and key not in own and key in _reward_fields():
+            out["reward"] = {**out.get("reward", {}), key: value}
+        elif key == "reward" and isinstance(value, dict) and isinstance(out.get("reward"), dict):
+            out["reward"] = {**out["reward"], **value}
         else:
             out[key] = value
     return out
 
 
-def _as_dict(value) -> dict:
-    if value is None:
-        return {}
-    if dataclasses.is_dataclass(value) and not isinstance(value, type):
-        return dataclasses.asdict(value)
-    return dict(value)
-
-
 def check_method_overrides(method: str, overrides: dict) -> None:
-    """UsageError for a ``--set`` key the method's config does not have (naming the known ones), or a
-    value of the wrong kind for its field (judged by the field's default: a number, a string, ...)."""
+    """UsageError for a ``--set`` key the method's config does not have, naming the known ones (kinds
+    and values are checked when the overrides are applied)."""
     cls = method_config_class(method)
     if cls is None:
         return
@@ -104,38 +93,6 @@ def check_method_overrides(method: str, overrides: dict) -> None:
         reward = f"; the teacher reward's: {', '.join(_reward_fields())}" if "reward" in fields else ""
         raise UsageError(f"--set: method {method!r} has no config field(s) {', '.join(map(repr, unknown))}; "
                          f"known: {', '.join(sorted(fields))}{reward}")
-    _check_kinds(cls, overrides, "")
-
-
-def _check_kinds(cls, values: dict, prefix: str) -> None:
-    for f in dataclasses.fields(cls):
-        if f.name not in values:
-            continue
-        value, default, key = values[f.name], f.default, f"{prefix}{f.name}"
-        if value is None or default is None or default is dataclasses.MISSING:
-            continue
-        if dataclasses.is_dataclass(default) and not isinstance(default, type):
-            if isinstance(value, dict):
-                sub = type(default)
-                known = {g.name for g in dataclasses.fields(sub)}
-                unknown = sorted(set(value) - known)
-                if unknown:
-                    raise UsageError(f"--set {key}: {sub.__name__} has no field(s) {', '.join(map(repr, unknown))}; "
-                                     f"known: {', '.join(sorted(known))}")
-                _check_kinds(sub, value, f"{key}.")
-            elif not isinstance(value, type(default)):
-                raise UsageError(f"--set {key}: expected a JSON object of {type(default).__name__} fields, got {value!r}")
-            continue
-        if isinstance(default, bool):
-            ok, kind = isinstance(value, bool), "true or false"
-        elif isinstance(default, (int, float)):
-            ok, kind = isinstance(value, (int, float)) and not isinstance(value, bool), "a number"
-        elif isinstance(default, str):
-            ok, kind = isinstance(value, str), "a string"
-        else:
-            continue
-        if not ok:
-            raise UsageError(f"--set {key}: expected {kind}, got {json.dumps(value, default=str)}")
 
 
 def method_config_class(name: str):
@@ -145,36 +102,16 @@ def method_config_class(name: str):
     return config_class(name)
 
 
-def _restore_nested(cls, values: dict) -> dict:
-    """Dict values of fields whose default is a config dataclass (e.g. PLR's ``sampler``) -> that class.
-
-    A saved experiment holds nested configs as dicts (JSON); the methods want the dataclass.
-    """
-    if cls is None or not dataclasses.is_dataclass(cls):
-        return values
-    out = dict(values)
-    for f in dataclasses.fields(cls):
-        v = out.get(f.name)
-        if isinstance(v, dict) and dataclasses.is_dataclass(f.default) and not isinstance(f.default, type):
-            sub = type(f.default)
-            out[f.name] = sub(**_restore_nested(sub, v))
-    return out
-
-
-def method_config(name: str, config: dict) -> dict:
-    """An experiment's method config with nested config dicts turned back into their dataclasses."""
-    return _restore_nested(method_config_class(name), dict(config))
-
-
 # ---------------------------------------------------------------------------------------------
 # building
 # ---------------------------------------------------------------------------------------------
 
-def check_bounds(config: dict, env) -> None:
-    """ValueError unless the teacher box's ``low``/``high`` (if set) hold one number per env parameter."""
+def check_bounds(config, env) -> None:
+    """ValueError unless the teacher box's ``low``/``high`` (if the method's config sets them) hold one
+    number per env parameter."""
     space = env.param_space
     for key in ("low", "high"):
-        value = config.get(key)
+        value = getattr(config, key, None)
         if value is None:
             continue
         values = value if isinstance(value, (list, tuple)) else [value]
@@ -200,7 +137,7 @@ def build(exp):
     env = envs.make(exp.env)
     check_bounds(exp.method_config, env)  # else numpy's broadcast error, far from the flag
     student = make_student(env, exp.ppo)
-    method = make_method(exp.method, env, student, method_config(exp.method, exp.method_config))
+    method = make_method(exp.method, env, student, exp.method_config)
     return env, student, method, test_levels(exp.test_set, env)
 
 
@@ -268,30 +205,19 @@ def experiment_from_args(args, backend: str):
         raise UsageError(str(err)) from err
 
 
-def _tuples(x):
-    if isinstance(x, list):
-        return tuple(_tuples(v) for v in x)
-    if isinstance(x, dict):
-        return {k: _tuples(v) for k, v in x.items()}
-    return x
-
-
 def experiment_from_dict(d: dict):
-    """Rebuild an Experiment from ``Experiment.to_dict()`` (as saved in config.json / a checkpoint)."""
+    """Rebuild an Experiment from ``Experiment.to_dict()`` (as saved in config.json / a checkpoint;
+    fields missing from an older save keep their defaults)."""
+    from shed_jax import configs
     from shed_jax.checkpoint import CheckpointError
     from shed_jax.loop import LoopSpec
     from shed_jax.presets import Experiment
-    from shed_jax.student import PPOConfig, PPOHyperparams
+    from shed_jax.student import PPOConfig
 
     try:
-        ppo = dict(d["ppo"])
-        hp = PPOHyperparams(**ppo.pop("hparams"))
-        for k in ("actor_hidden", "critic_hidden"):
-            if k in ppo:
-                ppo[k] = tuple(ppo[k])
         return Experiment(
-            env=d["env"], method=d["method"], preset=d["preset"], ppo=PPOConfig(**ppo, hparams=hp),
-            method_config=_tuples(dict(d["method_config"])),
+            env=d["env"], method=d["method"], preset=d["preset"], ppo=configs.from_dict(PPOConfig, d["ppo"]),
+            method_config=dict(d["method_config"]),
             # runs saved before LoopSpec.max_recorded_levels existed recorded every level
             loop=LoopSpec(**{"max_recorded_levels": None, **d["loop"]}), test_set=d["test_set"],
         )
@@ -323,7 +249,7 @@ def check_resume_flags(args, config: dict, saved, backend: str, out) -> None:
             diffs.append((f"experiment.{name}", getattr(saved, name), given))
     if not diffs:  # the same env and method: their fields can be compared one by one
         current = _apply_resume_flags(args, saved)
-        diffs = config_differences({"experiment": _effective(saved)}, {"experiment": _effective(current)}, ["experiment"])
+        diffs = config_differences({"experiment": saved.to_dict()}, {"experiment": current.to_dict()}, ["experiment"])
     for key, given in (("seeds", args.seeds), ("root_seed", args.seed)):
         if given is not None and given != int(config[key]):
             diffs.append((key, int(config[key]), given))
@@ -334,34 +260,24 @@ def check_resume_flags(args, config: dict, saved, backend: str, out) -> None:
 
 def _apply_resume_flags(args, exp):
     """The saved Experiment with the experiment flags of ``args`` applied (as a fresh run applies them to a preset)."""
-    from shed_jax.presets import EPISODIC_METHODS
+    from shed_jax import configs
+    from shed_jax.presets import episodic
 
-    mc = dict(exp.method_config)
-    if args.set:
-        mc = route_method_overrides(exp.method, parse_overrides(args.set), base=mc)
-        check_method_overrides(exp.method, mc)
+    mc = exp.method_config
     changes = {}
     for flag, field in (("episodes", "num_episodes"), ("steps_per_episode", "steps_per_episode"),
                         ("test_episode_every", "test_episode_every")):
         if getattr(args, flag) is not None:
             changes[field] = getattr(args, flag)
-    if args.steps_per_episode is not None and exp.method in EPISODIC_METHODS:
-        mc["budget_steps"] = args.steps_per_episode
     try:
+        if args.steps_per_episode is not None and episodic(mc):
+            mc = configs.with_overrides(mc, {"budget_steps": args.steps_per_episode})
+        if args.set:
+            overrides = route_method_overrides(exp.method, parse_overrides(args.set))
+            check_method_overrides(exp.method, overrides)
+            mc = configs.with_overrides(mc, overrides, "--set ")
         loop = dataclasses.replace(exp.loop, **changes)
         ppo = exp.ppo.with_overrides(parse_ppo_overrides(args.ppo)) if args.ppo else exp.ppo
     except ValueError as err:
         raise UsageError(str(err)) from err
     return dataclasses.replace(exp, method_config=mc, loop=loop, ppo=ppo)
-
-
-def _effective(exp) -> dict:
-    """``exp.to_dict()`` with the method config as the method builds it (every field, defaults included)."""
-    d = exp.to_dict()
-    cls = method_config_class(exp.method)
-    if cls is not None:
-        try:
-            d["method_config"] = dataclasses.asdict(cls(**method_config(exp.method, exp.method_config)))
-        except (TypeError, ValueError) as err:
-            raise UsageError(f"--set: {err}") from err
-    return d

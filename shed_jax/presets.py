@@ -19,51 +19,134 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
+from shed_jax import configs
 from shed_jax.loop import LoopSpec
 from shed_jax.student import PPOConfig
 
 PRESETS = ("quick", "paper")
-EPISODIC_METHODS = ("shed", "hmdp")
 
 
 @dataclasses.dataclass(frozen=True)
 class Experiment:
+    """Everything a run needs besides its seeds. ``method_config`` is the method's own config
+    dataclass (``methods.registry.config_class``); a dict given here is read as its fields."""
+
     env: str
     method: str
     preset: str
     ppo: PPOConfig
-    method_config: dict  # field overrides for the method's own config (see methods.registry)
+    method_config: Any
     loop: LoopSpec
     test_set: str  # a name in the env's ued.test_sets (envs.core.UEDSpec)
 
+    def __post_init__(self):
+        from shed_jax.methods.registry import METHODS, config_class
+
+        cls = config_class(self.method)
+        if cls is None:
+            raise ValueError(f"unknown method {self.method!r}; known: {', '.join(METHODS)}")
+        object.__setattr__(self, "method_config", configs.coerce(cls, self.method_config, f"method {self.method!r}"))
+
     def to_dict(self) -> dict:
-        out = dataclasses.asdict(self)
-        out["ppo"]["hparams"] = dataclasses.asdict(self.ppo.hparams) if dataclasses.is_dataclass(self.ppo.hparams) else {
-            f: getattr(self.ppo.hparams, f) for f in self.ppo.hparams.__dataclass_fields__
-        }
-        return out
+        """The JSON form (``config.json``); ``experiment.experiment_from_dict`` inverts it."""
+        return dataclasses.asdict(self)
+
+    @property
+    def episodic(self) -> bool:
+        """Whether the method trains a fresh student in each of ``loop.num_episodes`` teacher episodes."""
+        return episodic(self.method_config)
 
     @property
     def env_steps_per_budget_step(self) -> int:
-        return self.ppo.batch_size * int(self.method_config.get("updates_per_step", 1))
+        return self.ppo.batch_size * self.method_config.updates_per_step
+
+
+def episodic(method_config) -> bool:
+    """Whether a method (by its config) runs teacher episodes, each with a fresh student (SHED, h-MDP):
+    its config has the teacher's episode length ``budget_steps``. The baselines train one student."""
+    return hasattr(method_config, "budget_steps")
+
+
+@dataclasses.dataclass(frozen=True)
+class Preset:
+    """One row of the preset table: an environment's budgets at one preset.
+
+    Method fields (``updates_per_step`` and the rest of ``method``) are applied to every method whose
+    config has the field; ``teacher_episodes``, ``test_episode_every`` and ``teacher`` apply to the
+    episodic methods (SHED, h-MDP) only, whose teacher episode length ``budget_steps`` is T.
+    """
+
+    student: dict  # PPOConfig overrides on top of the environment's student (PPOConfig.for_env)
+    steps_per_episode: int  # T
+    teacher_episodes: int  # N_ep of the episodic methods (the baselines run one student: 1)
+    test_set: str
+    test_episodes: int
+    test_max_steps: int
+    method: dict  # fields of every method's config that has them
+    teacher: dict = dataclasses.field(default_factory=dict)  # fields of the episodic methods' configs
+    test_episode_every: int = 1  # episodic methods: test in every k-th teacher episode (and the last)
+    chunk: int | None = None  # budget steps per compiled chunk; None: one teacher episode
+
+
+# The table: (environment, preset) -> its budgets. ``paper`` is docs/design.md §10.3; ``quick`` is
+# CPU-sized (a few minutes on 2 cores), for smoke runs and the test suite.
+_LANDER_PAPER = Preset(
+    student={}, steps_per_episode=20, teacher_episodes=50, test_set="lander-test", test_episodes=10, test_max_steps=500,
+    method={"updates_per_step": 10, "num_levels": 5},
+    # test the students of teacher episodes 0, 10, 20, ... and the last (docs/design.md §9.3 reports the
+    # first and last episodes); by step counts this saves about a fifth
+    test_episode_every=10,
+)
+_LANDER_QUICK = Preset(
+    student=dict(num_envs=16, num_steps=64, update_epochs=2, num_minibatches=4), steps_per_episode=4, teacher_episodes=2,
+    test_set="lander-test", test_episodes=2, test_max_steps=200,
+    method={"updates_per_step": 2, "num_levels": 4},
+    teacher={"num_eval_episodes": 1, "eval_max_steps": 200},  # a cheap teacher state: one short episode per eval level
+)
+TABLE: dict[tuple[str, str], Preset] = {
+    ("lander", "paper"): _LANDER_PAPER,
+    ("lander", "quick"): _LANDER_QUICK,
+    ("lander-continuous", "paper"): _LANDER_PAPER,
+    ("lander-continuous", "quick"): _LANDER_QUICK,
+    # 3 x 1,024 x 64 = 196,608 steps per budget step; x 50 = 9.83e6 (the paper's 1e7 to 2 %). A budget
+    # step costs about 20 s on an H200 (MJX's per-step latency in the evaluations), so chunks are 2
+    # budget steps and the progress line moves at least once a minute.
+    ("walker", "paper"): Preset(
+        student={}, steps_per_episode=50, teacher_episodes=20, test_set="walker-test-b", test_episodes=10,
+        test_max_steps=2000, method={"updates_per_step": 3, "num_levels": 4},
+        teacher={"num_eval_episodes": 4},  # E_eval = 4 evaluation episodes per eval level (lander: 8)
+        test_episode_every=10, chunk=2,
+    ),
+    ("walker", "quick"): Preset(
+        student=dict(num_envs=16, num_steps=16, update_epochs=1, num_minibatches=2), steps_per_episode=4,
+        teacher_episodes=2, test_set="walker-test-b", test_episodes=1, test_max_steps=100,
+        method={"updates_per_step": 2, "num_levels": 4}, teacher={"num_eval_episodes": 1, "eval_max_steps": 100},
+    ),
+}
+
+
+def preset_row(env: str, name: str) -> Preset:
+    """The table's row for (env, preset); ValueError naming what exists."""
+    if name not in PRESETS:
+        raise ValueError(f"unknown preset {name!r}; known: {', '.join(PRESETS)}")
+    if (env, name) not in TABLE:
+        envs = sorted({e for e, _ in TABLE})
+        raise ValueError(f"no UED presets for environment {env!r}; use {', '.join(envs)}")
+    return TABLE[(env, name)]
 
 
 def default_chunk(exp: Experiment) -> int:
-    """Budget steps per compiled chunk (progress line, checkpoint) when ``--chunk`` is not given.
-
-    A walker budget step costs about 20 s on an H200 (MJX's per-step latency in its evaluations), so
-    its chunks are 2 budget steps and the progress bar moves at least once a minute; the lander's are
-    one teacher episode.
-    Always a divisor of the episode length, so chunks never straddle two episodes unevenly.
-    """
+    """Budget steps per compiled chunk (progress line, checkpoint) when ``--chunk`` is not given: the
+    preset's ``chunk`` where it divides the episode length T, else T (so chunks never straddle two
+    episodes unevenly)."""
     T = exp.loop.steps_per_episode
-    if _base_env(exp.env) == "walker" and exp.preset == "paper" and T % 2 == 0:
-        return 2
-    return T
+    chunk = TABLE[(exp.env, exp.preset)].chunk if (exp.env, exp.preset) in TABLE else None
+    return chunk if chunk and T % chunk == 0 else T
 
 
-def _base_env(env: str) -> str:
-    return "lander" if env.startswith("lander") else env
+def _fields_of(config, values: dict) -> dict:
+    names = {f.name for f in dataclasses.fields(config)}
+    return {k: v for k, v in values.items() if k in names}
 
 
 def build_experiment(env: str, method: str, preset: str, *, episodes: int | None = None,
@@ -71,66 +154,31 @@ def build_experiment(env: str, method: str, preset: str, *, episodes: int | None
                      method_overrides: dict | None = None, ppo_overrides: dict | None = None) -> Experiment:
     """The named preset for (env, method); ``episodes``/``steps_per_episode`` override N_ep/T,
     ``test_episode_every`` the teacher episodes in which the test set runs (``LoopSpec``),
-    ``method_overrides`` fields of the method's config and ``ppo_overrides`` fields of the student's
-    PPO config (``PPOConfig.with_overrides``)."""
-    if preset not in PRESETS:
-        raise ValueError(f"unknown preset {preset!r}; known: {', '.join(PRESETS)}")
-    kind = _base_env(env)
-    if kind not in ("lander", "walker"):
-        raise ValueError(f"no UED presets for environment {env!r}; use lander, lander-continuous or walker")
-    episodic = method in EPISODIC_METHODS
-    if preset == "paper":
-        if kind == "lander":
-            ppo = PPOConfig.for_env(env)
-            mcfg: dict[str, Any] = {"updates_per_step": 10}
-            T, n_ep = 20, (50 if episodic else 1)
-            test = dict(test_episodes=10, test_max_steps=500)
-            test_set = "lander-test"
-            if method in ("shed", "hmdp", "accel-norevisit"):
-                mcfg["num_levels"] = 5
-        else:
-            ppo = PPOConfig.for_env("walker")
-            mcfg = {"updates_per_step": 3}  # 3 x 1,024 x 64 = 196,608 steps; x 50 = 9.83e6
-            T, n_ep = 50, (20 if episodic else 1)
-            test = dict(test_episodes=10, test_max_steps=2000)
-            test_set = "walker-test-b"
-            if method in ("shed", "hmdp", "accel-norevisit"):
-                mcfg["num_levels"] = 4
-            if episodic:  # docs/design.md §10.3: E_eval = 4 evaluation episodes per eval level (lander: 8)
-                mcfg["num_eval_episodes"] = 4
-    else:  # quick
-        if kind == "lander":
-            ppo = PPOConfig.for_env(env, num_envs=16, num_steps=64, update_epochs=2, num_minibatches=4)
-            test = dict(test_episodes=2, test_max_steps=200)
-            test_set = "lander-test"
-        else:
-            ppo = PPOConfig.for_env("walker", num_envs=16, num_steps=16, update_epochs=1, num_minibatches=2)
-            test = dict(test_episodes=1, test_max_steps=100)
-            test_set = "walker-test-b"
-        mcfg = {"updates_per_step": 2}
-        T, n_ep = 4, (2 if episodic else 1)
-        if method in ("shed", "hmdp", "accel-norevisit"):
-            mcfg["num_levels"] = 4
-        if episodic:  # a cheap teacher state: one short evaluation episode per eval level
-            mcfg.update(num_eval_episodes=1, eval_max_steps=test["test_max_steps"])
-    # None means "the preset's value"; 0 or a negative count is an error (LoopSpec names the field),
-    # never silently the default
-    T = T if steps_per_episode is None else steps_per_episode
-    # SHED/h-MDP paper runs: test the students of teacher episodes 0, 10, 20, ... and the last
-    # (docs/design.md §9.3 reports the first and last episodes); by step counts this saves about a fifth
-    test_ep = 10 if (preset == "paper" and episodic) else 1
-    if test_episode_every is not None:  # LoopSpec rejects values < 1
-        test_ep = test_episode_every
-    if episodic:
-        mcfg["budget_steps"] = T  # the teacher's done flag marks the T-th transition
-    if method_overrides:
-        mcfg.update(method_overrides)
+    ``method_overrides`` fields of the method's config (``configs.with_overrides``: nested dicts
+    merge) and ``ppo_overrides`` fields of the student's PPO config (``PPOConfig.with_overrides``).
+    None means the preset's value; 0 or a negative count is an error naming the field."""
+    from shed_jax.methods.registry import METHODS, config_class
+
+    row = preset_row(env, preset)
+    cls = config_class(method)
+    if cls is None:
+        raise ValueError(f"unknown method {method!r}; known: {', '.join(METHODS)}")
+    base = cls()
+    is_episodic = episodic(base)
+    T = row.steps_per_episode if steps_per_episode is None else steps_per_episode
+    fields = {**row.method, **(row.teacher if is_episodic else {})}
+    if is_episodic:
+        fields["budget_steps"] = T  # the teacher's done flag marks the T-th transition
+    mcfg = configs.with_overrides(base, _fields_of(base, fields))
+    mcfg = configs.with_overrides(mcfg, method_overrides, "--set ")
+    ppo = PPOConfig.for_env(env, **row.student)
     if ppo_overrides:
         ppo = ppo.with_overrides(ppo_overrides)
     loop = LoopSpec(
         steps_per_episode=T,
-        num_episodes=n_ep if episodes is None else episodes,
-        test_episode_every=test_ep,
-        **test,
+        num_episodes=(row.teacher_episodes if is_episodic else 1) if episodes is None else episodes,
+        test_episode_every=(row.test_episode_every if is_episodic else 1) if test_episode_every is None else test_episode_every,
+        test_episodes=row.test_episodes,
+        test_max_steps=row.test_max_steps,
     )
-    return Experiment(env=env, method=method, preset=preset, ppo=ppo, method_config=mcfg, loop=loop, test_set=test_set)
+    return Experiment(env=env, method=method, preset=preset, ppo=ppo, method_config=mcfg, loop=loop, test_set=row.test_set)

@@ -186,7 +186,7 @@ def test_config_mismatch_names_the_keys(runs, patched, capsys):
     # the experiment round-trips through its saved dict (nested sampler config included)
     exp = xp.experiment_from_dict(saved["experiment"])
     assert ck.config_differences({"experiment": exp.to_dict()}, {"experiment": tiny_experiment().to_dict()}, ["experiment"]) == []
-    assert isinstance(xp.method_config(exp.method, exp.method_config)["sampler"], LevelSamplerConfig)
+    assert exp.method_config.sampler == LevelSamplerConfig(capacity=4, min_fill=0.5, replay_prob=0.9)
 
 
 def _copy_run(src, dst):

@@ -16,6 +16,7 @@ from shed_jax.__main__ import main
 from shed_jax.cli import errors
 from shed_jax.cli import run as run_cli
 from shed_jax.presets import build_experiment
+from shed_jax.teacher.reward import RewardConfig
 
 
 def error_line(capsys) -> str:
@@ -122,10 +123,10 @@ def test_set_routes_teacher_reward_keys_into_reward():
     """docs/running.md's `--set eta=10`: eta is a field of the teacher reward (RewardConfig), which
     SHEDConfig holds as `reward`; the key goes there, merged with a `reward` given as well."""
     exp = xp.experiment_from_args(parse(["--preset", "quick", "--set", "eta=10"]), "cpu")
-    assert exp.method_config["reward"] == {"eta": 10}
+    assert exp.method_config.reward == RewardConfig(eta=10)
     exp = xp.experiment_from_args(parse(["--preset", "quick", "--method", "hmdp", "--set", 'reward={"form": "signed_sum"}',
                                               "--set", "eta=10", "--set", "code_cv_weight=0.5"]), "cpu")
-    assert exp.method_config["reward"] == {"form": "signed_sum", "eta": 10, "code_cv_weight": 0.5}
+    assert exp.method_config.reward == RewardConfig(form="signed_sum", eta=10, code_cv_weight=0.5)
     _, _, method, _ = xp.build(exp)
     assert (method.config.reward.form, method.config.reward.eta) == ("signed_sum", 10)
     assert method.default_hparams.eta == 10.0  # the dynamic eta the teacher's reward uses
@@ -141,7 +142,7 @@ def test_presets_refuse_zero_counts_instead_of_using_the_default():
     with pytest.raises(ValueError, match="LoopSpec.steps_per_episode must be >= 1, got 0"):
         build_experiment("lander", "dr", "quick", steps_per_episode=0)
     e = build_experiment("lander", "shed", "quick", episodes=3, steps_per_episode=5)
-    assert (e.loop.num_episodes, e.loop.steps_per_episode, e.method_config["budget_steps"]) == (3, 5, 5)
+    assert (e.loop.num_episodes, e.loop.steps_per_episode, e.method_config.budget_steps) == (3, 5, 5)
 
 
 def test_disk_full_is_recognised_when_wrapped():

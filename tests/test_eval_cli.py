@@ -165,7 +165,7 @@ def test_bad_final_eval_set_fails_before_training(tmp_path):
     ('[{"gravity": 1.0, "wind": 3}]', "unknown cartpole parameter(s) ['wind']"),
     ('[{"gravity": "high"}]', "level 0, gravity must be a finite number"),
     ('[{"max_steps": 10.5}]', "level 0, max_steps must be an integer"),
-    ("[[9.8, -0.5, 10.0]]", "parameter 'length' must lie in"),
+    ("[[9.8, -0.5, 10.0]]", "parameter 'length' must be a finite value in"),
 ])
 def test_bad_level_files(tmp_path, content, message):
     import envs

@@ -3,7 +3,7 @@ constructible from every preset through the registry (construction only; no comp
 import pytest
 
 import envs
-from shed_jax.methods.registry import METHODS, make_method
+from shed_jax.methods.registry import METHODS, config_class, make_method
 from shed_jax.presets import build_experiment
 from shed_jax.student import make_student
 
@@ -13,7 +13,7 @@ def test_paper_lander_budget_matches_spec():
     # C = 10 updates x 40 envs x 128 steps = 51,200; T = 20 -> 1.024e6 student steps per episode
     assert e.env_steps_per_budget_step == 51_200
     assert (e.loop.steps_per_episode, e.loop.num_episodes) == (20, 50)
-    assert e.method_config["budget_steps"] == 20 and e.method_config["num_levels"] == 5
+    assert e.method_config.budget_steps == 20 and e.method_config.num_levels == 5
     assert (e.loop.test_episodes, e.loop.test_max_steps, e.test_set) == (10, 500, "lander-test")
     dr = build_experiment("lander", "dr", "paper")
     assert dr.loop.num_episodes == 1 and dr.loop.total_steps * dr.env_steps_per_budget_step == 1_024_000
@@ -30,14 +30,13 @@ def test_walker_paper_budget_is_1e7_steps():
     e = build_experiment("walker", "accel", "paper")
     assert e.env_steps_per_budget_step * e.loop.steps_per_episode == 1024 * 64 * 3 * 50  # 9.83e6
     shed = build_experiment("walker", "shed", "paper")  # docs/design.md §10.3: n = 4, E_eval = 4, N_ep = 20
-    assert shed.method_config["num_levels"] == 4 and shed.method_config["num_eval_episodes"] == 4
-    assert shed.loop.num_episodes == 20 and build_experiment("lander", "shed", "paper").method_config.get(
-        "num_eval_episodes", 8) == 8
+    assert shed.method_config.num_levels == 4 and shed.method_config.num_eval_episodes == 4
+    assert shed.loop.num_episodes == 20 and build_experiment("lander", "shed", "paper").method_config.num_eval_episodes == 8
 
 
 def test_steps_per_episode_override_reaches_the_teacher():
     e = build_experiment("lander", "hmdp", "quick", steps_per_episode=7, episodes=3)
-    assert e.loop.steps_per_episode == 7 and e.loop.num_episodes == 3 and e.method_config["budget_steps"] == 7
+    assert e.loop.steps_per_episode == 7 and e.loop.num_episodes == 3 and e.method_config.budget_steps == 7
 
 
 def test_bad_preset_and_env_are_named():
@@ -51,8 +50,9 @@ def test_bad_preset_and_env_are_named():
 def test_every_method_builds_from_the_quick_preset(method):
     e = build_experiment("lander", method, "quick")
     env = envs.make(e.env)
-    m = make_method(method, env, make_student(env, e.ppo), dict(e.method_config))
-    assert m.name == method
+    assert type(e.method_config) is config_class(method)  # the experiment holds the typed config
+    m = make_method(method, env, make_student(env, e.ppo), e.method_config)
+    assert m.name == method and m.config == e.method_config
 
 
 def test_ppo_overrides_reach_the_student_config_and_the_cli_flag():

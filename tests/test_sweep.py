@@ -273,7 +273,7 @@ def _tiny_build(exp):
     env = envs.make("cartpole")
     student = _StubStudent(env, _StubConfig(exp.ppo.num_envs))
     make = make_shed if exp.method == "shed" else make_hmdp
-    method = make(env, student, dict(exp.method_config), eval_levels=env.param_space.sample(jax.random.PRNGKey(42), (10,)))
+    method = make(env, student, exp.method_config, eval_levels=env.param_space.sample(jax.random.PRNGKey(42), (10,)))
     return env, student, method, env.param_space.sample(jax.random.PRNGKey(7), (2,))
 
 
@@ -377,9 +377,9 @@ def test_stop_and_resume_equals_an_uninterrupted_sweep(tmp_path, capsys, monkeyp
 
 def test_preset_experiment_passes_the_episode_overrides():
     make = sweep.preset_experiment("lander", "paper", episodes=12, steps_per_episode=60, test_episode_every=4)
-    loop = make("shed", {"eta": 10.0}, {}).loop
-    assert (loop.num_episodes, loop.steps_per_episode, loop.test_episode_every) == (12, 60, 4)
-    assert make("shed", {"eta": 10.0}, {}).method_config["eta"] == 10.0
+    exp = make("shed", {"num_eval_levels": 5}, {})
+    assert (exp.loop.num_episodes, exp.loop.steps_per_episode, exp.loop.test_episode_every) == (12, 60, 4)
+    assert exp.method_config.num_eval_levels == 5 and exp.method_config.budget_steps == 60
     default = sweep.preset_experiment("lander", "paper")
     assert default("shed", {}, {}).loop.test_episode_every == 10  # the paper preset tests every 10th episode
     assert default("dr", {}, {}).loop.test_episode_every == 1

@@ -17,6 +17,7 @@ import signal
 import pytest
 
 from shed_jax import checkpoint as ck
+from shed_jax import configs
 from shed_jax import errors
 from shed_jax import sweep
 from shed_jax.__main__ import main
@@ -36,7 +37,7 @@ def tiny_sweep(patched, monkeypatch):
     def make(env, preset, episodes=None, steps_per_episode=None, test_episode_every=None):
         def experiment(method, method_overrides, ppo_overrides):
             exp = tiny_experiment(**ppo_overrides)
-            return dataclasses.replace(exp, method_config={**exp.method_config, **method_overrides})
+            return dataclasses.replace(exp, method_config=configs.with_overrides(exp.method_config, method_overrides))
         return experiment
 
     monkeypatch.setattr(sweep, "preset_experiment", make)

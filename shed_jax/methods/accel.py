@@ -18,7 +18,7 @@ No level is ever trained on twice, and every child is a new level.
 from __future__ import annotations
 
 import dataclasses
-from typing import Any
+from typing import Any, Literal
 
 import jax
 import jax.numpy as jnp
@@ -38,17 +38,13 @@ class ACCELConfig(PLRConfig):
 
     sampler: LevelSamplerConfig = LevelSamplerConfig(replay_prob=0.9)
     num_edits: int = 3
-    new_levels: str = "easy"  # "easy": EASY base levels [DCD]; "uniform": U(Θ)
-    parents: str = "all"  # "all": every replayed level; "dcd_easy": DCD's 4 lowest (return - value loss)
+    new_levels: Literal["easy", "uniform"] = "easy"  # "easy": EASY base levels [DCD]; "uniform": U(Θ)
+    parents: Literal["all", "dcd_easy"] = "all"  # "all": every replayed level; "dcd_easy": DCD's 4 lowest (return - value loss)
 
     def __post_init__(self):
         super().__post_init__()
         if not isinstance(self.num_edits, int) or self.num_edits < 1:
             raise ValueError(f"ACCELConfig.num_edits must be a positive int, got {self.num_edits!r}")
-        if self.new_levels not in ("easy", "uniform"):
-            raise ValueError(f"ACCELConfig.new_levels must be 'easy' or 'uniform', got {self.new_levels!r}")
-        if self.parents not in ("all", "dcd_easy"):
-            raise ValueError(f"ACCELConfig.parents must be 'all' or 'dcd_easy', got {self.parents!r}")
 
 
 @dataclasses.dataclass(frozen=True)

@@ -12,13 +12,14 @@ current episode ends, so episodes longer than a rollout are played to the end (d
 from __future__ import annotations
 
 import dataclasses
-from typing import Any
+from typing import Any, Literal
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from envs.core import ParamSpace
+from shed_jax.configs import check_modes
 from shed_jax.levels import LevelCodec, teacher_space, ued
 from shed_jax.methods.base import StepInfo, mean_metrics, warn_if_rollouts_cut_episodes
 
@@ -28,21 +29,18 @@ class DRConfig:
     """DR settings. ``updates_per_step`` PPO updates (num_envs x num_steps steps each) per budget step."""
 
     updates_per_step: int = 10
-    distribution: str = "uniform"  # "uniform": U(Θ); "code": the env's reference-code Gaussian DR (env.ued.code_dr)
+    distribution: Literal["uniform", "code"] = "uniform"  # "uniform": U(Θ); "code": the env's reference-code Gaussian DR (env.ued.code_dr)
     low: tuple[float, ...] | None = None  # Θ override (default: levels.teacher_space)
     high: tuple[float, ...] | None = None
     # "rollout" (docs/design.md §8.1, DCD): every rollout resets every slot onto a new level. "episode": a slot
     # moves to a new level only when its episode ends (student.rollout's next_levels), so episodes
     # longer than a rollout run to their end.
-    level_switch: str = "rollout"
+    level_switch: Literal["rollout", "episode"] = "rollout"
 
     def __post_init__(self):
         if not isinstance(self.updates_per_step, int) or self.updates_per_step < 1:
             raise ValueError(f"DRConfig.updates_per_step must be a positive int, got {self.updates_per_step!r}")
-        if self.distribution not in ("uniform", "code"):
-            raise ValueError(f"DRConfig.distribution must be 'uniform' or 'code', got {self.distribution!r}")
-        if self.level_switch not in ("rollout", "episode"):
-            raise ValueError(f"DRConfig.level_switch must be 'rollout' or 'episode', got {self.level_switch!r}")
+        check_modes(self)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -32,12 +32,13 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Literal
 
 import jax
 import jax.numpy as jnp
 from flax import struct
 
+from shed_jax.configs import check_modes, coerce
 from shed_jax.levels import LevelCodec, evaluation_set, new_seeds, teacher_space
 from shed_jax.methods.base import EvalRequest, StepInfo, mean_metrics
 from shed_jax.teacher.buffers import RingBuffer, Transition
@@ -60,7 +61,7 @@ class TeacherConfig:
     num_levels: int = 5  # n (lander 5, walker 4)
     budget_steps: int = 20  # T: done = 1 on the T-th transition
     num_eval_episodes: int = 8  # E_eval
-    eval_set: str = "official"  # lander: 'official' (code's 10) or 'paper' (covering, any m); walker: ladder
+    eval_set: Literal["official", "paper"] = "official"  # lander: 'official' (code's 10) or 'paper' (covering, any m); walker: ladder
     num_eval_levels: int = 10  # m
     eval_max_steps: int | None = None  # override the evaluation episode cap (default: the set's max_steps)
     state_scale: float = 100.0  # the DDPG networks see s / state_scale
@@ -84,8 +85,7 @@ class TeacherConfig:
             v = getattr(self, field)
             if not isinstance(v, int) or v < 1:
                 raise ValueError(f"{name}.{field} must be a positive int, got {v!r}")
-        if self.eval_set not in ("official", "paper"):
-            raise ValueError(f"{name}.eval_set must be 'official' or 'paper', got {self.eval_set!r}")
+        check_modes(self)
         for field in ("actor_lr", "critic_lr"):
             v = getattr(self, field)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
@@ -101,24 +101,6 @@ class TeacherConfig:
 @dataclasses.dataclass(frozen=True)
 class HMDPConfig(TeacherConfig):
     """h-MDP: the teacher's settings only (B_real holds 10,000 transitions [official code])."""
-
-
-def config_from(name: str, cls: type, config: Any):
-    """``config`` (None, a dict of field overrides or a ``cls``) as a ``cls``; one-line errors otherwise."""
-    if config is None:
-        return cls()
-    if isinstance(config, dict):
-        fields = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(config) - fields)
-        if unknown:
-            nested = [k for k in unknown if k in {f.name for f in dataclasses.fields(RewardConfig)}]
-            hint = (f"; {nested} are fields of the teacher reward, given inside it: reward={{\"{nested[0]}\": <value>}} "
-                    f"(on the command line: --set 'reward={{\"{nested[0]}\": <value>}}')" if nested else "")
-            raise ValueError(f"method {name!r}: unknown config field(s) {unknown}{hint}; known: {sorted(fields)}")
-        return cls(**config)
-    if type(config) is not cls:
-        raise TypeError(f"method {name!r}: config must be None, a dict or a {cls.__name__}, got {type(config).__name__}")
-    return config
 
 
 # ---- dynamic hyperparameters -----------------------------------------------------------------
@@ -164,7 +146,7 @@ class TeacherHyperparams:
 
     def validate(self) -> "TeacherHyperparams":
         """Raise ValueError naming the field for concrete values outside their valid range."""
-        from shed_jax.ranges import check_ranges
+        from envs.core import check_ranges
 
         check_ranges(self, {name: self.RANGES[name] for name in self.names()})
         return self
@@ -404,4 +386,4 @@ class HierarchicalTeacher:
 
 def make_hmdp(env, student, config: Any = None, eval_levels=None, name: str = "hmdp") -> HierarchicalTeacher:
     """h-MDP (docs/design.md §8.7): the DDPG teacher alone. ``config``: None, a dict or an :class:`HMDPConfig`."""
-    return HierarchicalTeacher(env, student, config_from(name, HMDPConfig, config), name=name, eval_levels=eval_levels)
+    return HierarchicalTeacher(env, student, coerce(HMDPConfig, config, f"method {name!r}"), name=name, eval_levels=eval_levels)

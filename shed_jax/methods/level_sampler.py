@@ -24,11 +24,13 @@ parameter-space mutations and the dedup check work on directly.
 from __future__ import annotations
 
 import dataclasses
-from typing import Any
+from typing import Any, Literal
 
 import jax
 import jax.numpy as jnp
 from flax import struct
+
+from shed_jax.configs import check_modes
 
 
 @struct.dataclass
@@ -60,7 +62,7 @@ class LevelSamplerConfig:
     staleness_coef: float = 0.5  # rho
     temperature: float = 0.1  # beta of the rank prioritisation
     min_fill: float = 0.5  # replay only once size >= min_fill * capacity
-    schedule: str = "fixed"  # "fixed": p_replay; "proportionate": min(fill, p_replay) [DCD]
+    schedule: Literal["fixed", "proportionate"] = "fixed"  # "fixed": p_replay; "proportionate": min(fill, p_replay) [DCD]
     duplicate_check: bool = False  # refuse to store a second copy of a held level
 
     def __post_init__(self):
@@ -72,8 +74,7 @@ class LevelSamplerConfig:
                 raise ValueError(f"LevelSamplerConfig.{name} must lie in [0, 1], got {v!r}")
         if not self.temperature > 0.0:
             raise ValueError(f"LevelSamplerConfig.temperature must be > 0, got {self.temperature!r}")
-        if self.schedule not in ("fixed", "proportionate"):
-            raise ValueError(f"LevelSamplerConfig.schedule must be 'fixed' or 'proportionate', got {self.schedule!r}")
+        check_modes(self)
 
 
 @dataclasses.dataclass(frozen=True)

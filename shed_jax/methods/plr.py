@@ -25,17 +25,16 @@ after each replay through the ``new_levels`` and ``after_replay`` hooks.
 from __future__ import annotations
 
 import dataclasses
-from typing import Any
+from typing import Any, Literal
 
 import jax
 import jax.numpy as jnp
 from flax import struct
 
+from shed_jax.configs import check_modes
 from shed_jax.levels import LevelCodec, teacher_space
 from shed_jax.methods.base import StepInfo, mean_metrics, nan_like, update_metrics_shape, warn_if_rollouts_cut_episodes
 from shed_jax.methods.level_sampler import LevelBuffer, LevelSampler, LevelSamplerConfig
-
-SCORES = ("pvl", "maxmc")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -44,7 +43,7 @@ class PLRConfig:
 
     updates_per_step: int = 10
     sampler: LevelSamplerConfig = LevelSamplerConfig()
-    score: str = "pvl"
+    score: Literal["pvl", "maxmc"] = "pvl"
     reset_on_episode: bool = True  # empty the buffer when a fresh student starts a teacher episode
     low: tuple[float, ...] | None = None  # Θ override (default: levels.teacher_space)
     high: tuple[float, ...] | None = None
@@ -53,8 +52,7 @@ class PLRConfig:
         cls = type(self).__name__
         if not isinstance(self.updates_per_step, int) or self.updates_per_step < 1:
             raise ValueError(f"{cls}.updates_per_step must be a positive int, got {self.updates_per_step!r}")
-        if self.score not in SCORES:
-            raise ValueError(f"{cls}.score must be one of {SCORES}, got {self.score!r}")
+        check_modes(self)
         if not isinstance(self.sampler, LevelSamplerConfig):
             raise ValueError(f"{cls}.sampler must be a LevelSamplerConfig, got {type(self.sampler).__name__}")
 

@@ -10,9 +10,10 @@ names them and the method.
 """
 from __future__ import annotations
 
-import dataclasses
 import importlib
 from typing import Any
+
+from shed_jax.configs import coerce
 
 # name -> (module, method class, config class)
 _BASELINES: dict[str, tuple[str, str, str]] = {
@@ -30,20 +31,6 @@ _TEACHERS: dict[str, tuple[str, str, str]] = {
 METHODS = tuple(_BASELINES) + tuple(_TEACHERS)
 
 
-def _build_config(name: str, config_cls, config: Any):
-    if config is None:
-        return config_cls()
-    if isinstance(config, config_cls):
-        return config
-    if isinstance(config, dict):
-        fields = {f.name for f in dataclasses.fields(config_cls)}
-        unknown = sorted(set(config) - fields)
-        if unknown:
-            raise ValueError(f"method {name!r}: unknown config field(s) {unknown}; known: {sorted(fields)}")
-        return config_cls(**config)
-    raise TypeError(f"method {name!r}: config must be None, a dict or a {config_cls.__name__}, got {type(config).__name__}")
-
-
 def config_class(name: str):
     """The config dataclass of method ``name``; None for an unknown name (``make_method`` reports it)."""
     entry = _TEACHERS.get(name) or _BASELINES.get(name)
@@ -59,4 +46,4 @@ def make_method(name: str, env, student, config: Any = None):
         raise ValueError(f"unknown method {name!r}; known: {', '.join(METHODS)}")
     module, cls_name, cfg_name = _BASELINES[name]
     mod = importlib.import_module(module)
-    return getattr(mod, cls_name)(env, student, _build_config(name, getattr(mod, cfg_name), config))
+    return getattr(mod, cls_name)(env, student, coerce(getattr(mod, cfg_name), config, f"method {name!r}"))

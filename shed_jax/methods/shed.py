@@ -12,14 +12,14 @@ from typing import Any, ClassVar
 
 from flax import struct
 
+from shed_jax.configs import coerce
 from shed_jax.methods.hierarchical import (
     HierarchicalTeacher,
     TeacherConfig,
     TeacherHyperparams,
-    config_from,
     teacher_dims,
 )
-from shed_jax.teacher.diffusion import SAMPLERS, SYN_ACTIONS, SYN_REWARDS, DiffusionConfig, make_diffusion
+from shed_jax.teacher.diffusion import DiffusionConfig, Sampler, SynAction, SynReward, make_diffusion
 from shed_jax.teacher.synthesiser import DiffusionSynthesiser
 
 
@@ -34,9 +34,9 @@ class SHEDConfig(TeacherConfig):
     diffusion_steps: int = 250
     num_syn: int = 10
     syn_threshold: int = 500  # mixed updates once |B_syn| > this
-    syn_action: str = "uniform"
-    syn_reward: str = "recompute"
-    sampler: str = "ancestral"
+    syn_action: SynAction = "uniform"
+    syn_reward: SynReward = "recompute"
+    sampler: Sampler = "ancestral"
     diffusion_lr: float = 1e-3
     diffusion_ema: float = 0.0
 
@@ -46,9 +46,6 @@ class SHEDConfig(TeacherConfig):
         super().__post_init__()
         if not 0.0 <= self.psi <= 1.0:
             raise ValueError(f"SHEDConfig.psi must lie in [0, 1], got {self.psi}")
-        for field, allowed in (("syn_action", SYN_ACTIONS), ("syn_reward", SYN_REWARDS), ("sampler", SAMPLERS)):
-            if getattr(self, field) not in allowed:
-                raise ValueError(f"SHEDConfig.{field} must be one of {allowed}, got {getattr(self, field)!r}")
 
 
 @struct.dataclass
@@ -75,7 +72,7 @@ class SHEDHyperparams(TeacherHyperparams):
 
 def make_shed(env, student, config: Any = None, eval_levels=None, name: str = "shed") -> HierarchicalTeacher:
     """SHED: the hierarchical teacher with a diffusion synthesiser. ``config``: None, a dict or a :class:`SHEDConfig`."""
-    cfg = config_from(name, SHEDConfig, config)
+    cfg = coerce(SHEDConfig, config, f"method {name!r}")
     m, da = teacher_dims(env, cfg)
     model = make_diffusion(DiffusionConfig(m, da, lr=cfg.diffusion_lr, sampler=cfg.sampler, train_bc=cfg.syn_action == "bc",
                                            ema_decay=cfg.diffusion_ema))

@@ -11,12 +11,15 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Any
+from typing import Any, Literal, get_args
 
 import jax.numpy as jnp
 from flax import struct
 
-ACTIVATIONS = ("tanh", "relu", "elu", "gelu", "silu")
+from shed_jax.configs import check_modes
+
+Activation = Literal["tanh", "relu", "elu", "gelu", "silu"]
+ACTIVATIONS = get_args(Activation)
 
 _HPARAM_RANGES = {
     # name: (low, high, low_inclusive, high_inclusive)
@@ -48,7 +51,7 @@ class PPOHyperparams:
 
     def validate(self) -> "PPOHyperparams":
         """Raise ValueError naming the field for concrete values outside their valid range."""
-        from shed_jax.ranges import check_ranges
+        from envs.core import check_ranges
 
         check_ranges(self, _HPARAM_RANGES)
         return self
@@ -78,7 +81,7 @@ class PPOConfig:
     num_minibatches: int = 8
     actor_hidden: tuple[int, ...] = (64, 64)
     critic_hidden: tuple[int, ...] = (64, 64)
-    activation: str = "tanh"
+    activation: Activation = "tanh"
     normalize_advantages: bool = True
     clip_value_loss: bool = False
     normalize_observations: bool = False
@@ -105,8 +108,7 @@ class PPOConfig:
             if not all(isinstance(h, int) and not isinstance(h, bool) and h > 0 for h in v):
                 raise ValueError(f"PPOConfig.{name} must be a tuple of positive ints, got {getattr(self, name)!r}")
             object.__setattr__(self, name, v)
-        if self.activation not in ACTIVATIONS:
-            raise ValueError(f"PPOConfig.activation must be one of {ACTIVATIONS}, got {self.activation!r}")
+        check_modes(self)
         for name in ("reward_clip", "obs_clip"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and v > 0):
@@ -135,14 +137,15 @@ class PPOConfig:
     def with_overrides(self, overrides: dict | None) -> "PPOConfig":
         """This config with ``overrides`` applied: PPOConfig fields and PPOHyperparams fields by name
         (as :func:`parse_overrides` returns them); the result is validated like any PPOConfig."""
+        from shed_jax import configs
+
         overrides = dict(overrides or {})
+        if "hparams" in overrides:
+            raise ValueError("PPO overrides: unknown field 'hparams' (give the hyperparameters by name, e.g. lr)")
         hp = {k: overrides.pop(k) for k in list(overrides) if k in _HPARAM_RANGES}
-        unknown = (set(overrides) - {f.name for f in dataclasses.fields(self)}) | ({"hparams"} & set(overrides))
-        if unknown:
-            raise ValueError(f"PPO overrides: unknown field(s) {sorted(unknown)}")
         if hp:
-            overrides["hparams"] = self.hparams.replace(**hp)
-        return dataclasses.replace(self, **overrides) if overrides else self
+            overrides["hparams"] = hp
+        return configs.with_overrides(self, overrides, "PPO overrides: ")
 
     @classmethod
     def for_env(cls, name: str, **overrides) -> "PPOConfig":

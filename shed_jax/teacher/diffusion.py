@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Callable
+from typing import Callable, Literal, get_args
 
 import flax.linen as nn
 import jax
@@ -36,12 +36,14 @@ import numpy as np
 import optax
 from flax import struct
 
+from shed_jax.configs import check_modes
 from shed_jax.teacher.buffers import RingBuffer, Transition, buffer_sample
 
-SAMPLERS = ("ancestral", "code_posterior")
-NORMALIZERS = ("buffer", "scale", "none")
-SYN_ACTIONS = ("uniform", "bc")
-SYN_REWARDS = ("recompute", "copy")
+Sampler = Literal["ancestral", "code_posterior"]
+Normalizer = Literal["buffer", "scale", "none"]
+SynAction = Literal["uniform", "bc"]
+SynReward = Literal["recompute", "copy"]
+SYN_ACTIONS, SYN_REWARDS = get_args(SynAction), get_args(SynReward)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -64,9 +66,9 @@ class DiffusionConfig:
     time_dim: int = 16
     lr: float = 1e-3
     batch_size: int = 64
-    sampler: str = "ancestral"
+    sampler: Sampler = "ancestral"
     state_clip: float | None = 300.0
-    normalizer: str = "buffer"
+    normalizer: Normalizer = "buffer"
     scale: float = 100.0
     min_std: float = 1e-2
     train_bc: bool = False
@@ -80,10 +82,7 @@ class DiffusionConfig:
             raise ValueError(f"DiffusionConfig.time_dim must be an even number >= 4, got {self.time_dim}")
         if not 0 < self.beta_min < self.beta_max:
             raise ValueError(f"DiffusionConfig needs 0 < beta_min < beta_max, got {self.beta_min}, {self.beta_max}")
-        if self.sampler not in SAMPLERS:
-            raise ValueError(f"DiffusionConfig.sampler must be one of {SAMPLERS}, got {self.sampler!r}")
-        if self.normalizer not in NORMALIZERS:
-            raise ValueError(f"DiffusionConfig.normalizer must be one of {NORMALIZERS}, got {self.normalizer!r}")
+        check_modes(self)
         if not self.lr > 0:
             raise ValueError(f"DiffusionConfig.lr must be > 0, got {self.lr}")
         if not self.scale > 0 or not self.min_std > 0:

@@ -17,11 +17,15 @@ and vmappable.
 from __future__ import annotations
 
 import dataclasses
+from typing import Literal, get_args
 
 import jax
 import jax.numpy as jnp
 
-REWARD_FORMS = ("paper_l1", "signed_sum", "code_mean")
+from shed_jax.configs import check_modes
+
+RewardForm = Literal["paper_l1", "signed_sum", "code_mean"]
+REWARD_FORMS = get_args(RewardForm)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -36,7 +40,7 @@ class RewardConfig:
     cv_clip:     upper bound on cv.
     """
 
-    form: str = "paper_l1"
+    form: RewardForm = "paper_l1"
     eta: float = 0.05
     code_cv: bool = False
     code_cv_weight: float = 0.01
@@ -44,8 +48,7 @@ class RewardConfig:
     cv_clip: float = 100.0
 
     def __post_init__(self):
-        if self.form not in REWARD_FORMS:
-            raise ValueError(f"RewardConfig.form must be one of {REWARD_FORMS}, got {self.form!r}")
+        check_modes(self)
         if not self.eta >= 0:
             raise ValueError(f"RewardConfig.eta must be >= 0, got {self.eta}")
         if not self.cv_guard > 0:
