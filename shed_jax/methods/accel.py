@@ -45,6 +45,9 @@ class ACCELConfig(PLRConfig):
         super().__post_init__()
         if not isinstance(self.num_edits, int) or self.num_edits < 1:
             raise ValueError(f"ACCELConfig.num_edits must be a positive int, got {self.num_edits!r}")
+        if self.level_switch == "episode" and self.parents == "dcd_easy":
+            raise ValueError("ACCELConfig.parents='dcd_easy' picks parents from one rollout's returns; "
+                             "with level_switch='episode' use parents='all'")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -64,6 +67,20 @@ class ACCEL(PLR):
             return self.codec.sample_uniform(key, n)
         k_v, k_s = jax.random.split(key)
         return self.mutator.sample_easy(k_v, n), new_seeds(k_s, n)
+
+    def _next_levels(self, key, buf: LevelBuffer, slots=None):
+        """Whole episodes: a slot that leaves a replayed level plays that level's child next (an edit
+        with a new terrain seed: a new level, no gradient, scored and offered to the buffer); the
+        other slots draw as PLR⊥ does (replay, else an EASY level)."""
+        k_plr, k_m, k_s = jax.random.split(key, 3)
+        buf, idx, vecs, seeds = super()._next_levels(k_plr, buf, slots)
+        if slots is None:
+            return buf, idx, vecs, seeds
+        edit = slots.idx >= 0
+        children = self.mutator.mutate_batch(k_m, slots.vecs)
+        child_seeds = new_seeds(k_s, idx.shape[0])
+        return (buf, jnp.where(edit, -1, idx).astype(jnp.int32), jnp.where(edit[:, None], children, vecs),
+                jnp.where(edit, child_seeds, seeds))
 
     def after_replay(self, key, buf: LevelBuffer, sstate, traj):
         """Edit the levels the student just replayed, score the children without gradients, insert."""

@@ -155,24 +155,41 @@ class LevelSampler:
         Returns ``(buf, idx, levels, extra)``; the clock advances by ``num`` and the sampled levels'
         timestamps are set to the new clock (they become the least stale).
         """
-        w = self.replay_weights(buf)
-        idx = jax.random.choice(key, self.config.capacity, (num,), replace=True, p=w)
+        idx, levels, extra = self.draw(buf, key, num)
         count = buf.episode_count + num
         buf = buf.replace(episode_count=count, timestamps=buf.timestamps.at[idx].set(count))
-        extra = jax.tree_util.tree_map(lambda x: x[idx], buf.extra)
-        return buf, idx, buf.levels[idx], extra
+        return buf, idx, levels, extra
+
+    def draw(self, buf: LevelBuffer, key: jax.Array, num: int):
+        """``num`` indices from the replay distribution, as ``sample`` draws them, without counting
+        them as sampled: ``(idx, levels, extra)``. ``mark_sampled`` counts the ones used."""
+        w = self.replay_weights(buf)
+        idx = jax.random.choice(key, self.config.capacity, (num,), replace=True, p=w)
+        return idx, buf.levels[idx], jax.tree_util.tree_map(lambda x: x[idx], buf.extra)
+
+    def mark_sampled(self, buf: LevelBuffer, idx: jax.Array, replayed: jax.Array, handed: jax.Array) -> LevelBuffer:
+        """Count the levels handed to slots: the clock advances by ``handed.sum()`` (replays and new
+        levels alike) and the replayed rows ``idx[replayed]`` take the new clock as their timestamp."""
+        count = buf.episode_count + jnp.sum(handed).astype(jnp.int32)
+        hit = jnp.zeros((self.config.capacity,), bool).at[idx].max(replayed & handed)
+        return buf.replace(episode_count=count, timestamps=jnp.where(hit, count, buf.timestamps))
 
     # ---------------------------------------------------------------- scores
-    def update_scores(self, buf: LevelBuffer, idx: jax.Array, scores: jax.Array) -> LevelBuffer:
-        """Overwrite the scores of replayed levels ``idx`` [n] with ``scores`` [n] [DCD].
+    def update_scores(self, buf: LevelBuffer, idx: jax.Array, scores: jax.Array, mask=None) -> LevelBuffer:
+        """Overwrite the scores of replayed levels ``idx`` [n] with ``scores`` [n] [DCD] (only where
+        ``mask`` [n] is True, if given).
 
         When one level was replayed in several slots, its new score is the mean of their scores
         (a well-defined answer instead of an arbitrary winner of a scatter).
         """
         idx = jnp.asarray(idx, jnp.int32)
         cap = self.config.capacity
-        total = jnp.zeros((cap,), jnp.float32).at[idx].add(jnp.asarray(scores, jnp.float32))
-        count = jnp.zeros((cap,), jnp.float32).at[idx].add(1.0)
+        scores = jnp.asarray(scores, jnp.float32)
+        ones = jnp.ones_like(scores)
+        if mask is not None:
+            scores, ones = jnp.where(mask, scores, 0.0), jnp.where(mask, ones, 0.0)
+        total = jnp.zeros((cap,), jnp.float32).at[idx].add(scores)
+        count = jnp.zeros((cap,), jnp.float32).at[idx].add(ones)
         new = jnp.where(count > 0, total / jnp.maximum(count, 1.0), buf.scores)
         return buf.replace(scores=new)
 
@@ -227,14 +244,21 @@ class LevelSampler:
         index = jnp.where(store, target, jnp.where(is_dup, dup, -1)).astype(jnp.int32)
         return buf, index
 
-    def insert_batch(self, buf: LevelBuffer, levels: jax.Array, scores: jax.Array, extra: Any = None):
-        """Insert ``levels`` [n, d] one after another (a ``lax.scan``); returns ``(buf, indices)``."""
+    def insert_batch(self, buf: LevelBuffer, levels: jax.Array, scores: jax.Array, extra: Any = None, mask=None):
+        """Insert ``levels`` [n, d] one after another (a ``lax.scan``); returns ``(buf, indices)``.
+        With ``mask`` [n], only the rows where it is True are offered (the others get index -1)."""
+        n = len(levels)
+        take = jnp.ones((n,), bool) if mask is None else jnp.asarray(mask, bool)
 
         def body(b, x):
-            lv, sc, ex = x
-            return self.insert(b, lv, sc, ex if extra is not None else None)
+            lv, sc, ex, m = x
+            b2, i = self.insert(b, lv, sc, ex if extra is not None else None)
+            if mask is None:
+                return b2, i
+            return jax.tree_util.tree_map(lambda new, old: jnp.where(m, new, old), b2, b), jnp.where(m, i, -1)
 
-        xs = (jnp.asarray(levels, jnp.float32), jnp.asarray(scores, jnp.float32), extra if extra is not None else jnp.zeros(len(levels)))
+        xs = (jnp.asarray(levels, jnp.float32), jnp.asarray(scores, jnp.float32),
+              extra if extra is not None else jnp.zeros(n), take)
         return jax.lax.scan(body, buf, xs)
 
     def advance_clock(self, buf: LevelBuffer, num: int) -> LevelBuffer:

@@ -261,14 +261,19 @@ class PPOStudent:
             traj.rewards, traj.values, traj.next_values, traj.dones, state.hparams.gamma, state.hparams.gae_lambda
         )
 
-    def update(self, state: StudentState, key, traj: Trajectory):
-        """PPO: update_epochs passes over the rollout in num_minibatches shuffled minibatches."""
+    def update(self, state: StudentState, key, traj: Trajectory, mask=None):
+        """PPO: update_epochs passes over the rollout in num_minibatches shuffled minibatches.
+
+        ``mask`` ([num_steps, num_envs] bool, optional): only the transitions where it is True enter
+        the loss (every mean, and the advantage normalisation, is over them); PLR⊥ uses it for slots
+        on levels it scores without gradients. A mask with no True entry still moves the optimiser
+        (Adam's moments decay), so callers skip the update then. GAE runs over every transition.
+        """
         cfg, hp = self.config, state.hparams
         adv, targets = self.advantages(state, traj)
         flat = lambda x: x.reshape((cfg.batch_size,) + x.shape[2:])
-        batch = jax.tree_util.tree_map(
-            flat, (traj.obs, traj.actions, traj.log_probs, traj.values, adv, targets)
-        )
+        parts = (traj.obs, traj.actions, traj.log_probs, traj.values, adv, targets)
+        batch = jax.tree_util.tree_map(flat, parts if mask is None else parts + (mask.astype(jnp.float32),))
         lr = hp.lr
         if cfg.anneal_lr:
             lr = lr * jnp.clip(1.0 - state.update_step.astype(jnp.float32) / cfg.anneal_updates, 0.0, 1.0)
@@ -277,9 +282,10 @@ class PPOStudent:
         )
 
         def loss_fn(params, mb):
-            obs, actions, old_logp, old_values, mb_adv, mb_targets = mb
+            obs, actions, old_logp, old_values, mb_adv, mb_targets = mb[:6]
+            w = mb[6] if mask is not None else None
             if cfg.normalize_advantages:
-                mb_adv = losses.normalize_advantages(mb_adv)
+                mb_adv = losses.normalize_advantages(mb_adv, weights=w)
             out = self.policy_output(params, obs)
             values = self.value(params, obs)
             return losses.ppo_loss(
@@ -292,6 +298,7 @@ class PPOStudent:
                 dist_entropy(out, self.discrete),
                 hp,
                 cfg.clip_value_loss,
+                w,
             )
 
         (params, opt_state), aux = minibatch_sgd(loss_fn, self.tx, state.params, opt_state, batch, key,

@@ -1,0 +1,170 @@
+"""PLR⊥ on whole episodes: per-slot level switching, scores accumulated across rollouts, the robust
+(masked) PPO update, and the sampler pieces it uses."""
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import envs
+from shed_jax.methods.level_sampler import LevelSampler, LevelSamplerConfig
+from shed_jax.methods.plr import Slots, accumulate
+from shed_jax.methods.registry import make_method
+from shed_jax.student import PPOConfig, make_student
+
+
+def _slots(n):
+    z = jnp.zeros((n,), jnp.float32)
+    return Slots(vecs=jnp.zeros((n, 1)), seeds=jnp.zeros((n,), jnp.int32), idx=jnp.full((n,), -1, jnp.int32),
+                 total=z, count=z, max_return=jnp.full((n,), -jnp.inf))
+
+
+def test_an_episode_over_three_rollouts_scores_as_in_one():
+    """Slot 0's episode runs 14 steps over rollouts of 6 (done at step 13); slot 1's ends at step 2 and
+    its next level's at step 16. Sums carried across rollouts equal those of one 18-step rollout."""
+    T, n = 6, 2
+    rng = np.random.default_rng(0)
+    terms = rng.integers(0, 9, (3 * T, n)).astype(np.float32)  # integers: sums are exact in any order
+    targets = rng.integers(-5, 20, (3 * T, n)).astype(np.float32)
+    dones = np.zeros((3 * T, n), bool)
+    dones[13, 0] = dones[2, 1] = dones[16, 1] = True
+    _, _, whole, _ = accumulate(_slots(n), jnp.asarray(terms), jnp.asarray(targets), jnp.asarray(dones))
+    slots, ended_at = _slots(n), {}
+    for r in range(3):
+        sl = slice(r * T, (r + 1) * T)
+        moved, old, ended, after = accumulate(slots, jnp.asarray(terms[sl]), jnp.asarray(targets[sl]), jnp.asarray(dones[sl]))
+        for j in range(n):
+            if moved[j] and j not in ended_at:
+                ended_at[j] = tuple(float(e[j]) for e in ended)
+        slots = slots.replace(total=after[0], count=after[1], max_return=after[2])
+    for j in range(n):
+        assert ended_at[j] == tuple(float(e[j]) for e in whole)
+    assert ended_at[0] == (float(terms[:14, 0].sum()), 14.0, float(targets[:14, 0].max()))
+    assert ended_at[1] == (float(terms[:3, 1].sum()), 3.0, float(targets[:3, 1].max()))
+    # slot 1's second level: steps 3..16 inside the last rollout's pieces
+    moved, old, ended, after = accumulate(_slots(n), jnp.asarray(terms[3:17]), jnp.asarray(targets[3:17]),
+                                          jnp.asarray(dones[3:17]))
+    assert float(ended[0][1]) == float(terms[3:17, 1].sum()) and float(ended[1][1]) == 14.0
+    # the steps after a done belong to the next level; a slot without a done keeps everything
+    moved, old, ended, after = accumulate(_slots(n), jnp.asarray(terms[12:18]), jnp.asarray(targets[12:18]),
+                                          jnp.asarray(dones[12:18]))
+    assert list(np.asarray(moved)) == [True, True]
+    assert np.array_equal(np.asarray(old[:, 0]), [True, True, False, False, False, False])
+    assert float(after[0][0]) == float(terms[14:18, 0].sum()) and float(after[1][0]) == 4.0
+
+
+def _student(num_envs=4, num_steps=16):
+    env = envs.make("cartpole")
+    return env, make_student(env, PPOConfig.for_env("cartpole", num_envs=num_envs, num_steps=num_steps,
+                                                    update_epochs=2, num_minibatches=2))
+
+
+def test_masked_update_ignores_masked_transitions_and_all_true_is_the_plain_update():
+    env, student = _student()
+    key = jax.random.PRNGKey(0)
+    s = student.init(key)
+    s, traj = student.rollout(s, key)
+    mask = jnp.zeros((16, 4), bool).at[:, :2].set(True)  # slots 0 and 1 trainable
+    # changing what the masked-out slots did (their actions and old log-probs) changes nothing
+    other = traj.replace(actions=traj.actions.at[:, 2:].set(1 - traj.actions[:, 2:]),
+                         log_probs=traj.log_probs.at[:, 2:].add(-3.0))
+    a, _ = student.update(s, key, traj, mask=mask)
+    b, _ = student.update(s, key, other, mask=mask)
+    for x, y in zip(jax.tree_util.tree_leaves(a.params), jax.tree_util.tree_leaves(b.params)):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    # ... while it does change the unmasked update
+    c, _ = student.update(s, key, other)
+    assert any(not np.array_equal(np.asarray(x), np.asarray(y))
+               for x, y in zip(jax.tree_util.tree_leaves(a.params), jax.tree_util.tree_leaves(c.params)))
+    # an all-True mask is the plain update (to float rounding)
+    d, md = student.update(s, key, traj, mask=jnp.ones((16, 4), bool))
+    e, me = student.update(s, key, traj)
+    for x, y in zip(jax.tree_util.tree_leaves(d.params), jax.tree_util.tree_leaves(e.params)):
+        np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(float(md["loss"]), float(me["loss"]), rtol=1e-5, atol=1e-6)
+
+
+def test_sampler_draw_mark_and_masked_writes():
+    sampler = LevelSampler(LevelSamplerConfig(capacity=4, min_fill=0.0, replay_prob=1.0))
+    buf = sampler.init(1, extra_template=jnp.int32(0))
+    buf, idx = sampler.insert_batch(buf, jnp.arange(3.0)[:, None], jnp.array([1.0, 2.0, 3.0]), jnp.arange(3, dtype=jnp.int32),
+                                    mask=jnp.array([True, False, True]))
+    assert list(np.asarray(idx)) == [0, -1, 1] and int(buf.size) == 2
+    assert list(np.asarray(buf.levels[:2, 0])) == [0.0, 2.0]
+    # draw is free of side effects; sample = draw + counting every draw
+    idx2, lv, ex = sampler.draw(buf, jax.random.PRNGKey(1), 3)
+    b1, i1, l1, e1 = sampler.sample(buf, jax.random.PRNGKey(1), 3)
+    assert np.array_equal(np.asarray(idx2), np.asarray(i1)) and int(b1.episode_count) == int(buf.episode_count) + 3
+    marked = sampler.mark_sampled(buf, idx2, jnp.ones(3, bool), jnp.ones(3, bool))
+    np.testing.assert_array_equal(np.asarray(marked.timestamps), np.asarray(b1.timestamps))
+    assert int(marked.episode_count) == int(b1.episode_count)
+    # only the levels handed to a slot count: one replay used, one new level used, one draw unused
+    m2 = sampler.mark_sampled(buf, jnp.array([0, 1, 1]), jnp.array([True, False, True]), jnp.array([True, True, False]))
+    assert int(m2.episode_count) == int(buf.episode_count) + 2
+    assert int(m2.timestamps[0]) == int(m2.episode_count) and int(m2.timestamps[1]) == int(buf.timestamps[1])
+    # masked score writes
+    b3 = sampler.update_scores(buf, jnp.array([0, 1]), jnp.array([9.0, 8.0]), mask=jnp.array([False, True]))
+    assert list(np.asarray(b3.scores[:2])) == [1.0, 8.0]
+
+
+def test_plr_whole_episodes_keeps_levels_until_episode_ends_and_trains_only_on_replays():
+    env = envs.make("cartpole")
+    student = make_student(env, PPOConfig.for_env("cartpole", num_envs=8, num_steps=16, update_epochs=1, num_minibatches=2))
+    m = make_method("plr", env, student, {"updates_per_step": 1, "level_switch": "episode",
+                                          "sampler": {"capacity": 8, "min_fill": 0.25, "replay_prob": 0.5}})
+    key = jax.random.PRNGKey(3)
+    s, ms = student.init(key), m.init(key)
+    ms, s = jax.jit(m.begin_episode)(key, ms, s)
+    step = jax.jit(m.step)
+    seen_train = seen_new = seen_zero = 0
+    for i in range(25):
+        prev_slots, prev_time = ms.slots, np.asarray(s.env_state.time)
+        ms, s, info = step(jax.random.fold_in(key, i), ms, s)
+        # the slot records what the student plays
+        np.testing.assert_array_equal(np.asarray(m.codec.space.to_vector(s.levels)), np.asarray(ms.slots.vecs))
+        changed = np.any(np.asarray(ms.slots.vecs) != np.asarray(prev_slots.vecs), axis=-1)
+        # a slot changes level only if an episode ended in this rollout (its episode clock restarted)
+        time = np.asarray(s.env_state.time)
+        assert np.all(time[changed] < 16)
+        kept = ~changed & (prev_time + 16 == time)
+        assert np.all(np.asarray(ms.slots.count)[kept] == np.asarray(prev_slots.count)[kept] + 16)
+        n_train = int(info.env_steps_train)
+        # steps trained on = steps played on replayed levels (old or new level of each slot)
+        assert n_train + int(info.env_steps_eval) == 8 * 16
+        prev_idx, idx = np.asarray(prev_slots.idx), np.asarray(ms.slots.idx)
+        if np.all(prev_idx < 0) and np.all(idx < 0):  # only new levels played: no gradient at all
+            assert n_train == 0
+        if np.all(prev_idx >= 0) and not changed.any() and np.all(kept):  # only replayed levels played
+            assert n_train == 8 * 16
+        if n_train == 0:
+            assert np.isnan(float(info.extras["ppo"]["loss"]))
+        else:
+            assert np.isfinite(float(info.extras["ppo"]["loss"]))
+        seen_train += n_train > 0
+        seen_zero += n_train == 0
+        seen_new += int(info.num_new_levels)
+        assert int(ms.buffer.size) <= 8
+    assert seen_train > 0 and seen_new > 0
+    assert seen_zero > 0  # the first steps (buffer below min_fill) play new levels only
+
+
+def test_accel_whole_episodes_plays_a_child_after_each_replayed_level():
+    env = envs.make("lander")
+    student = make_student(env, PPOConfig.for_env("lander", num_envs=8, num_steps=32, update_epochs=1, num_minibatches=2))
+    with pytest.raises(ValueError, match="parents='dcd_easy' picks parents from one rollout"):
+        make_method("accel", env, student, {"level_switch": "episode", "parents": "dcd_easy"})
+    m = make_method("accel", env, student, {"updates_per_step": 1, "level_switch": "episode",
+                                            "sampler": {"capacity": 8, "min_fill": 0.25, "replay_prob": 0.9}})
+    key = jax.random.PRNGKey(5)
+    s, ms = student.init(key), m.init(key)
+    ms, s = jax.jit(m.begin_episode)(key, ms, s)
+    step = jax.jit(m.step)
+    children = 0
+    for i in range(30):
+        prev = ms.slots
+        ms, s, info = step(jax.random.fold_in(key, i), ms, s)
+        changed = np.any(np.asarray(ms.slots.vecs) != np.asarray(prev.vecs), axis=-1)
+        after_replay = changed & (np.asarray(prev.idx) >= 0)
+        # a slot that left a replayed level now plays a new level (its child), never a replay
+        assert np.all(np.asarray(ms.slots.idx)[after_replay] == -1)
+        children += int(after_replay.sum())
+    assert children > 0
