@@ -204,6 +204,17 @@ def ddpg_update(config: DDPGConfig, state: DDPGState, batch: Transition, real_ma
     return new_state, metrics
 
 
+def ddpg_td_errors(config: DDPGConfig, state: DDPGState, batch: Transition) -> jax.Array:
+    """|Q(s, u) - (r + gamma (1 - done) Q'(s', mu'(s')))| per item of ``batch``, its rewards as given.
+
+    A diagnostic: the caller passes the rewards as the critic sees them (normalised or not).
+    """
+    actor, critic = _nets(config)
+    q_next = critic.apply(state.target_critic_params, batch.s_next, actor.apply(state.target_actor_params, batch.s_next))
+    y = batch.r + config.gamma * (1.0 - batch.done) * q_next
+    return jnp.abs(critic.apply(state.critic_params, batch.s, batch.u) - y)
+
+
 @dataclasses.dataclass(frozen=True)
 class DDPG:
     """The functions above bound to one config (``make_ddpg``), mirroring ``make_student``."""
@@ -224,6 +235,9 @@ class DDPG:
 
     def with_learning_rates(self, state, actor_lr, critic_lr):
         return with_learning_rates(state, actor_lr, critic_lr)
+
+    def td_errors(self, state, batch):
+        return ddpg_td_errors(self.config, state, batch)
 
 
 def make_ddpg(config: DDPGConfig) -> DDPG:
