@@ -23,7 +23,7 @@ from shed_jax.loop import LoopSpec
 from shed_jax.student import PPOConfig
 
 PRESETS = ("quick", "paper")
-EPISODIC_METHODS = ("shed", "hmdp")
+EPISODIC_METHODS = ("shed", "hmdp", "shed-x", "hmdp-x")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -86,7 +86,7 @@ def build_experiment(env: str, method: str, preset: str, *, episodes: int | None
             T, n_ep = 20, (50 if episodic else 1)
             test = dict(test_episodes=10, test_max_steps=500)
             test_set = "lander-test"
-            if method in ("shed", "hmdp", "accel-norevisit"):
+            if method in ("shed", "hmdp", "accel-norevisit", "shed-x", "hmdp-x"):
                 mcfg["num_levels"] = 5
         else:
             ppo = PPOConfig.for_env("walker")
@@ -94,7 +94,7 @@ def build_experiment(env: str, method: str, preset: str, *, episodes: int | None
             T, n_ep = 50, (20 if episodic else 1)
             test = dict(test_episodes=10, test_max_steps=2000)
             test_set = "walker-test-b"
-            if method in ("shed", "hmdp", "accel-norevisit"):
+            if method in ("shed", "hmdp", "accel-norevisit", "shed-x", "hmdp-x"):
                 mcfg["num_levels"] = 4
             if episodic:  # docs/design.md §10.3: E_eval = 4 evaluation episodes per eval level (lander: 8)
                 mcfg["num_eval_episodes"] = 4
@@ -109,7 +109,7 @@ def build_experiment(env: str, method: str, preset: str, *, episodes: int | None
             test_set = "walker-test-b"
         mcfg = {"updates_per_step": 2}
         T, n_ep = 4, (2 if episodic else 1)
-        if method in ("shed", "hmdp", "accel-norevisit"):
+        if method in ("shed", "hmdp", "accel-norevisit", "shed-x", "hmdp-x"):
             mcfg["num_levels"] = 4
         if episodic:  # a cheap teacher state: one short evaluation episode per eval level
             mcfg.update(num_eval_episodes=1, eval_max_steps=test["test_max_steps"])
