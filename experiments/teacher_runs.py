@@ -120,10 +120,10 @@ def _finite(o):
     return None if isinstance(o, float) and not math.isfinite(o) else o
 
 
-def record(files, out, device, command, date):
+def record(files, out, device, command, date, notes=()):
     runs = [r for f in files for r in json.loads(pathlib.Path(f).read_text())]
     rec = {"device": device, "date": date or datetime.date.today().isoformat(), "command": command,
-           "lander": aggregate(runs)}
+           "notes": list(notes), "lander": aggregate(runs)}
     pathlib.Path(out).write_text(json.dumps(_finite(rec), indent=1, allow_nan=False) + "\n")
     for name, e in rec["lander"].items():
         print(f"{name}: {e['seeds']} seeds, final {e['final_mean']:.1f} ± {e['final_se']:.1f}, episode 0 "
@@ -143,11 +143,12 @@ def main(argv=None):
     r.add_argument("--device", required=True)
     r.add_argument("--command", required=True)
     r.add_argument("--date", default=None)
+    r.add_argument("--note", action="append", default=[], help="a line for the record's notes (repeatable)")
     a = p.parse_args(argv)
     if a.cmd == "summarise":
         summarise(a.dirs, a.out)
     else:
-        record(a.files, a.out, a.device, a.command, a.date)
+        record(a.files, a.out, a.device, a.command, a.date, a.note)
 
 
 if __name__ == "__main__":
