@@ -102,7 +102,7 @@ def aggregate(runs: list[dict]) -> dict:
             "seeds": len(finals), "final_episode": sorted(last_eps), "final_mean": fm, "final_se": fs,
             "episode0_mean": e0m, "episode0_se": e0s, "paired_gain_mean": gm, "paired_gain_se": gs,
             "at_bound_fraction": float(np.mean(bounds)) if bounds else None,
-            "runs": [{k: r[k] for k in ("sweep", "point", "seeds", "wall_time_s")} for r in rs],
+            "runs": [{k: r.get(k) for k in ("sweep", "point", "seeds", "wall_time_s")} for r in rs],
             "diagnostics_by_episode": rs[0]["diagnostics_by_episode"] if len(rs) == 1 else
             {k: {ep: float(np.nanmean([r["diagnostics_by_episode"][k][ep] for r in rs
                                        if r["diagnostics_by_episode"].get(k, {}).get(ep) is not None] or [math.nan]))
