@@ -73,7 +73,6 @@ PAPER = {
 # the paper's 1e6 steps over 1000 updates (docs/design.md §10.3); walker, 1e7 env steps over 1000 (docs/design.md §12.1,
 # "one plotted step ≈ 1e4 env steps (inferred)").
 PAPER_STEPS_PER_UPDATE = {"lander": 1e3, "walker": 1e4}
-EPISODIC_METHODS = ("shed", "hmdp")
 
 # DCD's six standard BipedalWalker test levels (docs/design.md §9.2, §13.2), in the column order of DCD's table, and
 # DCD's results on them (docs/design.md §12.2, from DCD's results files: 20k updates, about 6.6e8 Box2D steps,
@@ -309,7 +308,7 @@ def write_plots(runs: list[Run], out: pathlib.Path, paper: str | None = None) ->
         group = [r for r in runs if r.env == env]
         curves = {}
         for r in group:
-            label = f"{r.label} (last teacher episode)" if r.method in EPISODIC_METHODS and r.num_episodes > 1 else r.label
+            label = f"{r.label} (last teacher episode)" if r.num_episodes > 1 else r.label
             curves[label] = curve(r)
         refs = {}
         if paper is not None and paper_env(env) == paper:

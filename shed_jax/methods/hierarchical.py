@@ -19,7 +19,13 @@ One budget step, top to bottom (all inside one jitted function, thresholds as ``
    the teacher's (h-MDP: 2 real updates if |B_real| > 32) [official code].
 
 Buffers hold raw performance vectors (returns); rewards are computed on them and z-scored per DDPG
-batch. The teacher's networks, the synthesiser and both buffers persist across teacher episodes;
+batch (``reward_norm='batch'``; 'none' keeps them raw). With ``time_in_state`` the teacher state is
+[s, t/T] [paper]; off by default [official code].
+
+Diagnostics in every step's ``extras``: ``at_bound_fraction`` (generated parameters within 1 % of the
+range of a bound of Θ), ``td_error_heldout`` (the critic's |TD error| on the new transition before
+any update has used it) and, with ``state_noise_check``, ``state_noise_sd`` (the SD of one evaluation
+of the teacher state, from a second evaluation of the same student with another key; NaN when off). The teacher's networks, the synthesiser and both buffers persist across teacher episodes;
 ``begin_episode`` only evaluates the fresh student to get s_0 and resets the step counter.
 
 Static settings live in a frozen config (:class:`HMDPConfig` here, ``SHEDConfig`` for SHED); the
@@ -74,6 +80,15 @@ class TeacherConfig:
     ddpg_threshold: int = 32  # DDPG updates once |B_real| > this
     low: tuple | None = None  # Θ override
     high: tuple | None = None
+    # The paper's state extension: the teacher state is [s, t/T] (the networks see [s / state_scale, t/T];
+    # the buffers hold [s, state_scale * t/T]). Off: s alone [official code].
+    time_in_state: bool = False
+    # Rewards the critic sees: 'batch' z-scores them per sampled DDPG batch (real and synthetic parts
+    # separately) [official code]; 'none' leaves them raw.
+    reward_norm: Literal["batch", "none"] = "batch"
+    # Diagnostic: evaluate the stepped student a second time with another key and log the noise SD of
+    # the teacher state (``state_noise_sd``); costs one evaluation per budget step, charged as eval steps.
+    state_noise_check: bool = False
 
     #: fields that must be positive ints
     POSITIVE: ClassVar[tuple] = ("updates_per_step", "num_levels", "budget_steps", "num_eval_episodes", "num_eval_levels",
@@ -86,6 +101,9 @@ class TeacherConfig:
             if not isinstance(v, int) or v < 1:
                 raise ValueError(f"{name}.{field} must be a positive int, got {v!r}")
         check_modes(self)
+        for field in ("time_in_state", "state_noise_check"):
+            if not isinstance(getattr(self, field), bool):
+                raise ValueError(f"{name}.{field} must be True or False, got {getattr(self, field)!r}")
         for field in ("actor_lr", "critic_lr"):
             v = getattr(self, field)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
@@ -185,9 +203,37 @@ def _evaluation_levels(env, config: TeacherConfig):
     return evaluation_set(env, config.eval_set, config.num_eval_levels)  # the env's own set (env.ued)
 
 
+def at_bound_fraction(space, vecs, weights=None, tol: float = 0.01) -> jax.Array:
+    """Fraction of the parameters in ``vecs`` [L, d] within ``tol`` of the range of a bound of the box ``space``.
+
+    Dimensions with an empty range (low = high) are left out; ``weights`` [L] (e.g. which levels were
+    played) weight the rows, all 1 when None.
+    """
+    low, high = jnp.asarray(space.low, jnp.float32), jnp.asarray(space.high, jnp.float32)
+    span = high - low
+    near = ((vecs - low) <= tol * span) | ((high - vecs) <= tol * span)
+    w = jnp.ones(vecs.shape[:1], jnp.float32) if weights is None else jnp.asarray(weights, jnp.float32)
+    cell = w[:, None] * (span > 0).astype(jnp.float32)[None, :]
+    return jnp.sum(cell * near) / jnp.maximum(jnp.sum(cell), 1.0)
+
+
+def buffer_zscore(r, buf: RingBuffer, eps: float = 1e-6) -> jax.Array:
+    """``r`` z-scored with the mean and std of the rewards held in ``buf`` (its valid entries)."""
+    valid = (jnp.arange(buf.capacity) < buf.count).astype(jnp.float32)
+    n = jnp.maximum(jnp.sum(valid), 1.0)
+    mean = jnp.sum(valid * buf.data.r) / n
+    std = jnp.sqrt(jnp.sum(valid * (buf.data.r - mean) ** 2) / n)
+    return (r - mean) / (std + eps)
+
+
+def noise_sd(s_a, s_b) -> jax.Array:
+    """SD of one evaluation from two independent ones of the same student: sqrt(mean((s_a - s_b)^2) / 2)."""
+    return jnp.sqrt(jnp.mean((s_a - s_b) ** 2) / 2.0)
+
+
 def teacher_dims(env, config: TeacherConfig) -> tuple[int, int]:
-    """(state_dim m, action_dim n * d) of the DDPG teacher: m evaluation levels, n levels of the box Θ."""
-    return config.num_eval_levels, config.num_levels * teacher_space(env, config.low, config.high).dim
+    """(state_dim, action_dim n * d) of the DDPG teacher: m evaluation levels (+ 1 for t/T), n levels of the box Θ."""
+    return config.num_eval_levels + int(config.time_in_state), config.num_levels * teacher_space(env, config.low, config.high).dim
 
 
 @dataclasses.dataclass(frozen=True)
@@ -220,13 +266,14 @@ class HierarchicalTeacher:
             m = jax.tree_util.tree_leaves(eval_params)[0].shape[0]
             if m != cfg.num_eval_levels:
                 raise ValueError(f"{self.name}: {m} evaluation levels given but num_eval_levels={cfg.num_eval_levels}")
-        m, da = cfg.num_eval_levels, n * codec.dim
+        m, da = teacher_dims(self.env, cfg)
         if self.synthesiser is not None:
             sc = self.synthesiser.model.config
             if (sc.state_dim, sc.action_dim) != (m, da):
                 raise ValueError(f"{self.name}: the synthesiser models (s, u) of sizes ({sc.state_dim}, {sc.action_dim}), "
                                  f"the teacher's are ({m}, {da})")
-        ddpg = make_ddpg(DDPGConfig(m, da, actor_lr=cfg.actor_lr, critic_lr=cfg.critic_lr, explore_sigma=cfg.explore_sigma))
+        ddpg = make_ddpg(DDPGConfig(m, da, actor_lr=cfg.actor_lr, critic_lr=cfg.critic_lr, explore_sigma=cfg.explore_sigma,
+                                    reward_norm=cfg.reward_norm == "batch"))
         teacher = DDPGTeacher(ddpg, capacity=cfg.real_capacity, batch_size=cfg.ddpg_batch, threshold=cfg.ddpg_threshold,
                               state_scale=cfg.state_scale)
         for k, v in dict(codec=codec, eval_params=eval_params, eval_max=eval_max, teacher=teacher,
@@ -266,9 +313,22 @@ class HierarchicalTeacher:
         """
         rc = self.config.reward
         if rc.form == "code_mean":
-            return self.reward_fn
-        gain_fn = make_reward_fn(dataclasses.replace(rc, eta=0.0))
-        return lambda s, a, s_next: gain_fn(s, a, s_next) - eta * coefficient_of_variation(s, s_next, rc.cv_guard, rc.cv_clip)
+            fn = self.reward_fn
+        else:
+            gain_fn = make_reward_fn(dataclasses.replace(rc, eta=0.0))
+            fn = lambda s, a, s_next: gain_fn(s, a, s_next) - eta * coefficient_of_variation(s, s_next, rc.cv_guard, rc.cv_clip)
+        if not self.config.time_in_state:
+            return fn
+        m = self.config.num_eval_levels  # the reward reads the performance part, not t/T
+        return lambda s, a, s_next: fn(s[..., :m], a, s_next[..., :m])
+
+    def teacher_state(self, s, t):
+        """The state the teacher acts on and stores: s [m], or [s, state_scale * t/T] with ``time_in_state``."""
+        cfg = self.config
+        if not cfg.time_in_state:
+            return s
+        frac = jnp.asarray(t, jnp.float32) / cfg.budget_steps * cfg.state_scale
+        return jnp.concatenate([s, frac[None]], axis=-1)
 
     # ---- evaluation ------------------------------------------------------------------------
 
@@ -319,7 +379,7 @@ class HierarchicalTeacher:
             ddpg=ddpg,
             real=real,
             synth=None if self.synthesiser is None else self.synthesiser.init(k_synth),
-            s=jnp.zeros((self.state_dim,), jnp.float32),
+            s=jnp.zeros((self.config.num_eval_levels,), jnp.float32),
             t=jnp.int32(0),
             pending_eval_steps=jnp.int32(0),
         )
@@ -346,7 +406,8 @@ class HierarchicalTeacher:
         n, d = cfg.num_levels, self.codec.dim
         reward_fn = self.reward_fn_for(hp.eta)
         k_act, k_seed, k_train, k_eval, k_synth, k_ddpg = jax.random.split(key, 6)
-        u = self.teacher.act(mstate.ddpg, mstate.s, k_act, hp.explore_sigma)  # [n * d]
+        ts = self.teacher_state(mstate.s, mstate.t)
+        u = self.teacher.act(mstate.ddpg, ts, k_act, hp.explore_sigma)  # [n * d]
         vecs = self.codec.space.from_unit(u.reshape(n, d))
         sstate, ppo = student.train(sstate, k_train, self.codec.to_params(vecs, new_seeds(k_seed, n)), cfg.updates_per_step)
         if test is None:
@@ -354,10 +415,20 @@ class HierarchicalTeacher:
             test_rets = None
         else:
             s_next, eval_steps, test_rets = self.performance_and_test(k_eval, sstate, test)
-        r = reward_fn(mstate.s, u, s_next)
+        ts_next = self.teacher_state(s_next, mstate.t + 1)
+        r = reward_fn(ts, u, ts_next)
         done = (mstate.t == cfg.budget_steps - 1).astype(jnp.float32)
-        real = self.teacher.store(mstate.real, Transition(s=mstate.s, u=u, r=r, s_next=s_next, done=done))
+        real = self.teacher.store(mstate.real, Transition(s=ts, u=u, r=r, s_next=ts_next, done=done))
         ddpg = self.teacher.ddpg.with_learning_rates(mstate.ddpg, hp.actor_lr, hp.critic_lr)
+        # diagnostics: the critic's TD error on the new transition, before any update has seen it, its
+        # reward normalised as the critic's batches are (B_real's statistics stand in for a batch's)
+        r_seen = buffer_zscore(r, real) if cfg.reward_norm == "batch" else r
+        td_heldout = self.teacher.td_error(ddpg, Transition(s=ts, u=u, r=r, s_next=ts_next, done=done), r_seen)
+        if cfg.state_noise_check:  # the same student evaluated again with another key
+            s_again, again_steps = self.performance(jax.random.fold_in(k_eval, 1), sstate)
+            state_noise, eval_steps = noise_sd(s_next, s_again), eval_steps + again_steps
+        else:
+            state_noise = jnp.float32(jnp.nan)
         if self.synthesiser is None:
             synth, synth_loss, syn_size = None, jnp.float32(jnp.nan), jnp.int32(0)
             ddpg, branch = self.teacher.updates(k_ddpg, ddpg, real)
@@ -378,6 +449,9 @@ class HierarchicalTeacher:
                 "syn_size": syn_size,
                 "ddpg_branch": branch,  # 0 none, 1 real-only, 2 mixed
                 "diffusion_loss": synth_loss,
+                "at_bound_fraction": at_bound_fraction(self.codec.space, vecs),
+                "td_error_heldout": td_heldout,
+                "state_noise_sd": state_noise,
             },
         )
         mstate = mstate.replace(ddpg=ddpg, real=real, synth=synth, s=s_next, t=mstate.t + 1, pending_eval_steps=jnp.int32(0))

@@ -27,6 +27,9 @@ _BASELINES: dict[str, tuple[str, str, str]] = {
 _TEACHERS: dict[str, tuple[str, str, str]] = {
     "shed": ("shed_jax.methods.shed", "make_shed", "SHEDConfig"),
     "hmdp": ("shed_jax.methods.hierarchical", "make_hmdp", "HMDPConfig"),
+    # the learning teacher of issue #26 (shed_jax.methods.learning_teacher): h-MDP's and SHED's versions
+    "hmdp-x": ("shed_jax.methods.learning_teacher", "make_hmdp_x", "HMDPXConfig"),
+    "shed-x": ("shed_jax.methods.learning_teacher", "make_shed_x", "SHEDXConfig"),
 }
 METHODS = tuple(_BASELINES) + tuple(_TEACHERS)
 

@@ -25,7 +25,7 @@ uniform; DDPG is not sensitive to this at these sizes.
 from __future__ import annotations
 
 import dataclasses
-from typing import Sequence
+from typing import Literal, Sequence
 
 import flax.linen as nn
 import jax
@@ -33,6 +33,7 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
+from shed_jax.configs import check_modes
 from shed_jax.teacher.buffers import Transition
 from shed_jax.teacher.reward import zscore_mixed
 
@@ -50,6 +51,9 @@ class DDPGConfig:
     tau: float = 0.001
     explore_sigma: float = 0.1  # Gaussian in u-space [our choice]; 0.0 = official code; ``act(sigma=)`` overrides
     reward_norm: bool = True  # per-batch z-scoring of rewards [official code]
+    # Options of the learning teacher (shed_jax.methods.learning_teacher); the defaults are the official code's.
+    preact_penalty: float = 0.0  # the actor loss adds preact_penalty * mean(z^2) of its pre-tanh outputs z
+    actor_out_init: Literal["lecun", "zeros"] = "lecun"  # 'zeros': the actor's last layer starts at 0, so mu(s) = 0
 
     def __post_init__(self):
         object.__setattr__(self, "hidden", tuple(int(h) for h in self.hidden))
@@ -67,18 +71,24 @@ class DDPGConfig:
             raise ValueError(f"DDPGConfig.tau must lie in (0, 1], got {self.tau}")
         if not self.explore_sigma >= 0.0:
             raise ValueError(f"DDPGConfig.explore_sigma must be >= 0, got {self.explore_sigma}")
+        if not self.preact_penalty >= 0.0:
+            raise ValueError(f"DDPGConfig.preact_penalty must be >= 0, got {self.preact_penalty}")
+        check_modes(self)
 
 
 class Actor(nn.Module):
     action_dim: int
     hidden: Sequence[int] = (400, 300)
+    zero_out: bool = False  # the last layer's kernel and bias start at zero
 
     @nn.compact
-    def __call__(self, s):
+    def __call__(self, s, preact: bool = False):
+        """tanh(z) of the last layer's output z; (tanh(z), z) with ``preact``."""
         x = s
         for h in self.hidden:
             x = nn.relu(nn.Dense(h)(x))
-        return jnp.tanh(nn.Dense(self.action_dim)(x))
+        z = (nn.Dense(self.action_dim, kernel_init=nn.initializers.zeros) if self.zero_out else nn.Dense(self.action_dim))(x)
+        return (jnp.tanh(z), z) if preact else jnp.tanh(z)
 
 
 class Critic(nn.Module):
@@ -104,7 +114,7 @@ class DDPGState:
 
 
 def _nets(config: DDPGConfig):
-    return Actor(config.action_dim, config.hidden), Critic(config.hidden)
+    return Actor(config.action_dim, config.hidden, config.actor_out_init == "zeros"), Critic(config.hidden)
 
 
 def _optims(config: DDPGConfig):
@@ -185,7 +195,10 @@ def ddpg_update(config: DDPGConfig, state: DDPGState, batch: Transition, real_ma
     critic_params = optax.apply_updates(state.critic_params, c_updates)
 
     def actor_loss(p):
-        return -jnp.mean(critic.apply(critic_params, batch.s, actor.apply(p, batch.s)))
+        if not config.preact_penalty:
+            return -jnp.mean(critic.apply(critic_params, batch.s, actor.apply(p, batch.s)))
+        u, z = actor.apply(p, batch.s, preact=True)
+        return -jnp.mean(critic.apply(critic_params, batch.s, u)) + config.preact_penalty * jnp.mean(z ** 2)
 
     a_loss, a_grads = jax.value_and_grad(actor_loss)(state.actor_params)
     a_updates, actor_opt_state = opt_a.update(a_grads, state.actor_opt_state, state.actor_params)
@@ -202,6 +215,17 @@ def ddpg_update(config: DDPGConfig, state: DDPGState, batch: Transition, real_ma
     )
     metrics = {"critic_loss": c_loss, "actor_loss": a_loss, "q_mean": jnp.mean(q), "target_mean": jnp.mean(y)}
     return new_state, metrics
+
+
+def ddpg_td_errors(config: DDPGConfig, state: DDPGState, batch: Transition) -> jax.Array:
+    """|Q(s, u) - (r + gamma (1 - done) Q'(s', mu'(s')))| per item of ``batch``, its rewards as given.
+
+    A diagnostic: the caller passes the rewards as the critic sees them (normalised or not).
+    """
+    actor, critic = _nets(config)
+    q_next = critic.apply(state.target_critic_params, batch.s_next, actor.apply(state.target_actor_params, batch.s_next))
+    y = batch.r + config.gamma * (1.0 - batch.done) * q_next
+    return jnp.abs(critic.apply(state.critic_params, batch.s, batch.u) - y)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -224,6 +248,9 @@ class DDPG:
 
     def with_learning_rates(self, state, actor_lr, critic_lr):
         return with_learning_rates(state, actor_lr, critic_lr)
+
+    def td_errors(self, state, batch):
+        return ddpg_td_errors(self.config, state, batch)
 
 
 def make_ddpg(config: DDPGConfig) -> DDPG:

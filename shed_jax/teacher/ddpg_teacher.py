@@ -65,6 +65,12 @@ class DDPGTeacher:
         k = 1.0 / self.state_scale
         return self.ddpg.update(st, batch.replace(s=batch.s * k, s_next=batch.s_next * k), real_mask)[0]
 
+    def td_error(self, st: DDPGState, transition: Transition, r) -> jax.Array:
+        """The critic's |TD error| on one raw transition (scaled here), with reward ``r`` as the critic sees it."""
+        k = 1.0 / self.state_scale
+        item = transition.replace(s=transition.s * k, s_next=transition.s_next * k, r=jnp.asarray(r, jnp.float32))
+        return self.ddpg.td_errors(st, jax.tree_util.tree_map(lambda x: x[None], item))[0]
+
     def real_updates(self, key: jax.Array, st: DDPGState, real: RingBuffer, count: int) -> DDPGState:
         """``count`` (static) updates on uniform batches from B_real, keys split from ``key``."""
         def one(st, k):

@@ -1,0 +1,46 @@
+"""experiments/teacher_runs.py: summaries of a sweep's metrics and the pooled record, on hand-made runs."""
+import json
+import math
+
+import pytest
+
+from experiments.teacher_runs import aggregate, record, summarise_point
+
+
+def _write_point(d, method, point, rows, finals):
+    d.mkdir(parents=True)
+    (d / "summary.json").write_text(json.dumps({"method": method, "point": point, "values": {}, "seeds": len(finals),
+                                                "wall_time_s": 1.0, "final_test_return_per_seed": finals}))
+    (d / "metrics.jsonl").write_text("\n".join(json.dumps(r) for r in rows) + "\n")
+
+
+def _rows(seed, tests, bounds):
+    """Two episodes of two steps; the test runs at each episode's last step."""
+    out = []
+    for ep in (0, 1):
+        for t in (0, 1):
+            out.append({"seed": seed, "episode": ep, "test_return": tests[ep] if t == 1 else math.nan,
+                        "info/extras/at_bound_fraction": bounds[ep][t], "info/teacher_reward": 1.0 + t,
+                        "info/extras/box_width": [0.5, 1.0, 1.5]})
+    return out
+
+
+def test_summarise_and_pool_two_runs(tmp_path):
+    a, b = tmp_path / "a" / "hmdp-x" / "default", tmp_path / "b" / "hmdp-x" / "default"
+    _write_point(a, "hmdp-x", "default", _rows(0, [10.0, 14.0], [[0.0, 0.2], [0.1, 0.3]]), [14.0])
+    _write_point(b, "hmdp-x", "default", _rows(0, [20.0, 18.0], [[0.0, 0.0], [0.5, 0.5]]), [18.0])
+    runs = [summarise_point(a), summarise_point(b)]
+    assert runs[0]["test_by_seed_episode"] == {"0": {"0": 10.0, "1": 14.0}}
+    assert runs[0]["diagnostics_by_episode"]["at_bound_fraction"] == {"0": pytest.approx(0.1), "1": pytest.approx(0.2)}
+    assert runs[0]["diagnostics_by_episode"]["box_width"]["0"] == pytest.approx(1.0)
+    assert runs[0]["diagnostics_by_episode"]["teacher_reward"]["1"] == pytest.approx(1.5)
+    e = aggregate(runs)["hmdp-x"]
+    assert e["seeds"] == 2 and e["final_episode"] == [1]
+    assert e["final_mean"] == pytest.approx(16.0) and e["final_se"] == pytest.approx(2.0)  # sd(14, 18) / sqrt 2
+    assert e["episode0_mean"] == pytest.approx(15.0) and e["episode0_se"] == pytest.approx(5.0)
+    assert e["paired_gain_mean"] == pytest.approx(1.0) and e["paired_gain_se"] == pytest.approx(3.0)  # gains 4, -2
+    assert e["at_bound_fraction"] == pytest.approx((0.2 + 0.5) / 2)  # last episode, mean over runs
+    (tmp_path / "c.json").write_text(json.dumps(runs))
+    record([tmp_path / "c.json"], tmp_path / "r.json", "cpu", "cmd", "2026-01-01", ["a note"])
+    rec = json.loads((tmp_path / "r.json").read_text())
+    assert rec["device"] == "cpu" and rec["notes"] == ["a note"] and rec["lander"]["hmdp-x"]["seeds"] == 2

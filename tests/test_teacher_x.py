@@ -1,0 +1,169 @@
+"""The learning teacher (hmdp-x, shed-x; shed_jax/methods/learning_teacher.py) and its DDPG options,
+on the tiny CartPole setup of test_shed_method.py. Each switch is checked for what it must do."""
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from test_shed_method import TINY, TINY_TEACHER, _cartpole  # noqa: E402
+
+from shed_jax.methods.hierarchical import at_bound_fraction
+from shed_jax.methods.learning_teacher import HMDPXConfig, SHEDXConfig, make_hmdp_x, make_shed_x
+from shed_jax.methods.registry import config_class, make_method
+from shed_jax.teacher.buffers import Transition
+from shed_jax.teacher.ddpg import Actor, DDPGConfig, ddpg_act, ddpg_init, ddpg_update
+
+
+def _build(name, **overrides):
+    env, student, eval_levels = _cartpole()
+    if name == "shed-x":
+        return make_shed_x(env, student, SHEDXConfig(**{**TINY, **overrides}), eval_levels=eval_levels)
+    return make_hmdp_x(env, student, HMDPXConfig(**{**TINY_TEACHER, **overrides}), eval_levels=eval_levels)
+
+
+def _run(method, steps=4):
+    student = method.student
+
+    @jax.jit
+    def run(key):
+        k_m, k_s, k_b, k_run = jax.random.split(key, 4)
+        m, s = method.begin_episode(k_b, method.init(k_m), student.init(k_s))
+        s0 = m.s
+
+        def body(carry, k):
+            m, s = carry
+            m, s, info = method.step(k, m, s)
+            return (m, s), (info, s)
+
+        (m, s), (infos, students) = jax.lax.scan(body, (m, s), jax.random.split(k_run, steps))
+        return m, s0, infos, students
+
+    return run(jax.random.PRNGKey(0))
+
+
+# ---- DDPG options --------------------------------------------------------------------------------
+
+
+def _batch(b=6, m=3, da=2):
+    k = jax.random.split(jax.random.PRNGKey(1), 3)
+    return Transition(s=jax.random.normal(k[0], (b, m)), u=jax.random.uniform(k[1], (b, da), minval=-1, maxval=1),
+                      r=jax.random.normal(k[2], (b,)), s_next=jax.random.normal(k[0], (b, m)) + 1.0, done=jnp.zeros((b,)))
+
+
+def test_preact_penalty_adds_lambda_mean_z_squared_to_the_actor_loss():
+    batch, lam = _batch(), 0.5
+    plain, pen = DDPGConfig(3, 2), DDPGConfig(3, 2, preact_penalty=lam)
+    st = ddpg_init(plain, jax.random.PRNGKey(0))
+    _, m0 = ddpg_update(plain, st, batch)
+    _, m1 = ddpg_update(pen, st, batch)  # same networks: the critic step is the same, the actor loss gains the term
+    _, z = Actor(2).apply(st.actor_params, batch.s, preact=True)
+    assert float(m1["actor_loss"] - m0["actor_loss"]) == pytest.approx(lam * float(jnp.mean(z ** 2)), rel=1e-4)
+    assert float(m1["critic_loss"]) == float(m0["critic_loss"])
+
+
+def test_zero_actor_output_init_acts_zero_everywhere_and_still_learns():
+    cfg = DDPGConfig(3, 2, actor_out_init="zeros")
+    st = ddpg_init(cfg, jax.random.PRNGKey(0))
+    np.testing.assert_array_equal(ddpg_act(cfg, st, jax.random.normal(jax.random.PRNGKey(2), (5, 3))), np.zeros((5, 2)))
+    st2, _ = ddpg_update(cfg, st, _batch())
+    assert np.any(np.asarray(ddpg_act(cfg, st2, _batch().s)) != 0)
+    # the default keeps flax's initialiser: nonzero actions
+    d = DDPGConfig(3, 2)
+    assert np.all(np.asarray(ddpg_act(d, ddpg_init(d, jax.random.PRNGKey(0)), _batch().s)) != 0)
+
+
+def test_ddpg_option_errors():
+    with pytest.raises(ValueError, match=r"^DDPGConfig.actor_out_init must be one of 'lecun', 'zeros', got 'ones'$"):
+        DDPGConfig(3, 2, actor_out_init="ones")
+    with pytest.raises(ValueError, match=r"^DDPGConfig.preact_penalty must be >= 0"):
+        DDPGConfig(3, 2, preact_penalty=-1.0)
+
+
+# ---- the method ------------------------------------------------------------------------------------
+
+
+def test_config_errors_and_registry():
+    for field, bad, allowed in (("action", "points", "'box', 'levels'"), ("level_switch", "rollout", "'episode', 'block'")):
+        with pytest.raises(ValueError, match=rf"^HMDPXConfig.{field} must be one of {re_escape(allowed)}, got '{bad}'$"):
+            HMDPXConfig(**{field: bad})
+    with pytest.raises(ValueError, match=r"^SHEDXConfig.crn must be True or False"):
+        SHEDXConfig(crn="yes")
+    with pytest.raises(ValueError, match=r"^HMDPXConfig.reward_scale must be a finite number > 0"):
+        HMDPXConfig(reward_scale=0)
+    with pytest.raises(ValueError, match=r"^SHEDXConfig.syn_capacity must be a positive int"):
+        SHEDXConfig(syn_capacity=0)
+    assert config_class("hmdp-x") is HMDPXConfig and config_class("shed-x") is SHEDXConfig
+    assert SHEDXConfig().real_capacity == 2048 and SHEDXConfig().actor_lr == 1e-4 and HMDPXConfig().real_capacity == 10000
+    import envs
+    from shed_jax.student import make_student
+    from shed_jax.student.config import PPOConfig
+    lander = envs.make("lander")
+    student = make_student(lander, PPOConfig.for_env("lander", num_envs=10, num_steps=4))
+    assert make_method("hmdp-x", lander, student, {"num_levels": 5}).name == "hmdp-x"
+
+
+def re_escape(s):
+    import re
+    return re.escape(s)
+
+
+def test_box_action_hand_computed_and_untrained_teacher_is_uniform_over_theta():
+    method = _build("hmdp-x")
+    d = method.codec.dim
+    assert (method.teacher.state_dim, method.teacher.action_dim) == (11, 2 * d)
+    # centre 0.8, width exponent -1 (w = 0.5): [0.3, 1]; centre -0.5, exponent 1 (w = 2): the whole [-1, 1]
+    u = jnp.array([0.8, -0.5, 0.0] + [-1.0, 1.0, 0.0])[: 2 * d] if d == 3 else None
+    lo, hi = method.box(u)
+    np.testing.assert_allclose(lo, [0.3, -1.0, -1.0], atol=1e-6)
+    np.testing.assert_allclose(hi, [1.0, 1.0, 1.0], atol=1e-6)
+    # the untrained actor gives u = 0 for any state: the box is Θ, levels are U(Θ) (DR)
+    m = method.init(jax.random.PRNGKey(0))
+    u0 = method.teacher.act(m.ddpg, jnp.ones((11,)) * 37.0, None, 0.0)
+    np.testing.assert_array_equal(u0, np.zeros(2 * d))
+    vecs, _ = method.draw(jax.random.PRNGKey(3), u0, 4000)
+    unit = np.asarray(method.codec.space.to_unit(vecs))
+    assert unit.min() > -1.0 and unit.max() < 1.0
+    np.testing.assert_allclose(unit.mean(axis=0), 0.0, atol=0.05)
+    np.testing.assert_allclose(unit.var(axis=0), 1 / 3, atol=0.03)  # Var U(-1, 1) = 1/3
+    assert float(at_bound_fraction(method.codec.space, vecs)) == pytest.approx(0.02, abs=0.006)
+    # a box in the low corner: every drawn level lies in it
+    ub = jnp.array([-1.0] * d + [-1.0] * d)
+    vb = np.asarray(method.codec.space.to_unit(method.draw(jax.random.PRNGKey(4), ub, 500)[0]))
+    assert vb.min() >= -1.0 - 1e-6 and vb.max() <= -0.5 + 1e-6
+
+
+@pytest.mark.parametrize("name", ["hmdp-x", "shed-x"])
+def test_step_episode_levels_crn_and_signed_fixed_scale_reward(name):
+    method = _build(name)
+    m, s0, info, students = _run(method)
+    cfg, e = method.config, method.student.config.num_envs
+    ext = info.extras
+    # levels: C x num_envs draws per step from the box, played where the slot's episode ended
+    assert info.levels.shape == (4, cfg.updates_per_step * e, method.codec.dim)
+    np.testing.assert_array_equal(info.num_new_levels, ext["levels_trained_mask"].sum(axis=1))
+    np.testing.assert_allclose(ext["at_bound_fraction"], [float(at_bound_fraction(method.codec.space, v, w))
+                                                          for v, w in zip(info.levels, ext["levels_trained_mask"])])
+    # reward: signed sum of the change, / 100, on the performance part; raw (no z-scoring) for the critic
+    states = np.concatenate([np.asarray(s0)[None], np.asarray(ext["teacher_state"])])
+    expect = (states[1:] - states[:-1]).sum(axis=1) / 100.0
+    np.testing.assert_allclose(info.teacher_reward, expect, rtol=1e-4, atol=1e-6)
+    np.testing.assert_allclose(m.real.data.r[:4], expect, rtol=1e-4, atol=1e-6)
+    assert method.teacher.ddpg.config.reward_norm is False
+    np.testing.assert_allclose(m.real.data.s[:4, -1], np.array([0, 1, 2, 3]) / 2 * cfg.state_scale)  # t/T, T = 2
+    # CRN: every s' is the evaluation of that step's student with the episode's one key
+    last = jax.tree_util.tree_map(lambda x: x[-1], students)
+    np.testing.assert_allclose(method.performance(m.eval_key, last)[0], states[-1], rtol=1e-5)
+    if name == "shed-x":
+        assert method.synthesiser.model.config.state_dim == 11 and int(ext["syn_size"][-1]) > 0
+
+
+def test_crn_off_and_block_levels_are_h_mdp_like():
+    method = _build("hmdp-x", crn=False, level_switch="block", action="levels", actor_out_init="lecun")
+    m, s0, info, students = _run(method)
+    n, d = method.config.num_levels, method.codec.dim
+    assert method.teacher.action_dim == n * d and info.levels.shape == (4, n, d)
+    np.testing.assert_array_equal(info.num_new_levels, [n] * 4)
+    u = np.asarray(m.real.data.u[:4]).reshape(4, n, d)
+    np.testing.assert_allclose(method.codec.space.from_unit(u), info.levels, rtol=1e-5, atol=1e-5)
+    last = jax.tree_util.tree_map(lambda x: x[-1], students)
+    assert not np.allclose(method.performance(m.eval_key, last)[0], info.extras["teacher_state"][-1])
