@@ -165,5 +165,9 @@ def test_crn_off_and_block_levels_are_h_mdp_like():
     np.testing.assert_array_equal(info.num_new_levels, [n] * 4)
     u = np.asarray(m.real.data.u[:4]).reshape(4, n, d)
     np.testing.assert_allclose(method.codec.space.from_unit(u), info.levels, rtol=1e-5, atol=1e-5)
-    last = jax.tree_util.tree_map(lambda x: x[-1], students)
-    assert not np.allclose(method.performance(m.eval_key, last)[0], info.extras["teacher_state"][-1])
+    # without crn each evaluation takes the step's own key; with it, the teacher episode's key
+    k = jax.random.PRNGKey(9)
+    np.testing.assert_array_equal(np.asarray(method.evaluation_key(m, k)), np.asarray(k))
+    crn = _build("hmdp-x", crn=True, level_switch="block", action="levels", actor_out_init="lecun")
+    np.testing.assert_array_equal(np.asarray(crn.evaluation_key(m, k)), np.asarray(m.eval_key))
+    assert not np.array_equal(np.asarray(m.eval_key), np.asarray(k))

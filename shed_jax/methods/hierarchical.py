@@ -191,6 +191,7 @@ class HierarchicalState:
     s: jax.Array  # [m] current teacher state (raw mean returns)
     t: jax.Array  # int32 step within the teacher episode
     pending_eval_steps: jax.Array  # int32 eval env steps of begin_episode, charged to the next step
+    eval_key: Any = None  # a teacher episode's evaluation key, for teachers that reuse it (common random numbers)
 
 
 def evaluation_levels(env, config: TeacherConfig):
@@ -256,7 +257,7 @@ class HierarchicalTeacher:
     def __post_init__(self):
         cfg = self.config
         n, e = cfg.num_levels, self.student.config.num_envs
-        if e % n:
+        if self.levels_per_slot_group and e % n:
             raise ValueError(f"{self.name}: the student's num_envs ({e}) must be a multiple of num_levels ({n})")
         codec = LevelCodec(teacher_space(self.env, cfg.low, cfg.high))
         if self.eval_levels is None:
@@ -266,19 +267,52 @@ class HierarchicalTeacher:
             m = jax.tree_util.tree_leaves(eval_params)[0].shape[0]
             if m != cfg.num_eval_levels:
                 raise ValueError(f"{self.name}: {m} evaluation levels given but num_eval_levels={cfg.num_eval_levels}")
-        m, da = teacher_dims(self.env, cfg)
+        m, da = self.dims()
         if self.synthesiser is not None:
             sc = self.synthesiser.model.config
             if (sc.state_dim, sc.action_dim) != (m, da):
                 raise ValueError(f"{self.name}: the synthesiser models (s, u) of sizes ({sc.state_dim}, {sc.action_dim}), "
                                  f"the teacher's are ({m}, {da})")
-        ddpg = make_ddpg(DDPGConfig(m, da, actor_lr=cfg.actor_lr, critic_lr=cfg.critic_lr, explore_sigma=cfg.explore_sigma,
-                                    reward_norm=cfg.reward_norm == "batch"))
-        teacher = DDPGTeacher(ddpg, capacity=cfg.real_capacity, batch_size=cfg.ddpg_batch, threshold=cfg.ddpg_threshold,
-                              state_scale=cfg.state_scale)
+        teacher = self.make_teacher(m, da)
         for k, v in dict(codec=codec, eval_params=eval_params, eval_max=eval_max, teacher=teacher,
                          reward_fn=make_reward_fn(cfg.reward), state_dim=m, action_dim=da).items():
             object.__setattr__(self, k, v)
+
+    # ---- what a variant of this teacher may change (shed_jax.methods.learning_teacher does) --------
+
+    #: whether slot j trains on level j % num_levels (so num_envs must be a multiple of num_levels)
+    levels_per_slot_group: ClassVar[bool] = True
+
+    def dims(self) -> tuple[int, int]:
+        """(state_dim, action_dim) of the DDPG teacher."""
+        return teacher_dims(self.env, self.config)
+
+    def make_teacher(self, m: int, da: int) -> DDPGTeacher:
+        """The DDPG teacher with B_real [official code settings from the config]."""
+        cfg = self.config
+        ddpg = make_ddpg(DDPGConfig(m, da, actor_lr=cfg.actor_lr, critic_lr=cfg.critic_lr, explore_sigma=cfg.explore_sigma,
+                                    reward_norm=cfg.reward_norm == "batch"))
+        return DDPGTeacher(ddpg, capacity=cfg.real_capacity, batch_size=cfg.ddpg_batch, threshold=cfg.ddpg_threshold,
+                           state_scale=cfg.state_scale)
+
+    def train_on_action(self, keys, sstate, u):
+        """The budget step's student training on the levels of action u ->
+        (sstate, level vectors [L, d], played [L] bool, PPO metrics). h-MDP: level j is point j of u
+        (n points of Θ in [-1, 1]^d), slot i trains on level i % n for C updates. ``keys``: (seed, train)."""
+        cfg = self.config
+        k_seed, k_train = keys
+        vecs = self.codec.space.from_unit(u.reshape(cfg.num_levels, self.codec.dim))
+        sstate, ppo = self.student.train(sstate, k_train, self.codec.to_params(vecs, new_seeds(k_seed, cfg.num_levels)),
+                                         cfg.updates_per_step)
+        return sstate, vecs, jnp.ones((cfg.num_levels,), bool), ppo
+
+    def evaluation_key(self, mstate, key):
+        """The key of this step's evaluation of s' (a fresh one; a variant may reuse the episode's)."""
+        return key
+
+    def extra_info(self, u, vecs, played) -> dict:
+        """Entries a variant adds to the step's ``extras``."""
+        return {}
 
     # ---- hyperparameters -------------------------------------------------------------------
 
@@ -403,13 +437,12 @@ class HierarchicalTeacher:
 
     def _step(self, key, mstate: HierarchicalState, sstate, test: EvalRequest | None):
         cfg, student, hp = self.config, self.student, mstate.hparams
-        n, d = cfg.num_levels, self.codec.dim
         reward_fn = self.reward_fn_for(hp.eta)
         k_act, k_seed, k_train, k_eval, k_synth, k_ddpg = jax.random.split(key, 6)
         ts = self.teacher_state(mstate.s, mstate.t)
-        u = self.teacher.act(mstate.ddpg, ts, k_act, hp.explore_sigma)  # [n * d]
-        vecs = self.codec.space.from_unit(u.reshape(n, d))
-        sstate, ppo = student.train(sstate, k_train, self.codec.to_params(vecs, new_seeds(k_seed, n)), cfg.updates_per_step)
+        u = self.teacher.act(mstate.ddpg, ts, k_act, hp.explore_sigma)
+        sstate, vecs, played, ppo = self.train_on_action((k_seed, k_train), sstate, u)
+        k_eval = self.evaluation_key(mstate, k_eval)
         if test is None:
             s_next, eval_steps = self.performance(k_eval, sstate)
             test_rets = None
@@ -441,7 +474,7 @@ class HierarchicalTeacher:
             env_steps_train=jnp.int32(cfg.updates_per_step * student.env_steps_per_update),
             env_steps_eval=eval_steps + mstate.pending_eval_steps,
             teacher_reward=r,
-            num_new_levels=jnp.int32(n),
+            num_new_levels=played.sum().astype(jnp.int32),
             extras={  # the same keys with or without a synthesiser (0 and NaN without)
                 "ppo": mean_metrics(ppo),
                 "teacher_state": s_next,
@@ -449,9 +482,10 @@ class HierarchicalTeacher:
                 "syn_size": syn_size,
                 "ddpg_branch": branch,  # 0 none, 1 real-only, 2 mixed
                 "diffusion_loss": synth_loss,
-                "at_bound_fraction": at_bound_fraction(self.codec.space, vecs),
+                "at_bound_fraction": at_bound_fraction(self.codec.space, vecs, played),
                 "td_error_heldout": td_heldout,
                 "state_noise_sd": state_noise,
+                **self.extra_info(u, vecs, played),
             },
         )
         mstate = mstate.replace(ddpg=ddpg, real=real, synth=synth, s=s_next, t=mstate.t + 1, pending_eval_steps=jnp.int32(0))

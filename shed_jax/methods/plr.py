@@ -238,23 +238,28 @@ class PLR:
 
         u = self.config.updates_per_step
         (buf, sstate), rec = jax.lax.scan(one_iteration, (mstate.buffer, sstate), jax.random.split(k_scan, u))
-        info = StepInfo(
-            levels=rec["levels"].reshape(u * n, -1),
+        info = self._info(rec, buf, trained=jnp.repeat(rec["trained"], n), replay_fraction=rec["trained"].mean(),
+                          mean_score=rec["score"].mean())
+        return mstate.replace(buffer=buf), sstate, info
+
+    def _info(self, rec, buf: LevelBuffer, trained, replay_fraction, mean_score) -> StepInfo:
+        """The step's StepInfo from the scanned per-rollout records ``rec`` and the final buffer."""
+        return StepInfo(
+            levels=rec["levels"].reshape(-1, rec["levels"].shape[-1]),
             env_steps_train=rec["env_steps_train"].sum(),
             env_steps_eval=rec["env_steps_eval"].sum(),
             teacher_reward=jnp.float32(jnp.nan),
             num_new_levels=rec["num_new"].sum(),
             extras={
                 "ppo": mean_metrics(rec["ppo"]),
-                "levels_trained_mask": jnp.repeat(rec["trained"], n),
-                "replay_fraction": rec["trained"].mean(),
-                "mean_score": rec["score"].mean(),
+                "levels_trained_mask": trained,
+                "replay_fraction": replay_fraction,
+                "mean_score": mean_score,
                 "buffer_size": buf.size,
                 "buffer_mean_score": jnp.sum(jnp.where(self.sampler.filled_mask(buf), buf.scores, 0.0))
                 / jnp.maximum(buf.size, 1),
             },
         )
-        return mstate.replace(buffer=buf), sstate, info
 
     def _step_episodes(self, key: jax.Array, mstate: PLRState, sstate):
         """Whole-episode mode (module docstring): ``updates_per_step`` rollouts with per-slot switching."""
@@ -297,21 +302,8 @@ class PLR:
         u = self.config.updates_per_step
         (buf, slots, sstate), rec = jax.lax.scan(one_rollout, (mstate.buffer, mstate.slots, sstate),
                                                  jax.random.split(k_scan, u))
-        info = StepInfo(
-            levels=rec["levels"].reshape(u * n, -1),
-            env_steps_train=rec["env_steps_train"].sum(),
-            env_steps_eval=rec["env_steps_eval"].sum(),
-            teacher_reward=jnp.float32(jnp.nan),
-            num_new_levels=rec["num_new"].sum(),
-            extras={
-                "ppo": mean_metrics(rec["ppo"]),
-                # a drawn level enters the records only if a slot took it; trained = a replayed one
-                "levels_trained_mask": rec["replayed"].reshape(u * n),
-                "replay_fraction": rec["replayed"].sum() / jnp.maximum(rec["handed"].sum(), 1),
-                "mean_score": jnp.nanmean(rec["score"]),
-                "buffer_size": buf.size,
-                "buffer_mean_score": jnp.sum(jnp.where(self.sampler.filled_mask(buf), buf.scores, 0.0))
-                / jnp.maximum(buf.size, 1),
-            },
-        )
+        # a drawn level enters the records only if a slot took it; trained = a replayed one
+        info = self._info(rec, buf, trained=rec["replayed"].reshape(u * n),
+                          replay_fraction=rec["replayed"].sum() / jnp.maximum(rec["handed"].sum(), 1),
+                          mean_score=jnp.nanmean(rec["score"]))
         return mstate.replace(buffer=buf, slots=slots), sstate, info

@@ -70,14 +70,17 @@ class SHEDHyperparams(TeacherHyperparams):
         return cls(**dataclasses.asdict(TeacherHyperparams.from_config(config)), psi=float(config.psi))
 
 
+def diffusion_synthesiser(cfg: SHEDConfig, state_dim: int, action_dim: int) -> DiffusionSynthesiser:
+    """SHED's synthesiser (conditional diffusion model + B_syn) for a teacher of these sizes, from ``cfg``."""
+    model = make_diffusion(DiffusionConfig(state_dim, action_dim, lr=cfg.diffusion_lr, sampler=cfg.sampler,
+                                           train_bc=cfg.syn_action == "bc", ema_decay=cfg.diffusion_ema))
+    return DiffusionSynthesiser(model, capacity=cfg.syn_capacity, train_threshold=cfg.diffusion_threshold,
+                                train_steps=cfg.diffusion_steps, num_syn=cfg.num_syn, mix_threshold=cfg.syn_threshold,
+                                syn_action=cfg.syn_action, syn_reward=cfg.syn_reward)
+
+
 def make_shed(env, student, config: Any = None, eval_levels=None, name: str = "shed") -> HierarchicalTeacher:
     """SHED: the hierarchical teacher with a diffusion synthesiser. ``config``: None, a dict or a :class:`SHEDConfig`."""
     cfg = coerce(SHEDConfig, config, f"method {name!r}")
-    m, da = teacher_dims(env, cfg)
-    model = make_diffusion(DiffusionConfig(m, da, lr=cfg.diffusion_lr, sampler=cfg.sampler, train_bc=cfg.syn_action == "bc",
-                                           ema_decay=cfg.diffusion_ema))
-    synthesiser = DiffusionSynthesiser(model, capacity=cfg.syn_capacity, train_threshold=cfg.diffusion_threshold,
-                                       train_steps=cfg.diffusion_steps, num_syn=cfg.num_syn, mix_threshold=cfg.syn_threshold,
-                                       syn_action=cfg.syn_action, syn_reward=cfg.syn_reward)
-    return HierarchicalTeacher(env, student, cfg, name=name, eval_levels=eval_levels, synthesiser=synthesiser,
-                               hparams_class=SHEDHyperparams)
+    return HierarchicalTeacher(env, student, cfg, name=name, eval_levels=eval_levels,
+                               synthesiser=diffusion_synthesiser(cfg, *teacher_dims(env, cfg)), hparams_class=SHEDHyperparams)
