@@ -25,12 +25,19 @@ class RunningMeanStd:
     def create(cls, shape=(), epsilon: float = 1e-4) -> "RunningMeanStd":
         return cls(jnp.zeros(shape, jnp.float32), jnp.ones(shape, jnp.float32), jnp.asarray(epsilon, jnp.float32))
 
-    def update(self, batch: jax.Array) -> "RunningMeanStd":
-        """Merge a batch whose leading axis indexes samples (trailing axes match `mean`)."""
+    def update(self, batch: jax.Array, mask=None) -> "RunningMeanStd":
+        """Merge a batch whose leading axis indexes samples (trailing axes match `mean`); with ``mask``
+        (bool, leading axis) only its True samples (none: the statistics are unchanged)."""
         batch = jnp.asarray(batch, jnp.float32)
-        b_mean = jnp.mean(batch, axis=0)
-        b_var = jnp.var(batch, axis=0)
-        b_count = jnp.asarray(batch.shape[0], jnp.float32)
+        if mask is None:
+            b_mean = jnp.mean(batch, axis=0)
+            b_var = jnp.var(batch, axis=0)
+            b_count = jnp.asarray(batch.shape[0], jnp.float32)
+        else:
+            w = jnp.asarray(mask, jnp.float32).reshape(mask.shape + (1,) * (batch.ndim - 1))
+            b_count = jnp.sum(w[(slice(None),) + (0,) * (batch.ndim - 1)])
+            b_mean = jnp.sum(w * batch, axis=0) / jnp.maximum(b_count, 1.0)
+            b_var = jnp.sum(w * (batch - b_mean) ** 2, axis=0) / jnp.maximum(b_count, 1.0)
         delta = b_mean - self.mean
         total = self.count + b_count
         mean = self.mean + delta * b_count / total

@@ -1,5 +1,6 @@
-"""PLR⊥ on whole episodes: per-slot level switching, scores accumulated across rollouts, the robust
-(masked) PPO update, and the sampler pieces it uses."""
+"""The native baselines on whole episodes (level_switch="episode"): PLR⊥'s per-slot level switching,
+scores accumulated across rollouts and robust (masked) PPO update, ACCEL's children, PAIRED's
+per-level regret, and the sampler pieces they use."""
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -168,3 +169,67 @@ def test_accel_whole_episodes_plays_a_child_after_each_replayed_level():
         assert np.all(np.asarray(ms.slots.idx)[after_replay] == -1)
         children += int(after_replay.sum())
     assert children > 0
+
+
+def test_paired_returns_on_the_newest_level_count_only_episodes_played_on_it():
+    from types import SimpleNamespace
+
+    from shed_jax.methods.paired import newest_level_returns
+
+    dones = np.zeros((6, 3), bool)
+    dones[1, 0] = dones[4, 0] = True  # slot 0: on the newest level from the start: both episodes count
+    dones[2, 1] = dones[5, 1] = True  # slot 1: moves at step 2; only the episode ending at 5 counts
+    dones[3, 2] = True  # slot 2: moves at step 3, no episode ends on the newest level
+    rets = np.arange(18, dtype=np.float32).reshape(6, 3)
+    traj = SimpleNamespace(dones=jnp.asarray(dones), episode_returns=jnp.asarray(rets))
+    total, count, best = newest_level_returns(jnp.array([True, False, False]), traj)
+    assert list(np.asarray(count)) == [2.0, 1.0, 0.0]
+    assert list(np.asarray(total)) == [rets[1, 0] + rets[4, 0], rets[5, 1], 0.0]
+    assert float(best[0]) == rets[4, 0] and float(best[1]) == rets[5, 1] and np.isneginf(float(best[2]))
+
+
+def test_paired_whole_episodes_trains_the_adversary_on_completed_levels_only():
+    env = envs.make("cartpole")
+    student = make_student(env, PPOConfig.for_env("cartpole", num_envs=8, num_steps=16, update_epochs=1, num_minibatches=2))
+    m = make_method("paired", env, student, {"updates_per_step": 1, "level_switch": "episode", "minibatches": 2,
+                                             "epochs": 1})
+    key = jax.random.PRNGKey(11)
+    s, ms = student.init(key), m.init(key)
+    ms, s = jax.jit(m.begin_episode)(key, ms, s)
+    assert np.all(np.asarray(ms.slots.pro_on)) and np.all(np.asarray(ms.slots.ant_on))
+    np.testing.assert_array_equal(np.asarray(m.codec.space.to_vector(s.levels)), np.asarray(ms.slots.vecs))
+    step = jax.jit(m.step)
+    proposed = 0
+    for i in range(15):
+        prev_slots, prev_adv = ms.slots, ms.adversary
+        ms, s, info = step(jax.random.fold_in(key, i), ms, s)
+        new = np.asarray(info.extras["levels_trained_mask"])
+        proposed += int(new.sum())
+        assert int(info.num_new_levels) == int(new.sum())
+        # a slot whose level did not complete keeps its level and its statistics grow
+        keep = ~new
+        np.testing.assert_array_equal(np.asarray(ms.slots.vecs)[keep], np.asarray(prev_slots.vecs)[keep])
+        assert np.all(np.asarray(ms.slots.pro_count)[keep] >= np.asarray(prev_slots.pro_count)[keep])
+        # a new level starts with no agent on it and empty statistics
+        assert not np.any(np.asarray(ms.slots.pro_on)[new]) and np.all(np.asarray(ms.slots.pro_count)[new] == 0)
+        # the adversary moves only when some level completed
+        moved = any(not np.array_equal(np.asarray(a), np.asarray(b)) for a, b in
+                    zip(jax.tree_util.tree_leaves(ms.adversary.params), jax.tree_util.tree_leaves(prev_adv.params)))
+        assert moved == bool(new.any())
+        if new.any():
+            assert np.isfinite(float(info.teacher_reward)) and float(info.teacher_reward) >= 0
+    assert proposed > 0
+
+
+def test_running_mean_std_masked_update_equals_the_update_on_the_kept_samples():
+    from shed_jax.student.normalization import RunningMeanStd
+
+    x = jnp.array([1.0, 5.0, -2.0, 7.0, 3.0])
+    mask = jnp.array([True, False, True, True, False])
+    rms = RunningMeanStd.create(()).update(jnp.array([0.5, 1.5]))
+    a, b = rms.update(x, mask), rms.update(x[np.asarray(mask)])
+    for u, v in ((a.mean, b.mean), (a.var, b.var), (a.count, b.count)):
+        np.testing.assert_allclose(float(u), float(v), rtol=1e-6)
+    none = rms.update(x, jnp.zeros(5, bool))  # nothing kept: unchanged
+    np.testing.assert_allclose([float(none.mean), float(none.var), float(none.count)],
+                               [float(rms.mean), float(rms.var), float(rms.count)], rtol=1e-6)
