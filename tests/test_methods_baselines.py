@@ -85,7 +85,7 @@ def _check_common(env, run, num_levels):
 
 def test_registry_knows_every_method_and_validates(setup):
     env, student = setup
-    assert set(METHODS) == {"shed", "hmdp", "dr", "plr", "accel", "accel-norevisit", "paired"}
+    assert set(METHODS) == {"shed", "hmdp", "dr", "plr", "accel", "accel-norevisit", "paired", "hmdp-x", "shed-x"}
     with pytest.raises(ValueError, match="unknown method 'pbt'"):
         make_method("pbt", env, student)
     with pytest.raises(ValueError, match=r"unknown config field\(s\) \['replay'\]"):

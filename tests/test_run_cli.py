@@ -163,7 +163,7 @@ def test_resume_checks_flags_against_the_saved_run(finished):
     code, _, err = run(["--resume", str(a), "--method", "dr", "--seeds", "3"])
     line = error_line(err)
     assert "experiment.method: saved 'plr', now 'dr'" in line and "seeds: saved 2, now 3" in line and line.count(": saved ") == 2
-    with pytest.raises(SystemExit, match=r"--set: method 'plr' has no config field\(s\) 'nope'; known: high, low"):
+    with pytest.raises(SystemExit, match=r"--set: method 'plr' has no config field\(s\) 'nope'; known: high, level_switch, low"):
         run(["--resume", str(a), "--set", "nope=1"])
     # a finished run is left as it was: no summary, plot or checkpoint rewritten
     assert snapshot(a) == before
