@@ -13,6 +13,10 @@ from shed_jax.methods.registry import make_method
 from shed_jax.student import PPOConfig, make_student
 
 
+# small students: these tests check bookkeeping, not learning
+SMALL = dict(num_envs=8, num_steps=16, update_epochs=1, num_minibatches=2, actor_hidden=(8,), critic_hidden=(8,))
+
+
 def _slots(n):
     z = jnp.zeros((n,), jnp.float32)
     return Slots(vecs=jnp.zeros((n, 1)), seeds=jnp.zeros((n,), jnp.int32), idx=jnp.full((n,), -1, jnp.int32),
@@ -109,7 +113,7 @@ def test_sampler_draw_mark_and_masked_writes():
 
 def test_plr_whole_episodes_keeps_levels_until_episode_ends_and_trains_only_on_replays():
     env = envs.make("cartpole")
-    student = make_student(env, PPOConfig.for_env("cartpole", num_envs=8, num_steps=16, update_epochs=1, num_minibatches=2))
+    student = make_student(env, PPOConfig.for_env("cartpole", **SMALL))
     m = make_method("plr", env, student, {"updates_per_step": 1, "level_switch": "episode",
                                           "sampler": {"capacity": 8, "min_fill": 0.25, "replay_prob": 0.5}})
     key = jax.random.PRNGKey(3)
@@ -149,8 +153,8 @@ def test_plr_whole_episodes_keeps_levels_until_episode_ends_and_trains_only_on_r
 
 
 def test_accel_whole_episodes_plays_a_child_after_each_replayed_level():
-    env = envs.make("lander")
-    student = make_student(env, PPOConfig.for_env("lander", num_envs=8, num_steps=32, update_epochs=1, num_minibatches=2))
+    env = envs.make("cartpole")
+    student = make_student(env, PPOConfig.for_env("cartpole", **SMALL))
     with pytest.raises(ValueError, match="parents='dcd_easy' picks parents from one rollout"):
         make_method("accel", env, student, {"level_switch": "episode", "parents": "dcd_easy"})
     m = make_method("accel", env, student, {"updates_per_step": 1, "level_switch": "episode",
@@ -160,7 +164,7 @@ def test_accel_whole_episodes_plays_a_child_after_each_replayed_level():
     ms, s = jax.jit(m.begin_episode)(key, ms, s)
     step = jax.jit(m.step)
     children = 0
-    for i in range(30):
+    for i in range(20):
         prev = ms.slots
         ms, s, info = step(jax.random.fold_in(key, i), ms, s)
         changed = np.any(np.asarray(ms.slots.vecs) != np.asarray(prev.vecs), axis=-1)
@@ -190,7 +194,7 @@ def test_paired_returns_on_the_newest_level_count_only_episodes_played_on_it():
 
 def test_paired_whole_episodes_trains_the_adversary_on_completed_levels_only():
     env = envs.make("cartpole")
-    student = make_student(env, PPOConfig.for_env("cartpole", num_envs=8, num_steps=16, update_epochs=1, num_minibatches=2))
+    student = make_student(env, PPOConfig.for_env("cartpole", **SMALL))
     m = make_method("paired", env, student, {"updates_per_step": 1, "level_switch": "episode", "minibatches": 2,
                                              "epochs": 1})
     key = jax.random.PRNGKey(11)
