@@ -17,6 +17,22 @@ from shed_jax.student import PPOConfig, make_student
 SMALL = dict(num_envs=8, num_steps=16, update_epochs=1, num_minibatches=2, actor_hidden=(8,), critic_hidden=(8,))
 
 
+def _episode_steps(name: str, config: dict, seed: int, steps: int):
+    """``name`` on CartPole with whole episodes: yields ``(method, before, after)`` for each budget step,
+    ``before`` = (method state, student state) and ``after`` = (method state, student state, StepInfo)."""
+    env = envs.make("cartpole")
+    student = make_student(env, PPOConfig.for_env("cartpole", **SMALL))
+    m = make_method(name, env, student, {"updates_per_step": 1, "level_switch": "episode", **config})
+    key = jax.random.PRNGKey(seed)
+    s, ms = student.init(key), m.init(key)
+    ms, s = jax.jit(m.begin_episode)(key, ms, s)
+    step = jax.jit(m.step)
+    for i in range(steps):
+        before = (ms, s)
+        ms, s, info = step(jax.random.fold_in(key, i), ms, s)
+        yield m, before, (ms, s, info)
+
+
 def _slots(n):
     z = jnp.zeros((n,), jnp.float32)
     return Slots(vecs=jnp.zeros((n, 1)), seeds=jnp.zeros((n,), jnp.int32), idx=jnp.full((n,), -1, jnp.int32),
@@ -112,18 +128,10 @@ def test_sampler_draw_mark_and_masked_writes():
 
 
 def test_plr_whole_episodes_keeps_levels_until_episode_ends_and_trains_only_on_replays():
-    env = envs.make("cartpole")
-    student = make_student(env, PPOConfig.for_env("cartpole", **SMALL))
-    m = make_method("plr", env, student, {"updates_per_step": 1, "level_switch": "episode",
-                                          "sampler": {"capacity": 8, "min_fill": 0.25, "replay_prob": 0.5}})
-    key = jax.random.PRNGKey(3)
-    s, ms = student.init(key), m.init(key)
-    ms, s = jax.jit(m.begin_episode)(key, ms, s)
-    step = jax.jit(m.step)
     seen_train = seen_new = seen_zero = 0
-    for i in range(25):
-        prev_slots, prev_time = ms.slots, np.asarray(s.env_state.time)
-        ms, s, info = step(jax.random.fold_in(key, i), ms, s)
+    sampler = {"capacity": 8, "min_fill": 0.25, "replay_prob": 0.5}
+    for m, (prev_ms, prev_s), (ms, s, info) in _episode_steps("plr", {"sampler": sampler}, 3, 25):
+        prev_slots, prev_time = prev_ms.slots, np.asarray(prev_s.env_state.time)
         # the slot records what the student plays
         np.testing.assert_array_equal(np.asarray(m.codec.space.to_vector(s.levels)), np.asarray(ms.slots.vecs))
         changed = np.any(np.asarray(ms.slots.vecs) != np.asarray(prev_slots.vecs), axis=-1)
@@ -157,16 +165,10 @@ def test_accel_whole_episodes_plays_a_child_after_each_replayed_level():
     student = make_student(env, PPOConfig.for_env("cartpole", **SMALL))
     with pytest.raises(ValueError, match="parents='dcd_easy' picks parents from one rollout"):
         make_method("accel", env, student, {"level_switch": "episode", "parents": "dcd_easy"})
-    m = make_method("accel", env, student, {"updates_per_step": 1, "level_switch": "episode",
-                                            "sampler": {"capacity": 8, "min_fill": 0.25, "replay_prob": 0.9}})
-    key = jax.random.PRNGKey(5)
-    s, ms = student.init(key), m.init(key)
-    ms, s = jax.jit(m.begin_episode)(key, ms, s)
-    step = jax.jit(m.step)
     children = 0
-    for i in range(20):
-        prev = ms.slots
-        ms, s, info = step(jax.random.fold_in(key, i), ms, s)
+    sampler = {"capacity": 8, "min_fill": 0.25, "replay_prob": 0.9}
+    for m, (prev_ms, _), (ms, s, info) in _episode_steps("accel", {"sampler": sampler}, 5, 20):
+        prev = prev_ms.slots
         changed = np.any(np.asarray(ms.slots.vecs) != np.asarray(prev.vecs), axis=-1)
         after_replay = changed & (np.asarray(prev.idx) >= 0)
         # a slot that left a replayed level now plays a new level (its child), never a replay
@@ -193,20 +195,14 @@ def test_paired_returns_on_the_newest_level_count_only_episodes_played_on_it():
 
 
 def test_paired_whole_episodes_trains_the_adversary_on_completed_levels_only():
-    env = envs.make("cartpole")
-    student = make_student(env, PPOConfig.for_env("cartpole", **SMALL))
-    m = make_method("paired", env, student, {"updates_per_step": 1, "level_switch": "episode", "minibatches": 2,
-                                             "epochs": 1})
-    key = jax.random.PRNGKey(11)
-    s, ms = student.init(key), m.init(key)
-    ms, s = jax.jit(m.begin_episode)(key, ms, s)
-    assert np.all(np.asarray(ms.slots.pro_on)) and np.all(np.asarray(ms.slots.ant_on))
-    np.testing.assert_array_equal(np.asarray(m.codec.space.to_vector(s.levels)), np.asarray(ms.slots.vecs))
-    step = jax.jit(m.step)
     proposed = 0
-    for i in range(15):
-        prev_slots, prev_adv = ms.slots, ms.adversary
-        ms, s, info = step(jax.random.fold_in(key, i), ms, s)
+    steps = _episode_steps("paired", {"minibatches": 2, "epochs": 1}, 11, 15)
+    for i, (m, (prev_ms, prev_s), (ms, s, info)) in enumerate(steps):
+        if i == 0:  # begin_episode put both agents of every slot on its level
+            assert np.all(np.asarray(prev_ms.slots.pro_on)) and np.all(np.asarray(prev_ms.slots.ant_on))
+            np.testing.assert_array_equal(np.asarray(m.codec.space.to_vector(prev_s.levels)),
+                                          np.asarray(prev_ms.slots.vecs))
+        prev_slots, prev_adv = prev_ms.slots, prev_ms.adversary
         new = np.asarray(info.extras["levels_trained_mask"])
         proposed += int(new.sum())
         assert int(info.num_new_levels) == int(new.sum())
