@@ -79,12 +79,7 @@ def from_dict(cls, values: dict | None, where: str = ""):
     kwargs = {}
     for name, value in values.items():
         sub = _nested_class(cls, name)
-        if sub is not None and isinstance(value, dict):
-            kwargs[name] = from_dict(sub, value, f"{where}{name}: ")
-        elif isinstance(value, dict):
-            kwargs[name] = {k: _tuples(v) for k, v in value.items()}
-        else:
-            kwargs[name] = _tuples(value)
+        kwargs[name] = from_dict(sub, value, f"{where}{name}: ") if sub is not None and isinstance(value, dict) else _tuples(value)
     return cls(**kwargs)
 
 

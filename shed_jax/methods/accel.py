@@ -73,13 +73,13 @@ class ACCEL(PLR):
         with a new terrain seed: a new level, no gradient, scored and offered to the buffer); the
         other slots draw as PLR⊥ does (replay, else an EASY level)."""
         k_plr, k_m, k_s = jax.random.split(key, 3)
-        buf, idx, vecs, seeds = super()._next_levels(k_plr, buf, slots)
+        idx, vecs, seeds = super()._next_levels(k_plr, buf, slots)
         if slots is None:
-            return buf, idx, vecs, seeds
+            return idx, vecs, seeds
         edit = slots.idx >= 0
         children = self.mutator.mutate_batch(k_m, slots.vecs)
         child_seeds = new_seeds(k_s, idx.shape[0])
-        return (buf, jnp.where(edit, -1, idx).astype(jnp.int32), jnp.where(edit[:, None], children, vecs),
+        return (jnp.where(edit, -1, idx).astype(jnp.int32), jnp.where(edit[:, None], children, vecs),
                 jnp.where(edit, child_seeds, seeds))
 
     def after_replay(self, key, buf: LevelBuffer, sstate, traj):

@@ -44,7 +44,7 @@ from flax import struct
 
 from shed_jax.configs import check_modes
 from shed_jax.levels import LevelCodec, new_seeds, slot_returns, teacher_space
-from shed_jax.methods.base import StepInfo, mean_metrics, warn_if_rollouts_cut_episodes
+from shed_jax.methods.base import StepInfo, mean_metrics, nan_like, warn_if_rollouts_cut_episodes
 from shed_jax.student import losses
 from shed_jax.student.config import PPOHyperparams
 from shed_jax.student.networks import Actor, Critic, gaussian_entropy, gaussian_log_prob
@@ -334,9 +334,7 @@ class PAIRED:
             astate, m_adv = jax.lax.cond(
                 complete.any(),
                 lambda: adv.update(astate, k_adv, sl.z, sl.x, sl.log_prob, sl.value, r, mask=complete),
-                lambda: (astate, jax.tree_util.tree_map(lambda x: jnp.full_like(x, jnp.nan),
-                                                        jax.eval_shape(adv.update, astate, k_adv, sl.z, sl.x, sl.log_prob,
-                                                                       sl.value, r)[1])))
+                lambda: (astate, nan_like(jax.eval_shape(adv.update, astate, k_adv, sl.z, sl.x, sl.log_prob, sl.value, r)[1])))
             fresh = self._propose(k_new, astate)
             sl = jax.tree_util.tree_map(lambda a, b: jnp.where(complete.reshape((n,) + (1,) * (a.ndim - 1)), a, b), fresh, sl)
             m = jnp.maximum(complete.sum(), 1)

@@ -165,9 +165,8 @@ class PLR:
         if self.config.reset_on_episode:
             mstate = self.init(k_init)
         if self.config.level_switch == "episode":  # the fresh student's slots start on drawn levels
-            buf, idx, vecs, seeds = self._next_levels(k_lvl, mstate.buffer)
-            handed = jnp.ones_like(idx, bool)
-            buf = self.sampler.mark_sampled(buf, idx, idx >= 0, handed)
+            idx, vecs, seeds = self._next_levels(k_lvl, mstate.buffer)
+            buf = self.sampler.mark_sampled(mstate.buffer, idx, idx >= 0, jnp.ones_like(idx, bool))
             sstate = self.student.assign_levels(sstate, k_assign, self.codec.to_params(vecs, seeds))
             fresh = self.init(k_init).slots
             mstate = mstate.replace(buffer=buf, slots=fresh.replace(vecs=vecs, seeds=seeds, idx=idx))
@@ -175,7 +174,7 @@ class PLR:
 
     def _next_levels(self, key, buf: LevelBuffer, slots: Slots | None = None):
         """One candidate level per slot: a buffer level with the replay probability, else a new one.
-        Returns ``(buf, idx, vecs, seeds)`` with idx -1 for new levels; nothing is counted yet.
+        Returns ``(idx, vecs, seeds)`` with idx -1 for new levels; nothing is counted yet.
         ``slots`` (the levels the slots play now; None at the start) is for subclasses (ACCEL)."""
         n = self.student.config.num_envs
         k_dec, k_draw, k_new = jax.random.split(key, 3)
@@ -184,7 +183,7 @@ class PLR:
         nvecs, nseeds = self.new_levels(k_new, n)
         vecs = jnp.where(replay[:, None], rvecs, nvecs)
         seeds = jnp.where(replay, rseeds, nseeds)
-        return buf, jnp.where(replay, ridx, -1).astype(jnp.int32), vecs, seeds
+        return jnp.where(replay, ridx, -1).astype(jnp.int32), vecs, seeds
 
     def _score_terms(self, sstate, traj):
         """Per-step score terms [T, n] and value targets [T, n] of one rollout."""
@@ -271,7 +270,7 @@ class PLR:
         def one_rollout(carry, k):
             buf, slots, s = carry
             k_lvl, k_roll, k_upd = jax.random.split(k, 3)
-            buf, cidx, cvecs, cseeds = self._next_levels(k_lvl, buf, slots)
+            cidx, cvecs, cseeds = self._next_levels(k_lvl, buf, slots)
             s, traj = student.rollout(s, k_roll, next_levels=self.codec.to_params(cvecs, cseeds))
             terms, targets = self._score_terms(s, traj)
             moved, old, ended, after = accumulate(slots, terms, targets, traj.dones)
