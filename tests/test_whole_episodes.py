@@ -218,6 +218,9 @@ def test_paired_whole_episodes_trains_the_adversary_on_completed_levels_only():
         assert moved == bool(new.any())
         if new.any():
             assert np.isfinite(float(info.teacher_reward)) and float(info.teacher_reward) >= 0
+            # the agents' returns on the completed levels: CartPole episodes score 1 per step, at most 500
+            for k in ("antagonist_max_return", "protagonist_return"):
+                assert 1.0 <= float(info.extras[k]) <= 500.0, (k, float(info.extras[k]))
     assert proposed > 0
 
 

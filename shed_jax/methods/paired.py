@@ -335,6 +335,7 @@ class PAIRED:
                 complete.any(),
                 lambda: adv.update(astate, k_adv, sl.z, sl.x, sl.log_prob, sl.value, r, mask=complete),
                 lambda: (astate, nan_like(jax.eval_shape(adv.update, astate, k_adv, sl.z, sl.x, sl.log_prob, sl.value, r)[1])))
+            ant_best = jnp.where(complete, sl.ant_max, 0.0)  # read before the completed slots are refilled
             fresh = self._propose(k_new, astate)
             sl = jax.tree_util.tree_map(lambda a, b: jnp.where(complete.reshape((n,) + (1,) * (a.ndim - 1)), a, b), fresh, sl)
             m = jnp.maximum(complete.sum(), 1)
@@ -342,7 +343,7 @@ class PAIRED:
                 levels=sl.vecs, new=complete, regret=jnp.where(complete.any(), r.sum() / m, jnp.nan), pro=m_pro,
                 ant=m_ant, adv=m_adv,
                 pro_return=jnp.where(complete.any(), jnp.where(complete, pro_mean, 0.0).sum() / m, jnp.nan),
-                ant_return=jnp.where(complete.any(), jnp.where(complete, sl.ant_max, 0.0).sum() / m, jnp.nan),
+                ant_return=jnp.where(complete.any(), ant_best.sum() / m, jnp.nan),
             )
             return (pro, ant, astate, sl), rec
 
