@@ -347,10 +347,28 @@ class Environment:
         return self.reset_env(key, params)
 
     def step(self, key: jax.Array, state, action, params=None):
+        """One step with auto-reset: where the episode ends, the returned obs/state are a fresh
+        ``reset_env`` of the same params (``info["final_obs"]`` holds the last observation)."""
         params = self.default_params if params is None else params
+        key_step, key_reset = jax.random.split(key)
+        obs_st, state_st, reward, done, info = self._step(key_step, state, action, params)
+        obs_re, state_re = self.reset_env(key_reset, params)
+        state_out = jax.tree_util.tree_map(lambda r, s: jnp.where(done, r, s), state_re, state_st)
+        obs_out = jnp.where(done, obs_re, obs_st)
+        return obs_out, state_out, reward, done, info
+
+    def step_without_reset(self, key: jax.Array, state, action, params=None):
+        """`step` without the auto-reset: the same outputs wherever the episode goes on, and at an
+        episode end the final obs/state instead of a reset's. For rollouts that keep only each env's
+        first episode (evaluation): a reset computed at every step for every env and then discarded
+        costs a whole terrain generation per step on the walker."""
+        params = self.default_params if params is None else params
+        key_step, _ = jax.random.split(key)  # the same key stream as `step`
+        return self._step(key_step, state, action, params)
+
+    def _step(self, key_step, state, action, params):
         self.check_params(params)
         action = self.check_action(action)
-        key_step, key_reset = jax.random.split(key)
         obs_st, state_st, reward, terminated, info = self.step_env(key_step, state, action, params)
         reward = jnp.asarray(reward, jnp.float32)
         terminated = jnp.asarray(terminated, bool)
@@ -359,9 +377,6 @@ class Environment:
         state_st = state_st.replace(time=time, episode_return=ep_return)
         truncated = jnp.logical_and(time >= params.max_steps, jnp.logical_not(terminated))
         done = jnp.logical_or(terminated, truncated)
-        obs_re, state_re = self.reset_env(key_reset, params)
-        state_out = jax.tree_util.tree_map(lambda r, s: jnp.where(done, r, s), state_re, state_st)
-        obs_out = jnp.where(done, obs_re, obs_st)
         info = dict(info)
         info.update(
             terminated=terminated,
@@ -370,7 +385,7 @@ class Environment:
             episode_return=jnp.where(done, ep_return, 0.0),
             episode_length=jnp.where(done, time, 0),
         )
-        return obs_out, state_out, reward, done, info
+        return obs_st, state_st, reward, done, info
 
     # --- validation ---
     def check_params(self, params) -> None:

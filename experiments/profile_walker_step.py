@@ -2,9 +2,11 @@
 
 Times, for ``--seeds`` vmapped students of the walker paper preset on ``--levels`` uniformly
 sampled levels: one rollout, one PPO update (epochs x minibatches), the teacher's evaluation
-(10 evaluation levels x 4 episodes) and the test set (test set B, 10 x 10), each compiled alone;
-evaluations report how many steps they ran before every episode had ended. Run it after a few
-updates of training (``--warm-updates``) so episode lengths are those of a learning student.
+(10 evaluation levels x 4 episodes) and the test set (test set B, 10 x 10), each compiled alone,
+and both as one fused rollout; evaluations report how many steps they ran before every episode had
+ended. Run it after a few updates of training (``--warm-updates``) so episode lengths are those of a
+learning student. ``--latency-batches`` adds seconds per sequential env step (random actions) of
+``step`` (auto-reset), ``step_without_reset`` and ``reset`` alone, at each batch.
 
     python -m experiments.profile_walker_step --seeds 5 --warm-updates 6 --out runs/profile_walker.json
 """
@@ -12,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import pathlib
 import sys
 import time
@@ -37,6 +40,8 @@ def main(argv=None) -> int:
     p.add_argument("--levels", type=int, default=4)
     p.add_argument("--warm-updates", type=int, default=6)
     p.add_argument("--ppo", nargs="*", default=[], metavar="KEY=VALUE", help="PPO overrides (student.config)")
+    p.add_argument("--latency-batches", default="", help="comma-separated batches for the per-step latencies")
+    p.add_argument("--latency-only", action="store_true", help="only the per-step latencies")
     p.add_argument("--out", default="runs/profile_walker.json")
     args = p.parse_args(argv)
 
@@ -47,15 +52,22 @@ def main(argv=None) -> int:
 
     exp = build_experiment("walker", "shed", "paper", ppo_overrides=parse_overrides(args.ppo) or None)
     env, student, _, tests = build(exp)
+    rec = {"device": jax.devices()[0].device_kind, "date": time.strftime("%Y-%m-%d", time.gmtime()),
+           "command": "python -m experiments.profile_walker_step " + " ".join(argv if argv is not None else sys.argv[1:]),
+           "xla_flags": os.environ.get("XLA_FLAGS", "")}
+    if args.latency_batches:
+        rec["latency"] = [step_latency(env, int(b)) for b in args.latency_batches.split(",")]
+        for row in rec["latency"]:
+            print(json.dumps(row), flush=True)
+    if args.latency_only:
+        return _write(rec, args.out)
     keys = seed_keys(0, args.seeds)
     levels = env.param_space.sample(jax.random.PRNGKey(1), (args.levels,))
     evals = eval_sets.walker_eval_set(10).to_params(env.default_params)
     s = jax.jit(jax.vmap(lambda k: student.assign_levels(student.init(k), k, levels)))(keys)
     s, _ = jax.jit(jax.vmap(lambda st, k: student.run_updates(st, k, args.warm_updates)))(s, keys)
-    rec = {"device": jax.devices()[0].device_kind, "date": time.strftime("%Y-%m-%d", time.gmtime()),
-           "command": "python -m experiments.profile_walker_step " + " ".join(argv if argv is not None else sys.argv[1:]),
-           "seeds": args.seeds, "num_envs": student.config.num_envs, "num_steps": student.config.num_steps,
-           "epochs": student.config.update_epochs, "minibatches": student.config.num_minibatches}
+    rec.update({"seeds": args.seeds, "num_envs": student.config.num_envs, "num_steps": student.config.num_steps,
+           "epochs": student.config.update_epochs, "minibatches": student.config.num_minibatches})
     rollout = jax.jit(jax.vmap(student.rollout))
     rec["rollout_s"], (s2, traj) = _timed(rollout, s, keys)
     update = jax.jit(jax.vmap(student.update))
@@ -68,13 +80,53 @@ def main(argv=None) -> int:
     rec["teacher_eval_steps_run"] = np.asarray(info["steps_run"]).tolist()
     rec["test_eval_s"], (_, info) = _timed(ev(tests, 10, 2000), s, keys)
     rec["test_eval_steps_run"] = np.asarray(info["steps_run"]).tolist()
+    fused = jax.jit(jax.vmap(lambda st, k: student.evaluate_many(st, [(k, evals, 4, 2000), (jax.random.fold_in(k, 1), tests, 10, 2000)])))
+    rec["fused_eval_s"], out = _timed(fused, s, keys)
+    rec["fused_eval_steps_run"] = np.asarray(out[0][1]["steps_run"]).tolist()
     updates = exp.method_config.updates_per_step
     rec["train_s_per_budget_step"] = updates * (rec["rollout_s"] + rec["update_s"])
     print(json.dumps(rec), flush=True)
-    out = pathlib.Path(args.out)
+    return _write(rec, args.out)
+
+
+def _write(rec: dict, path: str) -> int:
+    out = pathlib.Path(path)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(rec, indent=2))
     return 0
+
+
+def step_latency(env, batch: int, steps: int = 128) -> dict:
+    """Seconds per sequential step (median of 2 after the compile) of ``vmap(step)``,
+    ``vmap(step_without_reset)`` and ``vmap(reset)`` in a ``lax.scan`` of ``steps``, random actions."""
+    levels = env.param_space.sample(jax.random.PRNGKey(1), (batch,))
+    space = env.action_space()
+    obs0, state0 = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.PRNGKey(2), batch), levels)
+
+    def scan_of(fn):
+        @jax.jit
+        def run(state, key):
+            def body(st, k):
+                ka, ks = jax.random.split(k)
+                a = jax.vmap(space.sample)(jax.random.split(ka, batch))
+                _, st, r, _, _ = jax.vmap(fn)(jax.random.split(ks, batch), st, a, levels)
+                return st, r.sum()
+            return jax.lax.scan(body, state, jax.random.split(key, steps))[1].sum()
+        return run
+
+    @jax.jit
+    def resets(key):
+        def body(acc, k):
+            obs, _ = jax.vmap(env.reset)(jax.random.split(k, batch), levels)
+            return acc + obs.sum(), None
+        return jax.lax.scan(body, jnp.float32(0), jax.random.split(key, steps))[0]
+
+    row = {"batch": batch, "steps": steps}
+    for name, fn, args in (("step_s", scan_of(env.step), (state0, jax.random.PRNGKey(3))),
+                           ("step_without_reset_s", scan_of(env.step_without_reset), (state0, jax.random.PRNGKey(3))),
+                           ("reset_s", resets, (jax.random.PRNGKey(4),))):
+        row[name] = _timed(fn, *args)[0] / steps
+    return row
 
 
 if __name__ == "__main__":

@@ -126,6 +126,27 @@ def test_auto_reset_and_episode_statistics():
     assert float(st.start) != float(st_prev.start)  # a new random draw, not a cached state
 
 
+def test_step_without_reset_equals_step_until_the_episode_ends_then_keeps_the_final_state():
+    env = Counter()
+    params = env.default_params  # target 3
+    obs, st = env.reset(jax.random.PRNGKey(0), params)
+    a, b = st, st
+    for t in range(3):
+        k = jax.random.PRNGKey(10 + t)
+        oa, a, ra, da, ia = env.step(k, a, jnp.int32(1), params)
+        ob, b, rb, db, ib = env.step_without_reset(k, b, jnp.int32(1), params)
+        assert (float(ra), bool(da)) == (float(rb), bool(db))
+        for key in ("episode_return", "episode_length", "terminated", "truncated", "final_obs"):
+            np.testing.assert_array_equal(np.asarray(ia[key]), np.asarray(ib[key]))
+        if t < 2:  # the episode goes on: identical obs and state
+            np.testing.assert_array_equal(np.asarray(oa), np.asarray(ob))
+            assert jax.tree_util.tree_all(jax.tree_util.tree_map(lambda x, y: bool(jnp.all(x == y)), a, b))
+    # at the end: `step` has reset, `step_without_reset` holds the final state and obs
+    assert int(a.time) == 0 and float(a.count) == 0.0
+    assert int(b.time) == 3 and float(b.count) == 3.0 and float(b.episode_return) == 3.0
+    np.testing.assert_array_equal(np.asarray(ob), np.asarray(ib["final_obs"]))
+
+
 def test_truncation_at_max_steps():
     env = Counter()
     params = env.default_params.replace(max_steps=jnp.int32(4))

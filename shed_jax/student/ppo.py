@@ -444,7 +444,8 @@ class PPOStudent:
         def row_step(kk, env_state, obs, level):
             k_act, k_step = jax.random.split(kk)
             action = self.act(state, k_act, obs.astype(jnp.float32), deterministic)
-            return self.env.step(k_step, env_state, action, level)
+            # only a row's first episode is recorded, so no auto-reset (the same values until it ends)
+            return self.env.step_without_reset(k_step, env_state, action, level)
 
         def one_step(c, xs):
             t, keys_t = xs
