@@ -4,7 +4,7 @@ For each method, builds the walker paper preset (5 vmapped seeds by default), co
 step of the outer loop (``shed_jax.loop.make_run``; the step index is traced, so one program serves
 every step), and times single steps of the three kinds the protocol mixes:
 
-* ``plain``: a budget step inside a teacher episode, no test set;
+* ``plain``: a budget step inside a teacher episode, no test set (the baselines test every 5th);
 * ``episode_start``: the first step of a teacher episode (a fresh student; SHED evaluates it
   first to get the teacher's initial state), no test set;
 * ``tested``: a step of a teacher episode in which the test set runs.
@@ -46,18 +46,19 @@ def time_steps(method: str, seeds: int, repeats: int, preset: str = "paper") -> 
     state, _ = jax.block_until_ready(step(state, 1, 0))  # compile, and the episode-0 start with its test
     compile_and_first = time.perf_counter() - t0
 
-    # a tested step, then a plain one and an episode start (both untested), in schedule order
-    untested_episode = next((e for e in range(spec.num_episodes) if not any(
-        bool(spec.tests_at(e * T + i)) for i in range(T))), None)
-    kinds = {"tested": [1]}
-    if untested_episode is not None:
-        kinds["episode_start"] = [untested_episode * T]
-        kinds["plain"] = [untested_episode * T + 1]
+    # tested steps, plain ones and an episode start (untested), in schedule order
+    later = range(1, spec.total_steps)
+    kinds = {"tested": [t for t in later if t % T and bool(spec.tests_at(t))][:repeats]}
+    plain = [t for t in later if t % T and not bool(spec.tests_at(t))][:repeats]
+    starts = [t for t in later if t % T == 0 and not bool(spec.tests_at(t))][:1]
+    if starts:
+        kinds["episode_start"] = starts * repeats
+    if plain:
+        kinds["plain"] = plain
     out = {}
     for kind, ts in kinds.items():
         times = []
-        for r in range(repeats):
-            t = ts[0] + r * (kind != "episode_start") if kind != "episode_start" else ts[0]
+        for t in ts:
             t1 = time.perf_counter()
             state, _ = jax.block_until_ready(step(state, 1, t))
             times.append(time.perf_counter() - t1)

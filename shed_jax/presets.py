@@ -85,6 +85,7 @@ class Preset:
     method: dict  # fields of every method's config that has them
     teacher: dict = dataclasses.field(default_factory=dict)  # fields of the episodic methods' configs
     test_episode_every: int = 1  # episodic methods: test in every k-th teacher episode (and the last)
+    test_every: int = 1  # the baselines (one student, one episode): test every k-th budget step
     chunk: int | None = None  # budget steps per compiled chunk; None: one teacher episode
 
 
@@ -115,7 +116,9 @@ TABLE: dict[tuple[str, str], Preset] = {
         student={}, steps_per_episode=50, teacher_episodes=20, test_set="walker-test-b", test_episodes=10,
         test_max_steps=2000, method={"updates_per_step": 3, "num_levels": 4},
         teacher={"num_eval_episodes": 4},  # E_eval = 4 evaluation episodes per eval level (lander: 8)
-        test_episode_every=10, chunk=2,
+        # the baselines test at every 5th budget step (10 points of the curve, the last included):
+        # a test-set rollout costs several training steps on MJX
+        test_episode_every=10, test_every=5, chunk=2,
     ),
     ("walker", "quick"): Preset(
         student=dict(num_envs=16, num_steps=16, update_epochs=1, num_minibatches=2), steps_per_episode=4,
@@ -178,6 +181,7 @@ def build_experiment(env: str, method: str, preset: str, *, episodes: int | None
         steps_per_episode=T,
         num_episodes=(row.teacher_episodes if is_episodic else 1) if episodes is None else episodes,
         test_episode_every=(row.test_episode_every if is_episodic else 1) if test_episode_every is None else test_episode_every,
+        test_every=1 if is_episodic else row.test_every,
         test_episodes=row.test_episodes,
         test_max_steps=row.test_max_steps,
     )

@@ -34,6 +34,17 @@ def test_walker_paper_budget_is_1e7_steps():
     assert shed.loop.num_episodes == 20 and build_experiment("lander", "shed", "paper").method_config.num_eval_episodes == 8
 
 
+def test_walker_baselines_test_every_fifth_budget_step_and_the_last():
+    import numpy as np
+
+    dr = build_experiment("walker", "dr", "paper").loop
+    tested = np.flatnonzero(dr.tests_at(np.arange(dr.total_steps)))
+    assert list(tested) == list(range(4, 50, 5))  # 10 points, the last step (49) among them
+    shed = build_experiment("walker", "shed", "paper").loop  # the teacher: every step of its tested episodes
+    assert shed.test_every == 1 and shed.test_episode_every == 10
+    assert build_experiment("lander", "dr", "paper").loop.test_every == 1
+
+
 def test_steps_per_episode_override_reaches_the_teacher():
     e = build_experiment("lander", "hmdp", "quick", steps_per_episode=7, episodes=3)
     assert e.loop.steps_per_episode == 7 and e.loop.num_episodes == 3 and e.method_config.budget_steps == 7
