@@ -217,12 +217,21 @@ def experiment_from_dict(d: dict):
     try:
         return Experiment(
             env=d["env"], method=d["method"], preset=d["preset"], ppo=configs.from_dict(PPOConfig, d["ppo"]),
-            method_config=dict(d["method_config"]),
+            method_config=_with_saved_defaults(d["method"], d["method_config"]),
             # runs saved before LoopSpec.max_recorded_levels existed recorded every level
             loop=LoopSpec(**{"max_recorded_levels": None, **d["loop"]}), test_set=d["test_set"],
         )
     except (KeyError, TypeError, ValueError) as err:
         raise CheckpointError(f"cannot rebuild the experiment from the saved configuration: {type(err).__name__}: {err}") from err
+
+
+def _with_saved_defaults(method: str, saved: dict) -> dict:
+    """A saved method config with the fields it predates at the values it ran with (the config
+    class's ``SAVED_BEFORE``), not at today's defaults."""
+    from shed_jax.methods.registry import config_class
+
+    cls = config_class(method)
+    return {**getattr(cls, "SAVED_BEFORE", {}), **saved}
 
 
 EXPERIMENT_FLAGS = ("env", "method", "preset", "episodes", "steps_per_episode", "test_episode_every")

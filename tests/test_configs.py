@@ -77,3 +77,19 @@ def test_coerce_takes_none_a_dict_or_the_class_only():
     with pytest.raises(ValueError, match=r"'eta' is a field of 'reward', given inside it"):
         configs.coerce(SHEDConfig, {"eta": 1}, "method 'shed'")
     assert dataclasses.is_dataclass(configs.coerce(PLRConfig, {"sampler": {"capacity": 8}}, "x").sampler)
+
+
+def test_a_saved_run_from_before_level_switch_resumes_in_the_mode_it_ran():
+    """Whole episodes became the native methods' default after runs had been saved without the field:
+    such a run rebuilds with level_switch='rollout' (SAVED_BEFORE), a run that saved it keeps it."""
+    from shed_jax.experiment import experiment_from_dict
+    from shed_jax.presets import build_experiment
+
+    for method in ("dr", "plr", "accel", "paired"):
+        saved = build_experiment("lander", method, "quick").to_dict()
+        assert saved["method_config"]["level_switch"] == "episode"  # today's default
+        assert experiment_from_dict(saved).method_config.level_switch == "episode"
+        del saved["method_config"]["level_switch"]
+        assert experiment_from_dict(saved).method_config.level_switch == "rollout"
+    hm = build_experiment("lander", "hmdp", "quick").to_dict()  # no such field, nothing added
+    assert "level_switch" not in experiment_from_dict(hm).to_dict()["method_config"]

@@ -100,7 +100,7 @@ def test_registry_knows_every_method_and_validates(setup):
 
 def test_dr(setup):
     env, student = setup
-    method = make_method("dr", env, student, {"updates_per_step": 2})
+    method = make_method("dr", env, student, {"level_switch": "rollout", "updates_per_step": 2})
     i1, i2, p0, p1, _, updates = _check_common(env, _two_steps(method, student), 2 * E)
     assert int(i1.env_steps_train) == 2 * E * S and int(i1.env_steps_eval) == 0
     assert int(i1.num_new_levels) == 2 * E and np.isnan(float(i1.teacher_reward))
@@ -139,7 +139,7 @@ def test_dr_episode_level_switch_runs_episodes_across_rollouts(setup):
 def test_plr_trains_only_on_replayed_levels(setup):
     env, student = setup
     # capacity = slots, replay certain once full: update 1 explores (fills), updates 2-3 replay
-    cfg = {"updates_per_step": 3, "sampler": LevelSamplerConfig(capacity=E, replay_prob=1.0, min_fill=1.0)}
+    cfg = {"level_switch": "rollout", "updates_per_step": 3, "sampler": LevelSamplerConfig(capacity=E, replay_prob=1.0, min_fill=1.0)}
     method = make_method("plr", env, student, cfg)
     i1, i2, p0, p1, m, updates = _check_common(env, _two_steps(method, student), 3 * E)
     np.testing.assert_array_equal(i1.extras["levels_trained_mask"], [False] * E + [True] * 2 * E)
@@ -156,7 +156,7 @@ def test_plr_trains_only_on_replayed_levels(setup):
 
 def test_accel_inserts_edited_children(setup):
     env, student = setup
-    cfg = {"updates_per_step": 3, "sampler": LevelSamplerConfig(capacity=3 * E, replay_prob=1.0, min_fill=1 / 3)}
+    cfg = {"level_switch": "rollout", "updates_per_step": 3, "sampler": LevelSamplerConfig(capacity=3 * E, replay_prob=1.0, min_fill=1 / 3)}
     method = make_method("accel", env, student, cfg)
     i1, i2, p0, p1, m, updates = _check_common(env, _two_steps(method, student), 3 * E)
     # update 1 explores (E new), updates 2, 3 replay and each adds E children scored without gradient
@@ -185,7 +185,7 @@ def test_accel_norevisit_children_of_previous_levels(setup):
 
 def test_paired_runs_and_accounts_antagonist(setup):
     env, student = setup
-    cfg = {"updates_per_step": 2, "minibatches": 2, "epochs": 2, "hidden": (8,)}
+    cfg = {"level_switch": "rollout", "updates_per_step": 2, "minibatches": 2, "epochs": 2, "hidden": (8,)}
     method = make_method("paired", env, student, cfg)
     i1, i2, p0, p1, m, updates = _check_common(env, _two_steps(method, student), 2 * E)
     assert int(i1.env_steps_train) == 2 * E * S and int(i1.extras["env_steps_antagonist"]) == 2 * E * S
@@ -267,8 +267,9 @@ def test_dcd_easy_parents_lowest_return_minus_value_loss():
 
 
 def test_native_methods_warn_when_rollouts_cut_training_episodes():
-    """Native mode resets every slot each rollout: rollouts shorter than a training episode warn,
-    with a rollout shape of the same update size that holds one; block mode never warns."""
+    """level_switch="rollout" resets every slot each rollout: rollouts shorter than a training episode
+    warn, with a rollout shape of the same update size that holds one; whole episodes (the default)
+    and block mode never warn."""
     import warnings
 
     from shed_jax.methods.base import RolloutTruncationWarning
@@ -277,15 +278,16 @@ def test_native_methods_warn_when_rollouts_cut_training_episodes():
     paper = make_student(lander, PPOConfig.for_env("lander"))  # 40 x 128; lander training episodes: 600
     for name in ("dr", "plr", "accel", "paired"):
         with pytest.warns(RolloutTruncationWarning, match=r"rollouts of 128 steps .* may last 600 steps") as rec:
-            make_method(name, lander, paper, None)
+            make_method(name, lander, paper, {"level_switch": "rollout"})
         assert "--ppo num_envs=8 --ppo num_steps=640 (the same 5,120 steps per update)" in str(rec[0].message)
     long = make_student(lander, PPOConfig.for_env("lander", num_envs=8, num_steps=640))
     with warnings.catch_warnings():
         warnings.simplefilter("error", RolloutTruncationWarning)
         for name in ("dr", "plr", "accel", "paired"):
-            make_method(name, lander, long, None)
+            make_method(name, lander, long, {"level_switch": "rollout"})
+            make_method(name, lander, paper, None)  # whole episodes: nothing is cut
         make_method("accel-norevisit", lander, paper, None)  # block mode: episodes carry over rollouts
     odd = make_student(lander, PPOConfig.for_env("lander", num_envs=3, num_steps=100, num_minibatches=3))
     with pytest.warns(RolloutTruncationWarning) as rec:  # no rollout >= 600 divides 300 steps: no hint
-        make_method("dr", lander, odd, None)
+        make_method("dr", lander, odd, {"level_switch": "rollout"})
     assert "e.g." not in str(rec[0].message)

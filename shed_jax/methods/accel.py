@@ -47,7 +47,7 @@ class ACCELConfig(PLRConfig):
             raise ValueError(f"ACCELConfig.num_edits must be a positive int, got {self.num_edits!r}")
         if self.level_switch == "episode" and self.parents == "dcd_easy":
             raise ValueError("ACCELConfig.parents='dcd_easy' picks parents from one rollout's returns; "
-                             "with level_switch='episode' use parents='all'")
+                             "with level_switch='episode' (the default) use parents='all', or set level_switch='rollout'")
 
 
 @dataclasses.dataclass(frozen=True)

@@ -12,7 +12,7 @@ current episode ends, so episodes longer than a rollout are played to the end (d
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Literal
+from typing import Any, ClassVar, Literal
 
 import jax
 import jax.numpy as jnp
@@ -35,7 +35,9 @@ class DRConfig:
     # "rollout" (docs/design.md §8.1, DCD): every rollout resets every slot onto a new level. "episode": a slot
     # moves to a new level only when its episode ends (student.rollout's next_levels), so episodes
     # longer than a rollout run to their end.
-    level_switch: Literal["rollout", "episode"] = "rollout"
+    level_switch: Literal["rollout", "episode"] = "episode"
+    # what a run saved before a field existed ran with (experiment_from_dict fills it in)
+    SAVED_BEFORE: ClassVar[dict] = {"level_switch": "rollout"}
 
     def __post_init__(self):
         if not isinstance(self.updates_per_step, int) or self.updates_per_step < 1:
@@ -67,7 +69,7 @@ class DR:
         object.__setattr__(self, "code_dr", code_dr)
         if self.config.level_switch == "rollout":  # "episode" runs every episode to its end
             warn_if_rollouts_cut_episodes(self.name, self.student, space,
-                                          " For DR, so does --set level_switch=episode.")
+                                          " So does level_switch=episode, the default.")
 
     def sample_levels(self, key: jax.Array, n: int):
         """``n`` DR levels -> (vectors [n, d], params pytree with leading n)."""

@@ -35,7 +35,7 @@ Budget: ``env_steps_train`` counts protagonist steps; antagonist steps are in
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Literal
+from typing import Any, ClassVar, Literal
 
 import jax
 import jax.numpy as jnp
@@ -72,7 +72,9 @@ class PAIREDConfig:
     high: tuple[float, ...] | None = None
     # "rollout": every rollout puts every slot of both agents on a new adversary level. "episode": a
     # slot's level stays until both agents have ended an episode on it (module docstring).
-    level_switch: Literal["rollout", "episode"] = "rollout"
+    level_switch: Literal["rollout", "episode"] = "episode"
+    # what a run saved before a field existed ran with (experiment_from_dict fills it in)
+    SAVED_BEFORE: ClassVar[dict] = {"level_switch": "rollout"}
 
     def __post_init__(self):
         check_modes(self)
@@ -218,7 +220,7 @@ class PAIRED:
         object.__setattr__(self, "codec", codec)
         object.__setattr__(self, "adversary", Adversary(codec.dim, self.config))
         if self.config.level_switch == "rollout":
-            warn_if_rollouts_cut_episodes(self.name, self.student, codec.space, " So does --set level_switch=episode.")
+            warn_if_rollouts_cut_episodes(self.name, self.student, codec.space, " So does level_switch=episode, the default.")
 
     def init(self, key: jax.Array, hparams=None) -> PAIREDState:
         k_ant, k_adv = jax.random.split(key)

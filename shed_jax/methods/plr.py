@@ -36,7 +36,7 @@ bootstraps at the rollout's end, so an episode cut by rollouts scores as its pie
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Literal
+from typing import Any, ClassVar, Literal
 
 import jax
 import jax.numpy as jnp
@@ -60,7 +60,9 @@ class PLRConfig:
     high: tuple[float, ...] | None = None
     # "rollout" (DCD, JaxUED): every rollout puts every slot on a new level. "episode": a slot moves to
     # its next level only when its episode ends, and scores accumulate until then (module docstring).
-    level_switch: Literal["rollout", "episode"] = "rollout"
+    level_switch: Literal["rollout", "episode"] = "episode"
+    # what a run saved before a field existed ran with (experiment_from_dict fills it in)
+    SAVED_BEFORE: ClassVar[dict] = {"level_switch": "rollout"}
 
     def __post_init__(self):
         cls = type(self).__name__
@@ -124,7 +126,7 @@ class PLR:
         object.__setattr__(self, "codec", LevelCodec(teacher_space(self.env, self.config.low, self.config.high)))
         if self.config.level_switch == "rollout":
             warn_if_rollouts_cut_episodes(self.name, self.student, self.codec.space,
-                                          " So does --set level_switch=episode.")
+                                          " So does level_switch=episode, the default.")
         object.__setattr__(self, "sampler", LevelSampler(self.config.sampler))
 
     # ---------------------------------------------------------------- hooks (ACCEL overrides)
