@@ -206,8 +206,11 @@ def make_batch(exp, parts, overrides: list[tuple[dict, dict]], *, num_seeds: int
 
     ``overrides``: per point, ``(student hyperparameters, method hyperparameters)`` to set over the
     experiment's (a run: one point, ``[({}, {})]``). Values are checked here (ValueError).
+    ``chunk``: budget steps per compiled call; None takes the preset's (``presets.default_chunk``),
+    for runs and sweeps alike.
     """
     from shed_jax.loop import make_run
+    from shed_jax.presets import default_chunk
     from shed_jax.student.config import PPOHyperparams
 
     env, student, method, tests = parts
@@ -220,7 +223,7 @@ def make_batch(exp, parts, overrides: list[tuple[dict, dict]], *, num_seeds: int
         raise ValueError(f"method {exp.method!r} has no dynamic hyperparameters")
     init, run = make_run(student, method, tests, exp.loop)
     return Batch(exp, env, student, method, tests, shp, mhp, len(overrides), num_seeds, root_seed,
-                 chunk or exp.loop.steps_per_episode, init, run)
+                 chunk or default_chunk(exp), init, run)
 
 
 def _floats(values: dict, method: str, prefix: str = "") -> dict:

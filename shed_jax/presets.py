@@ -109,9 +109,9 @@ TABLE: dict[tuple[str, str], Preset] = {
     ("lander", "quick"): _LANDER_QUICK,
     ("lander-continuous", "paper"): _LANDER_PAPER,
     ("lander-continuous", "quick"): _LANDER_QUICK,
-    # 3 x 1,024 x 64 = 196,608 steps per budget step; x 50 = 9.83e6 (the paper's 1e7 to 2 %). A budget
-    # step costs about 20 s on an H200 (MJX's per-step latency in the evaluations), so chunks are 2
-    # budget steps and the progress line moves at least once a minute.
+    # 3 x 1,024 x 64 = 196,608 steps per budget step; x 50 = 9.83e6 (the paper's 1e7 to 2 %). A SHED
+    # budget step costs about 15 s on an H200 (MJX's per-step latency in the evaluations), so chunks
+    # are 2 budget steps and the progress line moves at least once a minute.
     ("walker", "paper"): Preset(
         student={}, steps_per_episode=50, teacher_episodes=20, test_set="walker-test-b", test_episodes=10,
         test_max_steps=2000, method={"updates_per_step": 3, "num_levels": 4},

@@ -115,9 +115,15 @@ def test_default_seeds_by_preset():
 def test_default_chunk_keeps_walker_progress_under_a_minute():
     from shed_jax.presets import default_chunk
 
-    # walker paper: 2 of the 50 budget steps per chunk (a step costs ~20 s on a GPU); else an episode
+    # walker paper: 2 of the 50 budget steps per chunk (a SHED step costs ~15 s on an H200); else an episode
     assert default_chunk(build_experiment("walker", "shed", "paper")) == 2
     assert default_chunk(build_experiment("walker", "dr", "paper")) == 2
     assert default_chunk(build_experiment("walker", "dr", "paper", steps_per_episode=15)) == 15
     assert default_chunk(build_experiment("lander", "shed", "paper")) == 20
     assert default_chunk(build_experiment("walker", "shed", "quick")) == 4
+    # runs and sweeps share the default (a walker sweep once ran its 50 budget steps as one chunk)
+    from shed_jax import driver
+    from shed_jax.experiment import build
+
+    exp = build_experiment("walker", "dr", "paper")
+    assert driver.make_batch(exp, build(exp), [({}, {})], num_seeds=1, root_seed=0).chunk == 2
