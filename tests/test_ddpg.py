@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from shed_jax.teacher.buffers import Transition
-from shed_jax.teacher.ddpg import Actor, Critic, DDPGConfig, make_ddpg
+from shed_jax.teacher.ddpg import Actor, Critic, DDPGConfig, TwinCritic, make_ddpg
 
 SMALL = dict(hidden=(32, 32))
 
@@ -132,16 +132,63 @@ def test_config_validation():
         DDPGConfig(3, 0)
     with pytest.raises(ValueError, match="explore_sigma"):
         DDPGConfig(3, 2, explore_sigma=-0.1)
+    with pytest.raises(ValueError, match="twin_critics must be True or False"):
+        DDPGConfig(3, 2, twin_critics=1)
+    with pytest.raises(ValueError, match="actor_delay must be an int >= 1"):
+        DDPGConfig(3, 2, actor_delay=0)
+
+
+def test_twin_critics_fit_both_to_the_smaller_target_and_the_actor_follows_q1():
+    cfg = DDPGConfig(3, 2, tau=0.1, gamma=0.9, reward_norm=False, twin_critics=True, **SMALL)
+    agent = make_ddpg(cfg)
+    st = jax.jit(agent.init)(jax.random.PRNGKey(0))
+    q1, q2 = st.critic_params["params"]["q1"], st.critic_params["params"]["q2"]
+    assert not np.allclose(q1["Dense_0"]["kernel"], q2["Dense_0"]["kernel"])  # two independent inits
+    done = jnp.array([0, 1, 0, 0, 0, 0, 1, 0], jnp.float32)
+    b = _batch(jax.random.PRNGKey(1), done=done)
+    new, metrics = jax.jit(agent.update)(st, b)
+    actor, critic = Actor(2, (32, 32)), TwinCritic((32, 32))
+    q_next = np.asarray(critic.apply(st.target_critic_params, b.s_next, actor.apply(st.target_actor_params, b.s_next)))
+    assert q_next.shape == (2, 8) and not np.allclose(q_next[0], q_next[1])
+    y = np.asarray(b.r) + 0.9 * (1 - np.asarray(done)) * q_next.min(axis=0)
+    q = np.asarray(critic.apply(st.critic_params, b.s, b.u))
+    assert float(metrics["target_mean"]) == pytest.approx(float(np.mean(y)), rel=1e-5)
+    assert float(metrics["critic_loss"]) == pytest.approx(float(np.mean((q[0] - y) ** 2) + np.mean((q[1] - y) ** 2)), rel=1e-5)
+    assert float(metrics["q_mean"]) == pytest.approx(float(np.mean(q[0])), rel=1e-5)
+    a_loss = -np.mean(np.asarray(critic.apply(new.critic_params, b.s, actor.apply(st.actor_params, b.s)))[0])
+    assert float(metrics["actor_loss"]) == pytest.approx(a_loss, rel=1e-5)
+    # act and the TD-error diagnostic work on the twin state
+    np.testing.assert_allclose(np.asarray(agent.q(st, b.s, b.u)), q[0], rtol=1e-6)
+    assert agent.td_errors(st, b.replace(r=b.r)).shape == (8,)
+
+
+def test_actor_delay_updates_the_actor_and_targets_every_kth_call_only():
+    cfg = DDPGConfig(3, 2, tau=0.1, reward_norm=False, actor_delay=2, **SMALL)
+    agent = make_ddpg(cfg)
+    st0 = jax.jit(agent.init)(jax.random.PRNGKey(0))
+    update = jax.jit(agent.update)
+    st1, _ = update(st0, _batch(jax.random.PRNGKey(1)))
+    st2, _ = update(st1, _batch(jax.random.PRNGKey(2)))
+    same = lambda a, b: all(np.array_equal(x, y) for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)))
+    slow = ("actor_params", "target_actor_params", "target_critic_params", "actor_opt_state")
+    assert not same(st1.critic_params, st0.critic_params)  # the critic learns on every call
+    assert all(same(getattr(st1, k), getattr(st0, k)) for k in slow)  # call 1: held
+    assert not same(st2.critic_params, st1.critic_params)
+    assert not any(same(getattr(st2, k), getattr(st1, k)) for k in slow)  # call 2: moved
+    # the delayed step is the plain step on the same state: actor_delay=1 from st1 gives the same actor
+    plain, _ = jax.jit(make_ddpg(DDPGConfig(3, 2, tau=0.1, reward_norm=False, **SMALL)).update)(st1, _batch(jax.random.PRNGKey(2)))
+    assert same(plain.actor_params, st2.actor_params) and same(plain.target_critic_params, st2.target_critic_params)
+    assert int(st2.num_updates) == 2
 
 
 BANDIT_SEEDS, BANDIT_STEPS = 8, 3000
 
 
-def _bandit_errors(seed=0):
+def _bandit_errors(seed=0, **td3):
     """BANDIT_SEEDS seeds of DDPG trained (vmapped) on the bandit below from keys split off PRNGKey(seed):
     |actor - argmax| before and after training on 256 fixed test states [seeds, 256, 2], the final
     critic loss [seeds], and the test states."""
-    cfg = DDPGConfig(2, 2, hidden=(64, 64), tau=0.05, reward_norm=False)
+    cfg = DDPGConfig(2, 2, hidden=(64, 64), tau=0.05, reward_norm=False, **td3)
     agent = make_ddpg(cfg)
     W = jnp.array([[1.0, -0.5], [0.3, 0.8]])
     target = lambda s: 0.5 * jnp.tanh(s @ W)
@@ -185,3 +232,14 @@ def test_solves_one_step_quadratic_bandit():
     assert err[:, bulk].max() < 0.3, err[:, bulk].max(axis=(1, 2))
     # the critic learnt the reward: small loss at the end
     assert critic_loss.max() < 0.02, critic_loss
+
+
+def test_td3_switches_still_solve_the_bandit():
+    """Twin critics and a delayed actor (half the actor steps): the bandit is still solved. The
+    critic loss is the sum of the two critics' losses. Measured over 5 root keys x 8 seeds, default and
+    AVX2 ISAs: err0 min 0.257, mean err over seeds max 0.053, per seed max 0.060, critic loss max 0.0034."""
+    err0, err, critic_loss, _ = _bandit_errors(twin_critics=True, actor_delay=2)
+    seed_mean = err.mean(axis=(1, 2))
+    assert err0.mean(axis=(1, 2)).min() > 0.2, err0.mean(axis=(1, 2))
+    assert seed_mean.mean() < 0.1 and seed_mean.max() < 0.15, seed_mean
+    assert critic_loss.max() < 0.04, critic_loss

@@ -92,6 +92,12 @@ def test_config_errors_and_registry():
         HMDPXConfig(reward_scale=0)
     with pytest.raises(ValueError, match=r"^SHEDXConfig.syn_capacity must be a positive int"):
         SHEDXConfig(syn_capacity=0)
+    with pytest.raises(ValueError, match=r"^HMDPXConfig.actor_delay must be a positive int"):
+        HMDPXConfig(actor_delay=0)
+    with pytest.raises(ValueError, match=r"^HMDPXConfig.twin_critics must be True or False"):
+        HMDPXConfig(twin_critics="yes")
+    td3 = _build("hmdp-x", twin_critics=True, actor_delay=2).teacher.ddpg.config  # the switches reach the DDPG
+    assert (td3.twin_critics, td3.actor_delay) == (True, 2)
     assert config_class("hmdp-x") is HMDPXConfig and config_class("shed-x") is SHEDXConfig
     assert SHEDXConfig().real_capacity == 2048 and SHEDXConfig().actor_lr == 1e-4 and HMDPXConfig().real_capacity == 10000
     import envs

@@ -57,14 +57,17 @@ class HMDPXConfig(TeacherConfig):
     preact_penalty: float = 0.01
     actor_out_init: Literal["lecun", "zeros"] = "zeros"
     ddpg_updates: int = 2  # DDPG updates per budget step once |B_real| > ddpg_threshold (without a synthesiser)
+    twin_critics: bool = False  # TD3's clipped double Q (DDPGConfig.twin_critics)
+    actor_delay: int = 1  # the actor and targets update every k-th DDPG update (DDPGConfig.actor_delay)
 
-    POSITIVE: ClassVar[tuple] = TeacherConfig.POSITIVE + ("ddpg_updates",)
+    POSITIVE: ClassVar[tuple] = TeacherConfig.POSITIVE + ("ddpg_updates", "actor_delay")
 
     def __post_init__(self):
         super().__post_init__()
         name = type(self).__name__
-        if not isinstance(self.crn, bool):
-            raise ValueError(f"{name}.crn must be True or False, got {self.crn!r}")
+        for flag in ("crn", "twin_critics"):
+            if not isinstance(getattr(self, flag), bool):
+                raise ValueError(f"{name}.{flag} must be True or False, got {getattr(self, flag)!r}")
         if not (isinstance(self.reward_scale, (int, float)) and math.isfinite(self.reward_scale) and self.reward_scale > 0):
             raise ValueError(f"{name}.reward_scale must be a finite number > 0, got {self.reward_scale!r}")
         if not 0.0 < self.tau <= 1.0:
@@ -79,7 +82,7 @@ class SHEDXConfig(HMDPXConfig, SHEDConfig):
 
     real_capacity: int = 2048  # SHED's (HMDPXConfig's fields, TeacherConfig's default included, come later in the MRO)
 
-    POSITIVE: ClassVar[tuple] = SHEDConfig.POSITIVE + ("ddpg_updates",)
+    POSITIVE: ClassVar[tuple] = SHEDConfig.POSITIVE + ("ddpg_updates", "actor_delay")
 
 
 def teacher_x_dims(env, config: HMDPXConfig) -> tuple[int, int]:
@@ -107,7 +110,8 @@ class LearningTeacher(HierarchicalTeacher):
         cfg = self.config
         ddpg = make_ddpg(DDPGConfig(m, da, actor_lr=cfg.actor_lr, critic_lr=cfg.critic_lr, explore_sigma=cfg.explore_sigma,
                                     reward_norm=cfg.reward_norm == "batch", tau=cfg.tau, preact_penalty=cfg.preact_penalty,
-                                    actor_out_init=cfg.actor_out_init))
+                                    actor_out_init=cfg.actor_out_init, twin_critics=cfg.twin_critics,
+                                    actor_delay=cfg.actor_delay))
         return DDPGTeacher(ddpg, capacity=cfg.real_capacity, batch_size=cfg.ddpg_batch, threshold=cfg.ddpg_threshold,
                            num_updates=cfg.ddpg_updates, state_scale=cfg.state_scale)
 

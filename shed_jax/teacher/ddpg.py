@@ -54,6 +54,11 @@ class DDPGConfig:
     # Options of the learning teacher (shed_jax.methods.learning_teacher); the defaults are the official code's.
     preact_penalty: float = 0.0  # the actor loss adds preact_penalty * mean(z^2) of its pre-tanh outputs z
     actor_out_init: Literal["lecun", "zeros"] = "lecun"  # 'zeros': the actor's last layer starts at 0, so mu(s) = 0
+    # TD3's clipped double Q (Fujimoto et al., 2018): two critics, both fitted to
+    # r + gamma min(Q1', Q2'); the actor ascends Q1. Off: one critic, as in DDPG.
+    twin_critics: bool = False
+    # the actor and both target networks update on every k-th call of ``update`` (TD3: 2); the critic on every call
+    actor_delay: int = 1
 
     def __post_init__(self):
         object.__setattr__(self, "hidden", tuple(int(h) for h in self.hidden))
@@ -73,6 +78,10 @@ class DDPGConfig:
             raise ValueError(f"DDPGConfig.explore_sigma must be >= 0, got {self.explore_sigma}")
         if not self.preact_penalty >= 0.0:
             raise ValueError(f"DDPGConfig.preact_penalty must be >= 0, got {self.preact_penalty}")
+        if not isinstance(self.twin_critics, bool):
+            raise ValueError(f"DDPGConfig.twin_critics must be True or False, got {self.twin_critics!r}")
+        if isinstance(self.actor_delay, bool) or not isinstance(self.actor_delay, int) or self.actor_delay < 1:
+            raise ValueError(f"DDPGConfig.actor_delay must be an int >= 1, got {self.actor_delay!r}")
         check_modes(self)
 
 
@@ -102,6 +111,16 @@ class Critic(nn.Module):
         return nn.Dense(1)(x)[..., 0]
 
 
+class TwinCritic(nn.Module):
+    """Two independent critics; returns [2, ...] (Q1, Q2)."""
+
+    hidden: Sequence[int] = (400, 300)
+
+    @nn.compact
+    def __call__(self, s, u):
+        return jnp.stack([Critic(self.hidden, name="q1")(s, u), Critic(self.hidden, name="q2")(s, u)])
+
+
 @struct.dataclass
 class DDPGState:
     actor_params: dict
@@ -114,7 +133,18 @@ class DDPGState:
 
 
 def _nets(config: DDPGConfig):
-    return Actor(config.action_dim, config.hidden, config.actor_out_init == "zeros"), Critic(config.hidden)
+    critic = TwinCritic(config.hidden) if config.twin_critics else Critic(config.hidden)
+    return Actor(config.action_dim, config.hidden, config.actor_out_init == "zeros"), critic
+
+
+def _q1(config: DDPGConfig, q):
+    """The critic the actor follows (the only one without twin critics)."""
+    return q[0] if config.twin_critics else q
+
+
+def _q_target(config: DDPGConfig, q):
+    """The value a target takes: min(Q1', Q2') with twin critics."""
+    return jnp.min(q, axis=0) if config.twin_critics else q
 
 
 def _optims(config: DDPGConfig):
@@ -165,9 +195,9 @@ def ddpg_act(config: DDPGConfig, state: DDPGState, s, key: jax.Array | None = No
 
 
 def ddpg_q(config: DDPGConfig, state: DDPGState, s, u) -> jax.Array:
-    """Q(s, u) of the online critic."""
+    """Q(s, u) of the online critic (Q1 with twin critics)."""
     _, critic = _nets(config)
-    return critic.apply(state.critic_params, s, u)
+    return _q1(config, critic.apply(state.critic_params, s, u))
 
 
 def ddpg_update(config: DDPGConfig, state: DDPGState, batch: Transition, real_mask=None):
@@ -183,11 +213,13 @@ def ddpg_update(config: DDPGConfig, state: DDPGState, batch: Transition, real_ma
     if config.reward_norm:
         r = zscore_mixed(r, jnp.ones(r.shape[-1:], bool) if real_mask is None else real_mask)
     next_u = actor.apply(state.target_actor_params, batch.s_next)
-    q_next = critic.apply(state.target_critic_params, batch.s_next, next_u)
+    q_next = _q_target(config, critic.apply(state.target_critic_params, batch.s_next, next_u))
     y = jax.lax.stop_gradient(r + config.gamma * (1.0 - batch.done) * q_next)
 
     def critic_loss(p):
-        q = critic.apply(p, batch.s, batch.u)
+        q = critic.apply(p, batch.s, batch.u)  # [2, B] with twin critics: the loss sums both MSEs
+        if config.twin_critics:
+            return jnp.sum(jnp.mean((q - y) ** 2, axis=-1)), q[0]
         return jnp.mean((q - y) ** 2), q
 
     (c_loss, q), c_grads = jax.value_and_grad(critic_loss, has_aux=True)(state.critic_params)
@@ -196,23 +228,25 @@ def ddpg_update(config: DDPGConfig, state: DDPGState, batch: Transition, real_ma
 
     def actor_loss(p):
         if not config.preact_penalty:
-            return -jnp.mean(critic.apply(critic_params, batch.s, actor.apply(p, batch.s)))
+            return -jnp.mean(_q1(config, critic.apply(critic_params, batch.s, actor.apply(p, batch.s))))
         u, z = actor.apply(p, batch.s, preact=True)
-        return -jnp.mean(critic.apply(critic_params, batch.s, u)) + config.preact_penalty * jnp.mean(z ** 2)
+        return -jnp.mean(_q1(config, critic.apply(critic_params, batch.s, u))) + config.preact_penalty * jnp.mean(z ** 2)
 
     a_loss, a_grads = jax.value_and_grad(actor_loss)(state.actor_params)
     a_updates, actor_opt_state = opt_a.update(a_grads, state.actor_opt_state, state.actor_params)
     actor_params = optax.apply_updates(state.actor_params, a_updates)
-
-    new_state = DDPGState(
+    slow = dict(
         actor_params=actor_params,
-        critic_params=critic_params,
         target_actor_params=optax.incremental_update(actor_params, state.target_actor_params, config.tau),
         target_critic_params=optax.incremental_update(critic_params, state.target_critic_params, config.tau),
         actor_opt_state=actor_opt_state,
-        critic_opt_state=critic_opt_state,
-        num_updates=state.num_updates + 1,
     )
+    if config.actor_delay > 1:  # the actor's step and the targets' only on every k-th update, else kept
+        now = (state.num_updates + 1) % config.actor_delay == 0
+        slow = {k: jax.tree_util.tree_map(lambda a, b: jnp.where(now, a, b), v, getattr(state, k)) for k, v in slow.items()}
+
+    new_state = DDPGState(critic_params=critic_params, critic_opt_state=critic_opt_state,
+                          num_updates=state.num_updates + 1, **slow)
     metrics = {"critic_loss": c_loss, "actor_loss": a_loss, "q_mean": jnp.mean(q), "target_mean": jnp.mean(y)}
     return new_state, metrics
 
@@ -223,9 +257,10 @@ def ddpg_td_errors(config: DDPGConfig, state: DDPGState, batch: Transition) -> j
     A diagnostic: the caller passes the rewards as the critic sees them (normalised or not).
     """
     actor, critic = _nets(config)
-    q_next = critic.apply(state.target_critic_params, batch.s_next, actor.apply(state.target_actor_params, batch.s_next))
+    q_next = _q_target(config, critic.apply(state.target_critic_params, batch.s_next,
+                                            actor.apply(state.target_actor_params, batch.s_next)))
     y = batch.r + config.gamma * (1.0 - batch.done) * q_next
-    return jnp.abs(critic.apply(state.critic_params, batch.s, batch.u) - y)
+    return jnp.abs(_q1(config, critic.apply(state.critic_params, batch.s, batch.u)) - y)
 
 
 @dataclasses.dataclass(frozen=True)
