@@ -44,7 +44,7 @@ demo: $(STAMP)
 	$(BIN)/python -m shed_jax demo --env $(ENV) $(ARGS)
 
 test: $(STAMP)
-	$(BIN)/python -m pytest -q -n 2 --durations=15 $(ARGS)
+	$(BIN)/python -m pytest -q -n 2 --dist worksteal --durations=15 $(ARGS)
 
 bench: $(STAMP)
 	$(BIN)/python -m experiments.bench $(ARGS)
