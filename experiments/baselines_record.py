@@ -3,7 +3,8 @@ their students on DCD's named walker levels.
 
 Each ``--lander`` / ``--walker`` argument is a sweep output directory (``python -m shed_jax sweep
 ... --out DIR``); every row of its ``sweep.json`` becomes one entry, keyed by method, with the
-sweep's ``--set`` values (e.g. ``level_switch=episode``) kept beside it. Walker sweeps must have run
+sweep's ``--set`` values (e.g. ``level_switch=episode``) and its saved arguments (``sweep_args.json``)
+kept beside it. Walker sweeps must have run
 with ``--final-eval named``; their entry holds, per named level, the mean return over seeds and the
 solved rate (return > 230). The device is the one the sweeps ran on (sweeps do not record it).
 
@@ -24,20 +25,11 @@ def _sweep(path: str) -> tuple[dict, dict]:
     return json.loads((d / "sweep.json").read_text()), json.loads((d / "sweep_args.json").read_text())
 
 
-def _command(args: dict) -> str:
-    parts = ["python -m shed_jax sweep", f"--env {args['env']}", f"--methods {args['methods']}",
-             f"--preset {args['preset']}", f"--seeds {args['seeds']}"]
-    parts += [f"--set {s}" for s in args.get("set") or []]
-    if args.get("final_eval"):
-        parts.append(f"--final-eval {args['final_eval']}")
-    return " ".join(parts)
-
-
 def lander_entries(path: str) -> dict:
     sweep, args = _sweep(path)
     return {row["method"]: {"seeds": row["seeds"], "final_mean": row["final_test_return_mean"],
                             "final_se": row["final_test_return_se"], "set": args.get("set") or [],
-                            "wall_time_s": row.get("group_wall_time_s"), "command": _command(args)}
+                            "wall_time_s": row.get("group_wall_time_s"), "sweep_args": args}
             for row in sweep["rows"]}
 
 
@@ -49,7 +41,7 @@ def walker_entries(path: str) -> dict:
         levels = {r["label"]: {"return": r["mean"], "se": r["se"], "solved": r["solved_rate"]} for r in named["per_level"]}
         out[row["method"]] = {"seeds": row["seeds"], "set": args.get("set") or [], "levels": levels,
                               "test_set_b": {"mean": row["final_test_return_mean"], "se": row["final_test_return_se"]},
-                              "wall_time_s": row.get("group_wall_time_s"), "command": _command(args)}
+                              "wall_time_s": row.get("group_wall_time_s"), "sweep_args": args}
     return out
 
 

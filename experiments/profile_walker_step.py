@@ -98,22 +98,11 @@ def _write(rec: dict, path: str) -> int:
 
 
 def step_latency(env, batch: int, steps: int = 128) -> dict:
-    """Seconds per sequential step (median of 2 after the compile) of ``vmap(step)``,
-    ``vmap(step_without_reset)`` and ``vmap(reset)`` in a ``lax.scan`` of ``steps``, random actions."""
-    levels = env.param_space.sample(jax.random.PRNGKey(1), (batch,))
-    space = env.action_space()
-    obs0, state0 = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.PRNGKey(2), batch), levels)
+    """Seconds per sequential step of ``vmap(step)``, ``vmap(step_without_reset)``
+    (``experiments.bench_latency.env_latency``) and ``vmap(reset)`` alone, in scans of ``steps``."""
+    from experiments.bench_latency import _timed as best_of_3, env_latency
 
-    def scan_of(fn):
-        @jax.jit
-        def run(state, key):
-            def body(st, k):
-                ka, ks = jax.random.split(k)
-                a = jax.vmap(space.sample)(jax.random.split(ka, batch))
-                _, st, r, _, _ = jax.vmap(fn)(jax.random.split(ks, batch), st, a, levels)
-                return st, r.sum()
-            return jax.lax.scan(body, state, jax.random.split(key, steps))[1].sum()
-        return run
+    levels = env.param_space.sample(jax.random.PRNGKey(1), (batch,))
 
     @jax.jit
     def resets(key):
@@ -122,12 +111,10 @@ def step_latency(env, batch: int, steps: int = 128) -> dict:
             return acc + obs.sum(), None
         return jax.lax.scan(body, jnp.float32(0), jax.random.split(key, steps))[0]
 
-    row = {"batch": batch, "steps": steps}
-    for name, fn, args in (("step_s", scan_of(env.step), (state0, jax.random.PRNGKey(3))),
-                           ("step_without_reset_s", scan_of(env.step_without_reset), (state0, jax.random.PRNGKey(3))),
-                           ("reset_s", resets, (jax.random.PRNGKey(4),))):
-        row[name] = _timed(fn, *args)[0] / steps
-    return row
+    return {"batch": batch, "steps": steps,
+            "step_s": env_latency(env, batch, steps)["s_per_step"],
+            "step_without_reset_s": env_latency(env, batch, steps, env.step_without_reset)["s_per_step"],
+            "reset_s": best_of_3(resets, jax.random.PRNGKey(4))[1] / steps}
 
 
 if __name__ == "__main__":

@@ -206,8 +206,10 @@ def experiment_from_args(args, backend: str):
 
 
 def experiment_from_dict(d: dict):
-    """Rebuild an Experiment from ``Experiment.to_dict()`` (as saved in config.json / a checkpoint;
-    fields missing from an older save keep their defaults)."""
+    """Rebuild an Experiment from ``Experiment.to_dict()`` (as saved in config.json / a checkpoint).
+    Fields missing from an older save take the values that save ran with where those differ from
+    today's defaults (``SAVED_BEFORE`` of the method's config, LoopSpec.max_recorded_levels), else
+    the defaults."""
     from shed_jax import configs
     from shed_jax.checkpoint import CheckpointError
     from shed_jax.loop import LoopSpec

@@ -1,5 +1,6 @@
 """experiments.walker_loop's arithmetic: the protocol estimate from per-kind step times, and the
-flat-level PPO record read from a bench_ppo results file (hand-computed cases)."""
+flat-level PPO record read from a bench_ppo results file, the named-level rates, and the
+baselines record written from sweep directories (hand-computed cases)."""
 import json
 
 import pytest
@@ -49,3 +50,46 @@ def test_record_composed_from_measured_parts(tmp_path):
     assert rec["device"] == "NVIDIA H200" and rec["date"] == "2026-11-25"  # the measurement's, not today's machine
     assert rec["budget_step_seconds"] == {"dr": 21.0} and rec["loops_source"]["command"] == loops["command"]
     assert rec["ppo_flat"]["median_steps_to_230"] == 1_000_000 and rec["named_solved_rate"] is None
+
+
+def _named_eval(path, rows, seeds=5, episodes=10):
+    path.write_text(json.dumps({"seeds": seeds, "episodes": episodes, "per_level": [
+        {"label": label, "mean": mean, "se": se, "solved_rate": solved} for label, mean, se, solved in rows]}))
+
+
+def test_named_solved_rates_fold_in_per_method(tmp_path):
+    loops = {"device": "NVIDIA H200", "date": "2026-11-25", "command": "c", "loops": {}, "budget_step_seconds": {}}
+    (tmp_path / "loops.json").write_text(json.dumps(loops))
+    _named_eval(tmp_path / "dr.json", [("BipedalWalker", 120.0, 29.5, 0.0), ("Stump", -46.1, 6.1, 0.0)])
+    _named_eval(tmp_path / "accel.json", [("BipedalWalker", 250.0, 3.0, 0.9)], seeds=3)
+    out = tmp_path / "record.json"
+    assert walker_loop.main(["--loops-from", str(tmp_path / "loops.json"), "--named", f"dr={tmp_path / 'dr.json'}",
+                             "--named", f"accel={tmp_path / 'accel.json'}", "--out", str(out)]) == 0
+    rec = json.loads(out.read_text())
+    assert rec["named_solved_rate"] == {"dr": {"BipedalWalker": 0.0, "Stump": 0.0}, "accel": {"BipedalWalker": 0.9}}
+    assert rec["named_sources"]["accel"]["seeds"] == 3 and rec["named_sources"]["dr"]["episodes"] == 10
+
+
+def test_baselines_record_reads_sweeps(tmp_path):
+    from experiments import baselines_record
+
+    lander, walker = tmp_path / "lander", tmp_path / "walker"
+    for d, env, method, mean, se, extra in ((lander, "lander", "plr", 89.3, 6.0, ["level_switch=episode"]),
+                                            (walker, "walker", "dr", -33.4, 7.3, [])):
+        (d / method / "default").mkdir(parents=True)
+        (d / "sweep.json").write_text(json.dumps({"rows": [{"method": method, "seeds": 10, "dir": f"{method}/default",
+                                                            "final_test_return_mean": mean, "final_test_return_se": se,
+                                                            "group_wall_time_s": 100.0}]}))
+        (d / "sweep_args.json").write_text(json.dumps({"env": env, "methods": method, "set": extra}))
+    _named_eval(walker / "dr" / "default" / "final_eval_named.json", [("BipedalWalker", 120.0, 29.5, 0.0)])
+    out = tmp_path / "baselines.json"
+    assert baselines_record.main(["--device", "NVIDIA H200", "--date", "2026-11-25", "--lander", str(lander),
+                                  "--walker", str(walker), "--out", str(out)]) == 0
+    rec = json.loads(out.read_text())
+    assert (rec["device"], rec["date"]) == ("NVIDIA H200", "2026-11-25")
+    plr = rec["lander"]["plr"]
+    assert (plr["seeds"], plr["final_mean"], plr["final_se"], plr["set"]) == (10, 89.3, 6.0, ["level_switch=episode"])
+    assert plr["sweep_args"]["env"] == "lander"
+    dr = rec["walker"]["dr"]
+    assert dr["levels"] == {"BipedalWalker": {"return": 120.0, "se": 29.5, "solved": 0.0}}
+    assert dr["test_set_b"] == {"mean": -33.4, "se": 7.3}

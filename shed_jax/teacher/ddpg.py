@@ -218,9 +218,8 @@ def ddpg_update(config: DDPGConfig, state: DDPGState, batch: Transition, real_ma
 
     def critic_loss(p):
         q = critic.apply(p, batch.s, batch.u)  # [2, B] with twin critics: the loss sums both MSEs
-        if config.twin_critics:
-            return jnp.sum(jnp.mean((q - y) ** 2, axis=-1)), q[0]
-        return jnp.mean((q - y) ** 2), q
+        loss = jnp.sum(jnp.mean((q - y) ** 2, axis=-1)) if config.twin_critics else jnp.mean((q - y) ** 2)
+        return loss, _q1(config, q)
 
     (c_loss, q), c_grads = jax.value_and_grad(critic_loss, has_aux=True)(state.critic_params)
     c_updates, critic_opt_state = opt_c.update(c_grads, state.critic_opt_state, state.critic_params)
