@@ -6,7 +6,8 @@ Each ``--lander`` / ``--walker`` argument is a sweep output directory (``python 
 sweep's ``--set`` values (e.g. ``level_switch=episode``) and its saved arguments (``sweep_args.json``)
 kept beside it. Walker sweeps must have run
 with ``--final-eval named``; their entry holds, per named level, the mean return over seeds and the
-solved rate (return > 230). The device is the one the sweeps ran on (sweeps do not record it).
+solved rate (return > 230), and ``dcd_six_solved_mean`` is the solved rate averaged over DCD's six
+test levels (the comparison of DCD's table). The device is the one the sweeps ran on (sweeps do not record it).
 
     python -m experiments.baselines_record --device "NVIDIA H200" --date 2026-11-25 \\
         --lander runs/ep_plr --lander runs/ep_accel --walker runs/wdr --out docs/results/baselines.json
@@ -18,6 +19,8 @@ import json
 import pathlib
 import sys
 import time
+
+from shed_jax.eval_sets import DCD_TEST_LEVELS
 
 
 def _sweep(path: str) -> tuple[dict, dict]:
@@ -39,7 +42,9 @@ def walker_entries(path: str) -> dict:
     for row in sweep["rows"]:
         named = json.loads((pathlib.Path(path) / row["dir"] / "final_eval_named.json").read_text())
         levels = {r["label"]: {"return": r["mean"], "se": r["se"], "solved": r["solved_rate"]} for r in named["per_level"]}
+        six = [levels[name]["solved"] for name in DCD_TEST_LEVELS if name in levels]
         out[row["method"]] = {"seeds": row["seeds"], "set": args.get("set") or [], "levels": levels,
+                              "dcd_six_solved_mean": sum(six) / len(six) if len(six) == len(DCD_TEST_LEVELS) else None,
                               "test_set_b": {"mean": row["final_test_return_mean"], "se": row["final_test_return_se"]},
                               "wall_time_s": row.get("group_wall_time_s"), "sweep_args": args}
     return out

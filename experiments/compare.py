@@ -47,6 +47,8 @@ import sys
 
 import numpy as np
 
+from shed_jax import eval_sets
+
 # The paper's digitised mean test-return curves, docs/design.md §12.1 (digitised from the
 # paper's figures: mean line only, about ±10-20; x = student update 0-1000; y = mean return over the
 # 10 test levels). A (low, high) pair is a range read off the figure. Keys are our method names:
@@ -77,7 +79,7 @@ PAPER_STEPS_PER_UPDATE = {"lander": 1e3, "walker": 1e4}
 # DCD's six standard BipedalWalker test levels (docs/design.md §9.2, §13.2), in the column order of DCD's table, and
 # DCD's results on them (docs/design.md §12.2, from DCD's results files: 20k updates, about 6.6e8 Box2D steps,
 # 10 seeds): (mean return, SE, solved rate) per level. An ordering reference, not a parity target.
-NAMED_SET_A = ("BipedalWalker", "Hardcore", "Stairs", "PitGap", "Stump", "Roughness")
+NAMED_SET_A = eval_sets.DCD_TEST_LEVELS
 DCD_SOLVED_THRESHOLD = 230.0  # an episode is solved when its return is above this (docs/design.md §9.3)
 DCD_NAMED = {
     "ACCEL": ((317.9, 0.9, .998), (210.8, 10.7, .629), (91.6, 9.7, .206), (112.0, 24.0, .310), (165.8, 14.0, .491),

@@ -64,8 +64,14 @@ def summarise_point(point_dir: pathlib.Path) -> dict:
 def summarise(dirs, out):
     runs = []
     for d in dirs:
-        for summ in sorted(pathlib.Path(d).glob("*/*/summary.json")):
-            runs.append({"sweep": str(d), **summarise_point(summ.parent)})
+        d = pathlib.Path(d)
+        sweep = d / "sweep.json"  # a sweep's group names its --set values, e.g. hmdp-x[twin_critics=true]
+        groups = {row["dir"]: row.get("group", row["method"])
+                  for row in json.loads(sweep.read_text())["rows"]} if sweep.exists() else {}
+        for summ in sorted(d.glob("*/*/summary.json")):
+            run = summarise_point(summ.parent)
+            run["group"] = groups.get(str(summ.parent.relative_to(d)), run["method"])
+            runs.append({"sweep": str(d), **run})
     pathlib.Path(out).write_text(json.dumps(runs, indent=1))
     print(f"{len(runs)} runs -> {out}")
 
@@ -79,7 +85,8 @@ def aggregate(runs: list[dict]) -> dict:
     """Pool the seeds of runs with the same (method, point) -> the record's entry per name."""
     groups: dict[str, list[dict]] = {}
     for r in runs:
-        name = r["method"] if r["point"] == "default" else f"{r['method']}[{r['point']}]"
+        group = r.get("group", r["method"])  # runs summarised before groups were kept: the method
+        name = group if r["point"] == "default" else f"{group}[{r['point']}]"
         groups.setdefault(name, []).append(r)
     out = {}
     for name, rs in groups.items():

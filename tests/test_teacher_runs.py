@@ -44,3 +44,21 @@ def test_summarise_and_pool_two_runs(tmp_path):
     record([tmp_path / "c.json"], tmp_path / "r.json", "cpu", "cmd", "2026-01-01", ["a note"])
     rec = json.loads((tmp_path / "r.json").read_text())
     assert rec["device"] == "cpu" and rec["notes"] == ["a note"] and rec["lander"]["hmdp-x"]["seeds"] == 2
+
+
+def test_a_sweeps_set_values_keep_its_runs_apart(tmp_path):
+    """Two sweeps of hmdp-x at the point actor_lr=1e-05, one with --set twin_critics=true: the group name from
+    sweep.json keeps them two entries, where the method name alone would pool their seeds."""
+    from experiments.teacher_runs import summarise
+
+    for name, group, finals in (("plain", "hmdp-x", [14.0]), ("td3", "hmdp-x[twin_critics=true]", [30.0])):
+        d = tmp_path / name
+        _write_point(d / "hmdp-x" / "actor_lr=1e-05", "hmdp-x", "actor_lr=1e-05",
+                     _rows(0, [10.0, finals[0]], [[0.0, 0.0], [0.0, 0.0]]), finals)
+        (d / "sweep.json").write_text(json.dumps({"rows": [{"method": "hmdp-x", "group": group, "point": "actor_lr=1e-05",
+                                                             "dir": "hmdp-x/actor_lr=1e-05"}]}))
+    summarise([tmp_path / "plain", tmp_path / "td3"], tmp_path / "c.json")
+    entries = aggregate(json.loads((tmp_path / "c.json").read_text()))
+    assert sorted(entries) == ["hmdp-x[actor_lr=1e-05]", "hmdp-x[twin_critics=true][actor_lr=1e-05]"]
+    assert entries["hmdp-x[twin_critics=true][actor_lr=1e-05]"]["final_mean"] == 30.0
+    assert entries["hmdp-x[actor_lr=1e-05]"]["seeds"] == 1

@@ -73,18 +73,24 @@ def test_named_solved_rates_fold_in_per_method(tmp_path):
 def test_baselines_record_reads_sweeps(tmp_path):
     from experiments import baselines_record
 
-    lander, walker = tmp_path / "lander", tmp_path / "walker"
+    lander, walker, walker2 = tmp_path / "lander", tmp_path / "walker", tmp_path / "walker2"
     for d, env, method, mean, se, extra in ((lander, "lander", "plr", 89.3, 6.0, ["level_switch=episode"]),
-                                            (walker, "walker", "dr", -33.4, 7.3, [])):
+                                            (walker, "walker", "dr", -33.4, 7.3, []),
+                                            (walker2, "walker", "accel", -51.0, 6.1, [])):
         (d / method / "default").mkdir(parents=True)
         (d / "sweep.json").write_text(json.dumps({"rows": [{"method": method, "seeds": 10, "dir": f"{method}/default",
                                                             "final_test_return_mean": mean, "final_test_return_se": se,
                                                             "group_wall_time_s": 100.0}]}))
         (d / "sweep_args.json").write_text(json.dumps({"env": env, "methods": method, "set": extra}))
     _named_eval(walker / "dr" / "default" / "final_eval_named.json", [("BipedalWalker", 120.0, 29.5, 0.0)])
+    # DCD's six levels and one more, whose solved rate must not enter the six-level mean
+    six = [("BipedalWalker", 254.0, 5.8, 0.9), ("Hardcore", -140.7, 12.5, 0.3), ("Stairs", -68.2, 2.7, 0.0),
+           ("PitGap", -92.1, 1.7, 0.0), ("Stump", -143.8, 11.5, 0.0), ("Roughness", -90.9, 7.0, 0.0),
+           ("Insane", 300.0, 1.0, 1.0)]
+    _named_eval(walker2 / "accel" / "default" / "final_eval_named.json", six)
     out = tmp_path / "baselines.json"
     assert baselines_record.main(["--device", "NVIDIA H200", "--date", "2026-11-25", "--lander", str(lander),
-                                  "--walker", str(walker), "--out", str(out)]) == 0
+                                  "--walker", str(walker), "--walker", str(walker2), "--out", str(out)]) == 0
     rec = json.loads(out.read_text())
     assert (rec["device"], rec["date"]) == ("NVIDIA H200", "2026-11-25")
     plr = rec["lander"]["plr"]
@@ -93,3 +99,5 @@ def test_baselines_record_reads_sweeps(tmp_path):
     dr = rec["walker"]["dr"]
     assert dr["levels"] == {"BipedalWalker": {"return": 120.0, "se": 29.5, "solved": 0.0}}
     assert dr["test_set_b"] == {"mean": -33.4, "se": 7.3}
+    assert dr["dcd_six_solved_mean"] is None  # not all six levels were evaluated
+    assert rec["walker"]["accel"]["dcd_six_solved_mean"] == pytest.approx(1.2 / 6)

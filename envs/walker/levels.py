@@ -13,6 +13,7 @@ import numpy as np
 
 from envs.core import FIXED, UNIFORM, EditTable, UEDSpec
 from envs.walker.params import FULL_HIGH, FULL_LOW, PARAM_NAMES, WalkerParams, make_params, param_space
+from shed_jax import eval_sets
 
 
 def _lvl(roughness=0.0, pit=(0.0, 0.0), stump=(0.0, 0.0), stair=(0.0, 0.0), steps=1.0, max_steps=2000, gym_hardcore=False):
@@ -59,7 +60,7 @@ LEVEL_FIELDS: dict[str, dict] = {
 }
 
 #: DCD's six standard test levels (test set A).
-DCD_TEST_LEVELS = ("BipedalWalker", "Hardcore", "Stairs", "PitGap", "Stump", "Roughness")
+DCD_TEST_LEVELS = eval_sets.DCD_TEST_LEVELS  # DCD's six test levels, in the column order of its table
 
 
 def _builder(fields):
@@ -141,21 +142,18 @@ EDIT_TABLE = EditTable(
 
 def eval_set(kind: str, m: int):
     """The teacher's evaluation set: the docs/design.md §9.1 difficulty ladder (seed 92), whatever ``kind``."""
-    from shed_jax import eval_sets  # the level-set data lives with the other environments' sets
 
     return eval_sets.walker_eval_set(m)
 
 
 def test_set_a(base):
     """DCD's six test levels (docs/design.md §9.2 set A), fixed terrains."""
-    from shed_jax import eval_sets
 
     return eval_sets.walker_test_set_a(), list(eval_sets.DCD_TEST_LEVELS)
 
 
 def test_set_b(base):
     """Ten ladder levels of seed 2024 (docs/design.md §9.2 set B), labelled ladder-i."""
-    from shed_jax import eval_sets
 
     ls = eval_sets.walker_test_set_b()
     return ls.to_params(base), [f"ladder-{i}" for i in range(len(ls))]
@@ -163,7 +161,6 @@ def test_set_b(base):
 
 def named_levels(base):
     """Every level of ``LEVELS`` (DCD's six first), fixed terrains of seeds 1000 + i."""
-    from shed_jax import eval_sets
 
     names = tuple(LEVELS)
     return eval_sets.walker_test_set_a(names), list(names)
