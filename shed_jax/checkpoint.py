@@ -557,8 +557,12 @@ def find_nonfinite(metrics: dict[str, np.ndarray], state=None, start_step: int =
     if state is not None:
         leaves = [(p, x) for p, x in jax.tree_util.tree_flatten_with_path(_storable(state))[0]
                   if is_param_path(p) and np.issubdtype(np.dtype(x.dtype), np.floating)]
-        for (path, _), x in zip(leaves, jax.device_get([x for _, x in leaves])):
-            x = np.asarray(x)
+        # one reduction per leaf on the device; only a leaf that fails comes to the host whole
+        finite = jax.device_get(_all_finite([x for _, x in leaves])) if leaves else []
+        for (path, x), ok in zip(leaves, finite):
+            if ok:
+                continue
+            x = np.asarray(jax.device_get(x))
             bad = ~np.isfinite(x)
             if bad.any():
                 seeds, count = _seeds_and_count(bad)
@@ -585,6 +589,12 @@ def find_nonfinite(metrics: dict[str, np.ndarray], state=None, start_step: int =
             seeds, count = _seeds_and_count(bad)
             problems.append(f"metric {key}: {what} in {count} value(s) (seed(s) {seeds}), first at budget step {first}")
     return problems
+
+
+@jax.jit
+def _all_finite(leaves: list) -> list:
+    """Per leaf, whether every value is finite: a scalar each, so a healthy state never leaves the device."""
+    return [jax.numpy.isfinite(x).all() for x in leaves]
 
 
 def _num_steps(metrics: dict) -> int:

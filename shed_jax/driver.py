@@ -15,7 +15,10 @@ module is the host side around it:
   reported at its chunk: :class:`shed_jax.errors.WriteFailedError`, naming what is safe on disk),
   calls the caller's :class:`Reporter` (Brax's ``progress_fn`` split: the run prints its progress
   line, the sweep its per-point returns) and stops at a chunk boundary on a signal, ``--stop-after``
-  or a deadline (:class:`StopRules`);
+  or a deadline (:class:`StopRules`). The next chunk is dispatched before this host work (JAX's
+  asynchronous dispatch), so the device computes it meanwhile; the results are bitwise those of
+  the sequential loop. It is not started when a stop rule could fire within twice the last chunk's
+  host time, and it is dropped when one fires;
 * ``write_results``: each point's plots, final evaluations and, last, ``summary.json`` (a point with
   a summary is finished).
 
@@ -119,6 +122,13 @@ class StopRules:
         elif self.deadline is not None and time.time() >= self.deadline:
             self.stopped = (EXIT_STOPPED, f"--time-limit {self.time_limit:g}s reached")
         return self.stopped
+
+    def would_stop(self, done: int, margin: float = 0.0) -> bool:
+        """Whether ``check(done)`` could fire within ``margin`` seconds (no side effects): the loop then
+        does not start the next chunk ahead of time."""
+        return ((self.signals is not None and self.signals.poll() is not None)
+                or (self.stop_after is not None and done >= self.stop_after)
+                or (self.deadline is not None and time.time() + margin >= self.deadline))
 
     def signalled(self) -> bool:
         """A signal came (checked before a sweep's next group trains)."""
@@ -438,10 +448,13 @@ def _chunks(batch, compiled, progress, out, stop, reporter, ckpt, w) -> tuple[in
     from shed_jax.checkpoint import find_nonfinite
 
     S, total = batch.num_seeds, batch.total
+    ahead = None  # the next chunk's (state, metrics), dispatched before this chunk's host work
+    host_s = 0.0  # the host work of the last chunk (records, checkpoint), to keep --time-limit's promise
     while progress.done < total:
         done = progress.done
         n = min(batch.chunk, total - done)
-        new_state, metrics = compiled[n](progress.state, done)
+        new_state, metrics = ahead if ahead is not None else compiled[n](progress.state, done)
+        ahead = None
         flat = reporting.flatten_tree(sharding.unpad(sharding.to_host(metrics), batch.num_points * S))
         if progress.first_chunk_s is None:
             progress.first_chunk_s = time.time() - progress.t0
@@ -460,6 +473,12 @@ def _chunks(batch, compiled, progress, out, stop, reporter, ckpt, w) -> tuple[in
             stop.stopped = (EXIT_NONFINITE, "non-finite values")
             return stop.stopped
         progress.state = new_state
+        t_host = time.time()
+        if done + n < total and not stop.would_stop(done + n, margin=2 * host_s + 1.0):
+            # JAX dispatches asynchronously: the device computes the next chunk while the host writes
+            # this one's records and checkpoint. The same computations in the same order, so the
+            # results are bitwise those of the sequential loop; a stop rule that fires below drops it.
+            ahead = compiled[min(batch.chunk, total - done - n)](new_state, done + n)
         progress.history = flat if not progress.history else {
             k: np.concatenate([progress.history[k], v], axis=1) for k, v in flat.items()}
         for p, d in enumerate(out.dirs if out.writer else ()):
@@ -472,6 +491,7 @@ def _chunks(batch, compiled, progress, out, stop, reporter, ckpt, w) -> tuple[in
             ckpt.wait()  # a failed write is reported now, at this chunk, not at the next save
             progress.saved = progress.done
         reporter.chunk(progress, n, flat)
+        host_s = time.time() - t_host
         if progress.done >= total:
             break
         if stop.check(progress.done):

@@ -272,6 +272,47 @@ def test_signal_stops_at_chunk_boundary_and_saves(runs, patched, tmp_path, capsy
         np.testing.assert_array_equal(v, ra.history[k][:, :1], err_msg=k)
 
 
+def test_next_chunk_runs_during_the_host_work_and_a_stop_drops_it(runs, patched, tmp_path, capsys):
+    """The loop dispatches chunk k+1 before it writes chunk k's records and checkpoint. A signal during
+    that host work stops the run at chunk k (the chunk started ahead is dropped), and resuming gives the
+    straight run's records and state bit for bit."""
+    from shed_jax import reporting
+
+    a = runs[0]
+    events = []
+    real_compile, real_append = driver.compile_batch, reporting.append_jsonl
+
+    def compile_batch(*args, **kw):
+        state, compiled = real_compile(*args, **kw)
+
+        def wrap(f):
+            def call(state, done):
+                events.append(("chunk", int(done)))
+                return f(state, done)
+            return call
+        return state, {n: wrap(f) for n, f in compiled.items()}
+
+    def append(path, records):
+        events.append(("write", int(records[0]["step"])))
+        real_append(path, records)
+        if len(events) == 3:  # chunks 0 and 1 started, chunk 0's records written: a signal comes now
+            signal.raise_signal(signal.SIGTERM)
+
+    c = tmp_path / "C"
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(driver, "compile_batch", compile_batch)
+        mp.setattr(reporting, "append_jsonl", append)
+        rc = run_cli.main(parse(["--out", str(c), "--seeds", str(SEEDS), "--chunk", "1", "--no-gif"]))
+    assert rc == 128 + signal.SIGTERM
+    assert events == [("chunk", 0), ("chunk", 1), ("write", 0)]
+    assert steps_of(c) == [1]
+    capsys.readouterr()
+    assert run_cli.main(parse(["--resume", str(c), "--no-gif"])) == 0
+    assert (c / "metrics.jsonl").read_text() == (a / "metrics.jsonl").read_text()
+    target = target_for(tiny_experiment())
+    leaves_equal(restore(a, target).state, restore(c, target).state)
+
+
 def test_nonfinite_guard_stops_and_keeps_last_good_checkpoint(runs, patched, tmp_path, capsys):
     """A run whose step-2 checkpoint holds a NaN in one student bias (written through the library,
     so its digest is valid): the resumed chunk is caught, named, and not saved."""
