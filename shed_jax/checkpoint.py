@@ -13,6 +13,21 @@ checkpoint has three items:
 * ``meta`` (JSON): the step, the run configuration (``config.json``'s dict: experiment, seeds, root
   seed, ...), SHA-256 digests of ``state`` and ``history`` and caller extras (e.g. wall time).
 
+Size: orbax writes every array zstd-compressed (its default), into OCDBT data files of about
+``DATA_FILE_BYTES`` each (orbax's ``ocdbt_target_data_file_size``), so that no file of a checkpoint
+exceeds what a transfer with a per-file limit takes (16 MiB on the device machines). A leaf of the
+state whose bytes equal those of an earlier leaf (same dtype and shape) is stored once: the copy is
+saved as a scalar placeholder, and the state item's own metadata (orbax's ``custom_metadata``,
+``saved_aliases``) maps its name to the leaf it equals (SHED's diffusion sampling
+parameters are its training parameters when ``diffusion_ema`` is 0; Adam moments and target
+networks equal each other or their online networks before the first update). Restoring fills the
+copies back before the digest check, so the state read back is bitwise the one saved.
+``docs/running.md`` has the sizes (``python -m experiments.checkpoint_size``).
+
+The layout is versioned (``FORMAT``): checkpoints of every format in ``READABLE_FORMATS`` restore
+(format 1, before aliases and the data file size, has no aliases); a newer format is refused with a
+one-line :class:`CheckpointError` that says to update shed_jax.
+
 Restoring needs a *target*: the state a fresh ``init`` would build (``jax.eval_shape`` of it is
 enough). The checkpoint's tree paths, shapes and dtypes are checked against it before anything is
 read, and the digests after, so a restore is either bitwise exact or a :class:`CheckpointError`
@@ -42,7 +57,10 @@ import jax
 import numpy as np
 
 CHECKPOINT_SUBDIR = "checkpoints"
-FORMAT = 1  # bump when the layout of a checkpoint changes
+FORMAT = 2  # bump when the layout of a checkpoint changes (2: state aliases, data files of DATA_FILE_BYTES)
+READABLE_FORMATS = (1, 2)  # formats this version restores
+#: target size of each OCDBT data file of an item (orbax ``ocdbt_target_data_file_size``)
+DATA_FILE_BYTES = 8 * 2**20
 #: configuration keys a resumed run must share with its checkpoint
 COMPARED_KEYS = ("experiment", "seeds", "root_seed")
 
@@ -223,6 +241,39 @@ def _unstorable(restored, target):
     )
 
 
+def find_aliases(leaves: dict[str, Any]) -> dict[str, str]:
+    """``{name: earlier name}`` for every leaf whose dtype, shape and bytes equal those of an earlier
+    leaf (in sorted name order); leaves of one element are never aliased (the placeholder is one).
+
+    ``leaves``: ``{dotted name: host array}``. Equality is of the raw bytes (NaNs included), found by
+    SHA-256 and confirmed byte for byte.
+    """
+    first: dict[tuple, str] = {}
+    aliases: dict[str, str] = {}
+    for name in sorted(leaves):
+        x = np.ascontiguousarray(np.asarray(leaves[name]))
+        if x.size < 2:
+            continue
+        key = (x.dtype.str, x.shape, hashlib.sha256(x.tobytes()).digest())
+        source = first.setdefault(key, name)
+        if source != name and np.asarray(leaves[source]).tobytes() == x.tobytes():
+            aliases[name] = source
+    return aliases
+
+
+def saved_aliases(state_metadata) -> dict[str, str]:
+    """The aliases a state item was saved with (its orbax custom metadata; none in format 1)."""
+    custom = getattr(state_metadata, "custom_metadata", None) or {}
+    aliases = custom.get("aliases", {}) if isinstance(custom, dict) else None
+    if not isinstance(aliases, dict) or not all(isinstance(k, str) and isinstance(v, str) for k, v in aliases.items()):
+        raise ValueError(f"malformed aliases in the state's metadata: {str(custom)[:100]}")
+    return aliases
+
+
+def _placeholder(dtype) -> np.ndarray:
+    return np.zeros((), dtype)
+
+
 def tree_digest(tree) -> str:
     """SHA-256 over every leaf's path, dtype, shape and bytes (host copies)."""
     h = hashlib.sha256()
@@ -286,14 +337,19 @@ class RunCheckpointer:
     """Save and restore checkpoints of one run directory (``DIR/checkpoints``).
 
     ``keep``: how many of the most recent checkpoints to keep. ``create=False`` opens an existing
-    run read-only (raises :class:`CheckpointNotFoundError` if there is none).
+    run read-only (raises :class:`CheckpointNotFoundError` if there is none). ``data_file_bytes``:
+    the target size of each data file a save writes (orbax's ``ocdbt_target_data_file_size``).
     """
 
-    def __init__(self, run_dir, keep: int = 3, create: bool = True, async_save: bool = True):
+    def __init__(self, run_dir, keep: int = 3, create: bool = True, async_save: bool = True,
+                 data_file_bytes: int = DATA_FILE_BYTES):
         import orbax.checkpoint as ocp
 
         if not isinstance(keep, int) or keep < 1:
             raise ValueError(f"keep must be a positive int, got {keep!r}")
+        if isinstance(data_file_bytes, bool) or not isinstance(data_file_bytes, int) or data_file_bytes < 1:
+            raise ValueError(f"data_file_bytes must be a positive int, got {data_file_bytes!r}")
+        self.data_file_bytes = data_file_bytes
         self.run_dir = pathlib.Path(run_dir)
         self.directory = self.run_dir / CHECKPOINT_SUBDIR
         if not create:
@@ -304,7 +360,8 @@ class RunCheckpointer:
         self._ocp = ocp
         options = ocp.CheckpointManagerOptions(max_to_keep=keep, create=create, enable_async_checkpointing=async_save)
         handlers = {
-            "state": ocp.StandardCheckpointHandler(),
+            # the PyTree handler (StandardCheckpointHandler's base) takes the data file size on save
+            "state": ocp.PyTreeCheckpointHandler(),
             "history": ocp.StandardCheckpointHandler(),
             "meta": ocp.JsonCheckpointHandler(),
         }
@@ -364,10 +421,16 @@ class RunCheckpointer:
             quiet_closed_loop_callbacks()
             raise CheckpointCorruptError(f"checkpoint {self.directory / str(step)} is damaged: cannot read its metadata "
                                          f"({brief(err)})") from err
-        if not isinstance(meta, dict) or meta.get("format") != FORMAT or meta.get("step") != step:
+        fmt = meta.get("format") if isinstance(meta, dict) else None
+        if isinstance(fmt, int) and not isinstance(fmt, bool) and fmt > FORMAT and meta.get("step") == step:
+            raise CheckpointError(
+                f"checkpoint {self.directory / str(step)} was written by a newer shed_jax (checkpoint format {fmt}; "
+                f"this version reads formats {', '.join(map(str, READABLE_FORMATS))}): update shed_jax to use it"
+            )
+        if not isinstance(meta, dict) or fmt not in READABLE_FORMATS or meta.get("step") != step:
             raise CheckpointCorruptError(
-                f"checkpoint {self.directory / str(step)} is damaged: unexpected metadata (format {FORMAT} and step {step} "
-                f"expected): {' '.join(str(meta)[:200].split())}"
+                f"checkpoint {self.directory / str(step)} is damaged: unexpected metadata (format "
+                f"{'/'.join(map(str, READABLE_FORMATS))} and step {step} expected): {' '.join(str(meta)[:200].split())}"
             )
         return meta
 
@@ -395,13 +458,16 @@ class RunCheckpointer:
         if not isinstance(step, int) or step < 1:
             raise ValueError(f"checkpoint step must be a positive int, got {step!r}")
         storable = _storable(state)
+        host = jax.device_get(storable)
         history = {k: np.asarray(v) for k, v in history.items()}
+        aliases = find_aliases(_leaf_dict(host))
         meta = {
             "format": FORMAT,
             "step": step,
             "config": jsonable(config),
-            "state_sha256": tree_digest(jax.device_get(storable)),
-            # names, dtypes and shapes: tells a damaged array metadata from a state of another structure
+            "state_sha256": tree_digest(host),
+            # names, dtypes and shapes (copies as the leaves they equal): tells a damaged array
+            # metadata from a state of another structure
             "state_structure_sha256": structure_digest(_leaf_dict(storable)),
             "history_sha256": tree_digest(dict(sorted(history.items()))),
             "extra": jsonable(extra or {}),
@@ -409,7 +475,9 @@ class RunCheckpointer:
         self.manager.save(
             step,
             args=ocp.args.Composite(
-                state=ocp.args.StandardSave(storable),
+                # the aliases travel with the arrays they describe (the state item's own metadata)
+                state=ocp.args.PyTreeSave(_with_placeholders(storable, aliases), custom_metadata={"aliases": aliases},
+                                          ocdbt_target_data_file_size=self.data_file_bytes),
                 history=ocp.args.StandardSave(nest(history)),
                 meta=ocp.args.JsonSave(meta),
             ),
@@ -449,12 +517,18 @@ class RunCheckpointer:
         try:
             saved_meta = self.manager.item_metadata(step)
             saved_leaves = _metadata_leaves(saved_meta["state"])
+            aliases = saved_aliases(saved_meta["state"])
         except Exception as err:  # noqa: BLE001
             quiet_closed_loop_callbacks()
             raise CheckpointCorruptError(f"checkpoint {where} is damaged: cannot read the array metadata of its state "
                                          f"({brief(err)})") from err
+        # a copy is described by the leaf it equals (its own entry is a scalar placeholder)
+        consistent = all(n in saved_leaves and src in saved_leaves and src not in aliases and tuple(saved_leaves[n].shape) == ()
+                         for n, src in aliases.items())
+        if consistent:
+            saved_leaves = {n: saved_leaves[aliases.get(n, n)] for n in saved_leaves}
         recorded = meta.get("state_structure_sha256")  # absent in checkpoints written before it existed
-        if not saved_leaves or (recorded is not None and structure_digest(saved_leaves) != recorded):
+        if not saved_leaves or not consistent or (recorded is not None and structure_digest(saved_leaves) != recorded):
             raise CheckpointCorruptError(
                 f"checkpoint {where} is damaged: the array metadata of its state "
                 f"{'is missing or unreadable' if not saved_leaves else 'is not what was saved'} (state/_METADATA)"
@@ -476,7 +550,9 @@ class RunCheckpointer:
                 f"checkpoint {where} does not match the run state this configuration builds "
                 f"({len(problems)} leaf/leaves): " + "; ".join(problems[:20]) + more
             )
-        items = {"state": ocp.args.StandardRestore(storable_target)}
+        stored_target = _with_placeholders(storable_target, aliases)
+        items = {"state": ocp.args.PyTreeRestore(
+            stored_target, restore_args=ocp.checkpoint_utils.construct_restore_args(stored_target))}
         if with_history:
             items["history"] = ocp.args.StandardRestore()
         try:
@@ -486,7 +562,7 @@ class RunCheckpointer:
             raise CheckpointCorruptError(f"checkpoint {where} is damaged: cannot read its arrays ({brief(err)})") from err
         # back through the host: orbax's arrays are committed to a device, and a jitted call on
         # committed arguments is a different executable (and persistent-cache entry) than on fresh ones
-        host_state = jax.device_get(out.state)
+        host_state = _fill_aliases(jax.device_get(out.state), aliases)
         state = jax.tree_util.tree_map(jax.numpy.asarray, host_state)
         if tree_digest(host_state) != meta["state_sha256"]:
             raise CheckpointCorruptError(f"checkpoint {where} is damaged: the run state read back differs from what was saved "
@@ -500,6 +576,30 @@ class RunCheckpointer:
 
 def _leaf_dict(tree) -> dict[str, Any]:
     return {path_name(p): x for p, x in jax.tree_util.tree_flatten_with_path(tree)[0]}
+
+
+def _with_placeholders(tree, aliases: dict[str, str]):
+    """``tree`` with each aliased leaf replaced by a scalar of its dtype (a ShapeDtypeStruct in a target)."""
+    if not aliases:
+        return tree
+
+    def sub(path, x):
+        if path_name(path) not in aliases:
+            return x
+        if isinstance(x, jax.ShapeDtypeStruct):
+            return jax.ShapeDtypeStruct((), x.dtype)
+        return _placeholder(x.dtype)
+
+    return jax.tree_util.tree_map_with_path(sub, tree)
+
+
+def _fill_aliases(host_tree, aliases: dict[str, str]):
+    """A restored host tree with each aliased leaf a copy of the leaf it equals."""
+    if not aliases:
+        return host_tree
+    by_name = _leaf_dict(host_tree)
+    return jax.tree_util.tree_map_with_path(
+        lambda p, x: np.array(by_name[aliases[path_name(p)]], copy=True) if path_name(p) in aliases else x, host_tree)
 
 
 def complete_steps(run_dir) -> list[int]:
