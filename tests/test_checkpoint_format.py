@@ -191,3 +191,18 @@ def test_a_changed_structure_is_named_through_a_copy(tmp_path):
         with pytest.raises(ck.CheckpointCorruptError, match=r"params\.kernel: saved float32\[3, 64, 64\], "
                                                               r"expected float32\[3, 32, 32\]"):
             reader.restore(target_of(bigger))
+
+
+def test_checkpoint_size_counts_bytes_per_subtree():
+    from experiments.checkpoint_size import compressed_bytes, leaf_bytes, subtree_bytes
+
+    shapes = {"a": {"x": jax.ShapeDtypeStruct((5, 4), np.float32), "y": jax.ShapeDtypeStruct((3,), np.int8)},
+              "b": jax.ShapeDtypeStruct((2,), np.int16)}
+    leaves = leaf_bytes(shapes)
+    assert leaves == {"a.x": 80, "a.y": 3, "b": 4}
+    assert subtree_bytes(leaves, 1) == {"a": 83, "b": 4}
+    rng = np.random.default_rng(6)
+    w = rng.normal(size=(64, 64)).astype(np.float32)
+    packed = compressed_bytes({"w": w, "w_copy": w.copy(), "z": np.zeros((64, 64), np.float32)})
+    assert packed["w_copy"] == 0  # stored once, as the checkpoint does
+    assert packed["w"] > 0.8 * w.nbytes and packed["z"] < 0.05 * w.nbytes
