@@ -27,6 +27,7 @@ import argparse
 import collections
 import datetime
 import json
+import os
 import pathlib
 import platform
 import subprocess
@@ -225,8 +226,6 @@ def device_line() -> str:
             cpu = next((line.split(":", 1)[1].strip() for line in f if line.startswith("model name")), cpu)
     except OSError:
         pass
-    import os
-
     return f"{jax.default_backend()} ({os.cpu_count()} cores, {cpu})"
 
 
