@@ -58,13 +58,21 @@ FLAG = "--xla_cpu_multi_thread_eigen=false"
 FLAGS = (FLAG, "--xla_cpu_use_xnnpack=false")
 
 
-def apply_cpu_guard() -> None:
-    """Add each of ``FLAGS`` to ``XLA_FLAGS`` unless the user already set that option either way.
+#: The test suite's compile-time flag (tests/conftest.py), for CPU-only processes: LLVM skips its
+#: expensive optimisation passes. Compiling dominates the suite (a lander evaluation program: 52 s
+#: of XLA compile with the passes, 24 s without, 2-core CPU, 2026-11-25), while its programs run
+#: briefly; even the run-bound PPO tests got faster (62 s -> 51 s). The suite passed with it.
+#: Not used by the CLI: LLVM's flags also reach GPU code generation, and long CPU runs pay at run time.
+TEST_FLAGS = ("--xla_llvm_disable_expensive_passes=true",)
+
+
+def apply_cpu_guard(extra: tuple[str, ...] = ()) -> None:
+    """Add each of ``FLAGS`` (then ``extra``) to ``XLA_FLAGS`` unless the user already set that option either way.
 
     Call it before the first JAX computation; once the backend exists it has no effect.
     """
     flags = os.environ.get("XLA_FLAGS", "")
-    for flag in FLAGS:
+    for flag in (*FLAGS, *extra):
         option = flag[2:].split("=")[0]
         if option not in flags:
             flags = f"{flags} {flag}".strip()

@@ -4,9 +4,11 @@ import pathlib
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
 os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
-from shed_jax.xla_cpu import apply_cpu_guard  # noqa: E402
+from shed_jax.xla_cpu import TEST_FLAGS, apply_cpu_guard  # noqa: E402
 
-apply_cpu_guard()  # XLA:CPU hang guard (see shed_jax/xla_cpu.py); two xdist workers on two cores lose nothing
+# XLA:CPU hang guard (see shed_jax/xla_cpu.py); two xdist workers on two cores lose nothing. TEST_FLAGS:
+# no expensive LLVM passes, which roughly halves the compiles that dominate the suite's time.
+apply_cpu_guard(extra=TEST_FLAGS)
 
 import jax  # noqa: E402
 

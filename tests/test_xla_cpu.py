@@ -25,6 +25,17 @@ def test_guard_adds_missing_flags_and_respects_the_users(monkeypatch):
                                                "--xla_cpu_multi_thread_eigen=false"]
     xla_cpu.apply_cpu_guard()  # idempotent
     assert os.environ["XLA_FLAGS"].count("xla_cpu_multi_thread_eigen") == 1
+    # extra flags (the suite's TEST_FLAGS) follow the guard's, under the same rule
+    monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_use_xnnpack=true")
+    xla_cpu.apply_cpu_guard(extra=("--xla_llvm_disable_expensive_passes=true", "--xla_cpu_use_xnnpack=false"))
+    assert os.environ["XLA_FLAGS"].split() == ["--xla_cpu_use_xnnpack=true", "--xla_cpu_multi_thread_eigen=false",
+                                               "--xla_llvm_disable_expensive_passes=true"]
+
+
+def test_the_suite_runs_with_its_compile_flag():
+    """conftest applied TEST_FLAGS before JAX started (the suite's time depends on it)."""
+    for flag in xla_cpu.TEST_FLAGS:
+        assert flag.split("=")[0] in os.environ["XLA_FLAGS"]
 
 
 @pytest.mark.parametrize("shape", [(4, 64), (64, 64), (64, 2), (300, 256), (3, 1), (1, 3)])
