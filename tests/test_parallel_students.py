@@ -20,14 +20,14 @@ def _build(k, **overrides):
     return make_hmdp_x(env, student, config, eval_levels=eval_levels)
 
 
-def _run(method, steps=3, new_student=None):
-    """begin_episode, then ``steps`` steps; the teacher and student states before each step, the step keys."""
-    new_student = new_student or method.pool.init
+def _runner(method, steps=3):
+    """Jitted ``run(key, students)``: begin_episode on the given fresh students, then ``steps`` steps ->
+    (final teacher and student states, records, the states before each step, the step keys)."""
 
     @jax.jit
-    def run(key):
-        k_m, k_s, k_b, k_run = jax.random.split(key, 4)
-        m, s = method.begin_episode(k_b, method.init(k_m), new_student(k_s))
+    def run(key, students):
+        k_m, k_b, k_run = jax.random.split(key, 3)
+        m, s = method.begin_episode(k_b, method.init(k_m), students)
         step_keys = jax.random.split(k_run, steps)
 
         def body(carry, k):
@@ -38,7 +38,21 @@ def _run(method, steps=3, new_student=None):
         (m, s), (infos, ms, ss) = jax.lax.scan(body, (m, s), step_keys)
         return m, s, infos, ms, ss, step_keys
 
-    return run(jax.random.PRNGKey(0))
+    return run
+
+
+# no DDPG update within these runs (ddpg_threshold above the 6 transitions stored), so the teacher stays
+# the same and student 0 of two can be compared with the lone student; the untrained actor is flax's
+# (not zeros), so actions depend on the state
+SAME_TEACHER = dict(ddpg_threshold=15, actor_out_init="lecun")
+KEY, STUDENT_KEY = jax.random.PRNGKey(0), jax.random.PRNGKey(11)
+
+
+@pytest.fixture(scope="module")
+def two():
+    method = _build(2, **SAME_TEACHER)
+    run = _runner(method)
+    return method, run, run(KEY, method.pool.init(STUDENT_KEY))
 
 
 def _at(tree, *index):
@@ -102,11 +116,10 @@ def test_pool_init_and_evaluate_are_each_students_own():
     np.testing.assert_allclose(pooled, pool_episodes(each), rtol=1e-6)
 
 
-def test_each_step_stores_one_transition_per_student():
-    k, steps = 3, 3
-    method = _build(k)
+def test_each_step_stores_one_transition_per_student(two):
+    method, _, (m, s, info, ms, ss, step_keys) = two
+    k, steps = 2, 3
     base, cfg = method.base, method.config
-    m, s, info, ms, ss, step_keys = _run(method, steps)
     real, ext = m.real, info.extras
     assert int(real.count) == k * steps and int(real.pos) == k * steps
     mdim = cfg.num_eval_levels
@@ -122,15 +135,15 @@ def test_each_step_stores_one_transition_per_student():
             assert float(real.data.r[row]) == pytest.approx(r, rel=1e-4, abs=1e-6)
             assert float(ext["teacher_reward_per_student"][t, i]) == float(real.data.r[row])
             assert float(real.data.done[row]) == float(t == cfg.budget_steps - 1)
-            # the student's own action: the shared actor at its state plus its own exploration noise
+            # the student's own action: the shared actor at its own state plus its own exploration noise
             u = base.teacher.act(_at(ms.ddpg, t), ts, key_i, cfg.explore_sigma)
             np.testing.assert_allclose(real.data.u[row], u, rtol=1e-5, atol=1e-6)
             if t + 1 < steps:
                 np.testing.assert_array_equal(ms.s[t + 1, i], ext["teacher_state_per_student"][t, i])
-    # the untrained actor acts 0 everywhere (actor_out_init='zeros'): step 0's actions are the noise alone,
-    # a different draw for each student
-    u0 = np.asarray(real.data.u[:k])
-    assert np.abs(u0).max() > 0 and all(not np.allclose(u0[a], u0[b]) for a in range(k) for b in range(a))
+    # the students' states, rewards and exploration noise differ
+    assert not np.allclose(ms.s[1, 0], ms.s[1, 1]) and real.data.r[2] != real.data.r[3]
+    noise = [real.data.u[i] - base.teacher.act(_at(ms.ddpg, 0), real.data.s[i], None, 0.0) for i in range(k)]
+    assert np.abs(noise[0]).max() > 0 and not np.allclose(noise[0], noise[1])
     # the record: the students' means, every student's levels, per-student entries
     np.testing.assert_allclose(info.teacher_reward, ext["teacher_reward_per_student"].mean(axis=1), rtol=1e-6)
     np.testing.assert_allclose(ext["teacher_state"], ext["teacher_state_per_student"].mean(axis=1), rtol=1e-6)
@@ -141,37 +154,84 @@ def test_each_step_stores_one_transition_per_student():
     assert np.isnan(ext["test_return_per_student"]).all() and ext["td_error_heldout"].shape == (steps,)
     np.testing.assert_array_equal(ext["real_size"], [k, 2 * k, 3 * k])
     # common random numbers per student: s' is the evaluation of that student with its own episode key
-    assert len({tuple(np.asarray(x)) for x in m.eval_key}) == k
+    assert not np.array_equal(m.eval_key[0], m.eval_key[1])
     for i in range(k):
         np.testing.assert_allclose(base.performance(m.eval_key[i], StudentPool.member(s, i))[0], m.s[i], rtol=1e-5)
 
 
-def test_students_are_independent_and_student_0_is_the_lone_students_run():
-    # no DDPG update within the run (ddpg_threshold above the transitions stored): the teacher is the
-    # same for both runs, so student 0 of two must follow the one-student teacher's run
-    cfg = dict(ddpg_threshold=15)
-    two = _build(2, **cfg)
-    one = _build(1, **cfg)
-    m2, s2, info2, ms2, ss2, _ = _run(two, 3)
-    m1, s1, info1, ms1, ss1, _ = _run(one, 3, new_student=one.student.init)
-    assert int(m2.real.count) == 6 and int(m1.real.count) == 3
+def test_students_are_independent_and_student_0_is_the_lone_students_run(two):
+    method, run, (m2, s2, info2, _, _, _) = two
+    # student 1 started from other weights: student 0's whole run is the same, bit for bit
+    other = StudentPool.member(method.pool.init(jax.random.PRNGKey(12)), 1)
+    students = jax.tree_util.tree_map(lambda x, y: x.at[1].set(y), method.pool.init(STUDENT_KEY), other)
+    m3, s3, info3, _, _, _ = run(KEY, students)
+    for a, b in zip(jax.tree_util.tree_leaves(StudentPool.member(s2, 0)), jax.tree_util.tree_leaves(StudentPool.member(s3, 0))):
+        np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(m2.real.data.u[0:6:2], m3.real.data.u[0:6:2])
+    np.testing.assert_array_equal(info2.extras["teacher_state_per_student"][:, 0], info3.extras["teacher_state_per_student"][:, 0])
+    assert not np.array_equal(info2.extras["teacher_state_per_student"][:, 1], info3.extras["teacher_state_per_student"][:, 1])
+    kernel = lambda s: np.asarray(StudentPool.member(s.params, 1)["actor"]["MLP_0"]["Dense_0"]["kernel"])
+    assert not np.array_equal(kernel(s2), kernel(s3))
+    # the lone student's teacher (students=1) with the same keys: student 0 follows it (the same keys;
+    # vmapped arithmetic may differ in the last bits)
+    one = _build(1, **SAME_TEACHER)
+    m1, s1, info1, _, _, _ = _runner(one)(KEY, one.student.init(STUDENT_KEY))
+    assert int(m1.real.count) == 3
     np.testing.assert_allclose(m2.real.data.u[0:6:2], m1.real.data.u[:3], rtol=1e-4, atol=1e-5)
     np.testing.assert_allclose(m2.real.data.s[0:6:2], m1.real.data.s[:3], rtol=1e-4, atol=1e-4)
     np.testing.assert_allclose(m2.real.data.r[0:6:2], m1.real.data.r[:3], rtol=1e-4, atol=1e-4)
     for a, b in zip(jax.tree_util.tree_leaves(StudentPool.member(s2.params, 0)), jax.tree_util.tree_leaves(s1.params)):
         np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-5)
-    assert not np.allclose(m2.real.data.u[1], m2.real.data.u[0])
-    # one step from the same teacher with student 1 replaced: student 0's step is unchanged, bit for bit
-    m, s = _at(ms2, 1), _at(ss2, 1)
-    other = StudentPool.member(two.pool.init(jax.random.PRNGKey(9)), 1)
-    s_swapped = jax.tree_util.tree_map(lambda x, y: x.at[1].set(y), s, other)
-    step = jax.jit(two.step)
-    key = jax.random.PRNGKey(3)
-    ma, sa, ia = step(key, m, s)
-    mb, sb, ib = step(key, m, s_swapped)
-    for a, b in zip(jax.tree_util.tree_leaves(StudentPool.member(sa, 0)), jax.tree_util.tree_leaves(StudentPool.member(sb, 0))):
-        np.testing.assert_array_equal(a, b)
-    np.testing.assert_array_equal(ia.extras["teacher_state_per_student"][0], ib.extras["teacher_state_per_student"][0])
-    assert not np.array_equal(ia.extras["teacher_state_per_student"][1], ib.extras["teacher_state_per_student"][1])
-    pa, pb = (np.asarray(StudentPool.member(x.params, 1)["actor"]["MLP_0"]["Dense_0"]["kernel"]) for x in (sa, sb))
-    assert not np.array_equal(pa, pb)
+
+
+# ---- a run of K students through the run CLI: records, checkpoints, resume, eval ---------------------
+
+
+def test_a_run_of_two_students_resumes_bitwise_and_evaluates_every_student(tmp_path):
+    import json
+
+    from test_checkpoint import cartpole_test_levels, leaves_equal, parse, restore, target_for
+
+    from shed_jax import evaluation
+    from shed_jax import experiment as xp
+    from shed_jax.cli import run as run_cli
+    from shed_jax.loop import LoopSpec
+    from shed_jax.methods import hierarchical
+    from shed_jax.presets import Experiment
+    from shed_jax.student import PPOConfig
+
+    _, _, eval_levels = _cartpole()
+    ppo = PPOConfig.for_env("cartpole", num_envs=5, num_steps=4, num_minibatches=1, update_epochs=1)
+    exp = Experiment(env="cartpole", method="hmdp-x", preset="tiny", ppo=ppo,
+                     method_config={**TINY_TEACHER, "eval_max_steps": 30, "students": 2},
+                     loop=LoopSpec(steps_per_episode=2, num_episodes=2, test_episodes=1, test_max_steps=20),
+                     test_set="cartpole-test")
+    original = xp.test_levels
+    with pytest.MonkeyPatch.context() as mp:  # CartPole has no presets and no evaluation set of its own
+        mp.setattr(xp, "experiment_from_args", lambda args, backend: exp)
+        mp.setattr(xp, "test_levels", lambda name, env: cartpole_test_levels(env) if name == "cartpole-test" else original(name, env))
+        mp.setattr(hierarchical, "_evaluation_levels", lambda env, config: (eval_levels, None))
+        a, b = tmp_path / "A", tmp_path / "B"
+        assert run_cli.main(parse(["--out", str(a), "--seeds", "2", "--chunk", "1", "--no-gif"])) == 0
+        run_cli.main(parse(["--out", str(b), "--seeds", "2", "--chunk", "1", "--no-gif", "--stop-after", "2"]))
+        assert run_cli.main(parse(["--resume", str(b), "--no-gif"])) == 0
+        assert (b / "metrics.jsonl").read_text() == (a / "metrics.jsonl").read_text()
+        target = target_for(exp)
+        assert target.student.obs.shape[:2] == (2, 2)  # [seeds, students, ...]
+        ra, rb = restore(a, target), restore(b, target)
+        leaves_equal(ra.state, rb.state)
+        records = [json.loads(line) for line in (a / "metrics.jsonl").read_text().splitlines()]
+        last = [r for r in records if r["step"] == 3]
+        for r in last:  # the test return is the mean over both students' episodes
+            per_student = r["info/extras/test_return_per_student"]
+            assert len(per_student) == 2 and r["test_return"] == pytest.approx(np.mean(per_student), rel=1e-5)
+            assert len(r["test_return_per_level"]) == 2
+            assert r["info/extras/real_size"] == 8 and r["info/extras/ddpg_branch"] == 1  # 2 per step; updates ran
+        assert json.loads((a / "summary.json").read_text())["final_test_return_mean"] == pytest.approx(
+            np.mean([r["test_return"] for r in last]), rel=1e-5)
+        # eval: every seed's students, each on every level, episodes pooled per level
+        exp2, env, student, tests, seeds, step, students = evaluation.restore_students(a)
+        assert isinstance(student, StudentPool) and step == 4
+        body, _ = evaluation.evaluate_students(exp2, env, student, students, seeds,
+                                               evaluation.resolve_levels("test", env, exp2, tests), episodes=3)
+        assert np.asarray(body["returns"]).shape == (2, 2, 2 * 3)  # [seeds, levels, students x episodes]

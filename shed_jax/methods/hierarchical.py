@@ -18,6 +18,11 @@ One budget step, top to bottom (all inside one jitted function, thresholds as ``
    synthetic, if |B_syn| > 500 and both buffers > 32, else 3 real updates if |B_real| > 32), else
    the teacher's (h-MDP: 2 real updates if |B_real| > 32) [official code].
 
+The step is three parts: ``experience`` (1.-4. for one student: act, train, evaluate, reward; it
+changes nothing of the teacher), ``learn`` (the teacher: store, synthesise, update) and
+``step_info`` (the record). ``shed_jax.methods.parallel_students`` runs ``experience`` for K students
+and ``learn`` once on their K transitions.
+
 Buffers hold raw performance vectors (returns); rewards are computed on them and z-scored per DDPG
 batch (``reward_norm='batch'``; 'none' keeps them raw). With ``time_in_state`` the teacher state is
 [s, t/T] [paper]; off by default [official code].
