@@ -1,6 +1,6 @@
 """K students under one learning teacher (``students=K``, shed_jax/methods/parallel_students.py), on
 the tiny CartPole setup of test_teacher_x.py: the K transitions a step stores, the students'
-independence, student 0 against the one-student teacher, the pooled evaluation, and a resumed run."""
+independence, student 0 against the one-student teacher, the test returns and evaluations pooled over the students, and a saved and restored run state."""
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -8,6 +8,7 @@ import pytest
 
 from test_shed_method import TINY_TEACHER, _cartpole  # noqa: E402
 
+from shed_jax.methods.base import EvalRequest
 from shed_jax.methods.learning_teacher import HMDPXConfig, LearningTeacher, SHEDXConfig, make_hmdp_x
 from shed_jax.methods.parallel_students import ParallelStudents, StudentPool, pool_episodes, student_keys
 
@@ -20,9 +21,14 @@ def _build(k, **overrides):
     return make_hmdp_x(env, student, config, eval_levels=eval_levels)
 
 
+TEST_EPISODES = 2
+
+
 def _runner(method, steps=3):
-    """Jitted ``run(key, students)``: begin_episode on the given fresh students, then ``steps`` steps ->
-    (final teacher and student states, records, the states before each step, the step keys)."""
+    """Jitted ``run(key, students)``: begin_episode on the given fresh students, then ``steps`` steps with
+    the test set (2 evaluation levels, as the loop's fused test) -> (final teacher and student states,
+    records, test returns, the states before each step, the step keys)."""
+    tests = _at(getattr(method, "base", method).eval_params, slice(0, 2))
 
     @jax.jit
     def run(key, students):
@@ -32,11 +38,12 @@ def _runner(method, steps=3):
 
         def body(carry, k):
             m, s = carry
-            m2, s2, info = method.step(k, m, s)
-            return (m2, s2), (info, m, s)
+            test = EvalRequest(jax.random.fold_in(k, 7), tests, TEST_EPISODES, 20)
+            m2, s2, info, test_returns = method.step_with_test(k, m, s, test)
+            return (m2, s2), (info, test_returns, m, s)
 
-        (m, s), (infos, ms, ss) = jax.lax.scan(body, (m, s), step_keys)
-        return m, s, infos, ms, ss, step_keys
+        (m, s), (infos, test_returns, ms, ss) = jax.lax.scan(body, (m, s), step_keys)
+        return m, s, infos, test_returns, ms, ss, step_keys
 
     return run
 
@@ -93,16 +100,36 @@ def test_student_keys_and_pooled_episodes():
     np.testing.assert_array_equal(pool_episodes(r)[1], [4, 5, 6, 7, 16, 17, 18, 19])  # level 1: student 0's, then 1's
 
 
-def test_pool_init_and_evaluate_are_each_students_own():
+def test_the_ddpg_teacher_stores_and_scores_a_batch_as_its_transitions_one_by_one():
+    from shed_jax.teacher.buffers import Transition
+    from shed_jax.teacher.ddpg import DDPGConfig, make_ddpg
+    from shed_jax.teacher.ddpg_teacher import DDPGTeacher
+
+    teacher = DDPGTeacher(make_ddpg(DDPGConfig(3, 2, hidden=(8, 8))), capacity=4, batch_size=2)
+    st, buf = teacher.init(jax.random.PRNGKey(0))
+    k = jax.random.split(jax.random.PRNGKey(1), 3)
+    batch = Transition(s=jax.random.normal(k[0], (3, 3)) * 50, u=jax.random.uniform(k[1], (3, 2), minval=-1),
+                       r=jnp.array([1.0, -2.0, 0.5]), s_next=jax.random.normal(k[2], (3, 3)) * 50, done=jnp.array([0.0, 0.0, 1.0]))
+    item = lambda i: jax.tree_util.tree_map(lambda x: x[i], batch)
+    one_by_one = buf
+    for i in range(3):
+        one_by_one = teacher.store(one_by_one, item(i))
+    at_once = teacher.store(teacher.store(buf, item(0)), jax.tree_util.tree_map(lambda x: x[1:], batch))
+    jax.tree_util.tree_map(np.testing.assert_array_equal, at_once, one_by_one)
+    both = teacher.store(at_once, jax.tree_util.tree_map(lambda x: x[:2], batch))  # wraps round: FIFO
+    np.testing.assert_array_equal(both.data.r, [-2.0, -2.0, 0.5, 1.0])
+    assert int(both.count) == 4 and int(both.pos) == 1
+    td = teacher.td_error(st, batch, batch.r)
+    assert td.shape == (3,)
+    np.testing.assert_allclose(td, [teacher.td_error(st, item(i), batch.r[i]) for i in range(3)], rtol=1e-5)
+
+
+def test_pool_init_and_evaluate_per_student():
     env, student, levels = _cartpole()
     pool = StudentPool(student, 3)
     key = jax.random.PRNGKey(1)
-    states = jax.jit(pool.init)(key)
-    init_one = jax.jit(student.init)
-    for i, k in enumerate(student_keys(key, 3)):
-        one = init_one(k)
-        for a, b in zip(jax.tree_util.tree_leaves(StudentPool.member(states, i)), jax.tree_util.tree_leaves(one)):
-            np.testing.assert_array_equal(a, b)
+    states = jax.jit(pool.init)(key)  # student i from key i: student 0 is checked against a lone student below
+    assert states.obs.shape[0] == 3
     # a pool state's own (per-student) hyperparameters are taken per student
     hp = jax.tree_util.tree_map(lambda x: x * jnp.array([1.0, 2.0, 3.0], jnp.float32), states.hparams)
     again = jax.jit(pool.init)(jax.random.PRNGKey(2), hp)
@@ -117,7 +144,7 @@ def test_pool_init_and_evaluate_are_each_students_own():
 
 
 def test_each_step_stores_one_transition_per_student(two):
-    method, _, (m, s, info, ms, ss, step_keys) = two
+    method, _, (m, s, info, test_returns, ms, ss, step_keys) = two
     k, steps = 2, 3
     base, cfg = method.base, method.config
     real, ext = m.real, info.extras
@@ -151,7 +178,13 @@ def test_each_step_stores_one_transition_per_student(two):
     assert info.levels.shape == (steps, k * cfg.updates_per_step * e, base.codec.dim)
     np.testing.assert_array_equal(info.num_new_levels, ext["levels_trained_mask"].sum(axis=1))
     np.testing.assert_array_equal(info.env_steps_train, [cfg.updates_per_step * base.student.env_steps_per_update] * steps)
-    assert np.isnan(ext["test_return_per_student"]).all() and ext["td_error_heldout"].shape == (steps,)
+    assert ext["td_error_heldout"].shape == (steps,)
+    # the test returns: both students' episodes per level, student 0's first; their mean is the mean of the
+    # students' own means (the loop's test_return)
+    assert test_returns.shape == (steps, 2, k * TEST_EPISODES)
+    per_student = test_returns.reshape(steps, 2, k, TEST_EPISODES).mean(axis=(1, 3))
+    np.testing.assert_allclose(ext["test_return_per_student"], per_student, rtol=1e-6)
+    np.testing.assert_allclose(test_returns.mean(axis=(1, 2)), per_student.mean(axis=1), rtol=1e-5)
     np.testing.assert_array_equal(ext["real_size"], [k, 2 * k, 3 * k])
     # common random numbers per student: s' is the evaluation of that student with its own episode key
     assert not np.array_equal(m.eval_key[0], m.eval_key[1])
@@ -160,14 +193,15 @@ def test_each_step_stores_one_transition_per_student(two):
 
 
 def test_students_are_independent_and_student_0_is_the_lone_students_run(two):
-    method, run, (m2, s2, info2, _, _, _) = two
+    method, run, (m2, s2, info2, test2, _, _, _) = two
     # student 1 started from other weights: student 0's whole run is the same, bit for bit
     other = StudentPool.member(method.pool.init(jax.random.PRNGKey(12)), 1)
     students = jax.tree_util.tree_map(lambda x, y: x.at[1].set(y), method.pool.init(STUDENT_KEY), other)
-    m3, s3, info3, _, _, _ = run(KEY, students)
+    m3, s3, info3, test3, _, _, _ = run(KEY, students)
     for a, b in zip(jax.tree_util.tree_leaves(StudentPool.member(s2, 0)), jax.tree_util.tree_leaves(StudentPool.member(s3, 0))):
         np.testing.assert_array_equal(a, b)
     np.testing.assert_array_equal(m2.real.data.u[0:6:2], m3.real.data.u[0:6:2])
+    np.testing.assert_array_equal(test2[..., :TEST_EPISODES], test3[..., :TEST_EPISODES])
     np.testing.assert_array_equal(info2.extras["teacher_state_per_student"][:, 0], info3.extras["teacher_state_per_student"][:, 0])
     assert not np.array_equal(info2.extras["teacher_state_per_student"][:, 1], info3.extras["teacher_state_per_student"][:, 1])
     kernel = lambda s: np.asarray(StudentPool.member(s.params, 1)["actor"]["MLP_0"]["Dense_0"]["kernel"])
@@ -175,7 +209,8 @@ def test_students_are_independent_and_student_0_is_the_lone_students_run(two):
     # the lone student's teacher (students=1) with the same keys: student 0 follows it (the same keys;
     # vmapped arithmetic may differ in the last bits)
     one = _build(1, **SAME_TEACHER)
-    m1, s1, info1, _, _, _ = _runner(one)(KEY, one.student.init(STUDENT_KEY))
+    m1, s1, info1, test1, _, _, _ = _runner(one)(KEY, one.student.init(STUDENT_KEY))
+    np.testing.assert_allclose(test2[..., :TEST_EPISODES], test1, rtol=1e-4, atol=1e-4)
     assert int(m1.real.count) == 3
     np.testing.assert_allclose(m2.real.data.u[0:6:2], m1.real.data.u[:3], rtol=1e-4, atol=1e-5)
     np.testing.assert_allclose(m2.real.data.s[0:6:2], m1.real.data.s[:3], rtol=1e-4, atol=1e-4)
@@ -184,18 +219,16 @@ def test_students_are_independent_and_student_0_is_the_lone_students_run(two):
         np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-5)
 
 
-# ---- a run of K students through the run CLI: records, checkpoints, resume, eval ---------------------
+# ---- the run state of K students: built by experiment.build, saved and restored -----------------------
 
 
-def test_a_run_of_two_students_resumes_bitwise_and_evaluates_every_student(tmp_path):
-    import json
+def test_a_run_state_of_two_students_saves_and_restores(tmp_path):
+    from test_checkpoint import cartpole_test_levels, leaves_equal, restore, target_for
 
-    from test_checkpoint import cartpole_test_levels, leaves_equal, parse, restore, target_for
-
+    from shed_jax import checkpoint as ck
     from shed_jax import evaluation
     from shed_jax import experiment as xp
-    from shed_jax.cli import run as run_cli
-    from shed_jax.loop import LoopSpec
+    from shed_jax.loop import LoopSpec, make_run
     from shed_jax.methods import hierarchical
     from shed_jax.presets import Experiment
     from shed_jax.student import PPOConfig
@@ -207,31 +240,20 @@ def test_a_run_of_two_students_resumes_bitwise_and_evaluates_every_student(tmp_p
                      loop=LoopSpec(steps_per_episode=2, num_episodes=2, test_episodes=1, test_max_steps=20),
                      test_set="cartpole-test")
     original = xp.test_levels
-    with pytest.MonkeyPatch.context() as mp:  # CartPole has no presets and no evaluation set of its own
-        mp.setattr(xp, "experiment_from_args", lambda args, backend: exp)
+    with pytest.MonkeyPatch.context() as mp:  # CartPole has no evaluation set of its own
         mp.setattr(xp, "test_levels", lambda name, env: cartpole_test_levels(env) if name == "cartpole-test" else original(name, env))
         mp.setattr(hierarchical, "_evaluation_levels", lambda env, config: (eval_levels, None))
-        a, b = tmp_path / "A", tmp_path / "B"
-        assert run_cli.main(parse(["--out", str(a), "--seeds", "2", "--chunk", "1", "--no-gif"])) == 0
-        run_cli.main(parse(["--out", str(b), "--seeds", "2", "--chunk", "1", "--no-gif", "--stop-after", "2"]))
-        assert run_cli.main(parse(["--resume", str(b), "--no-gif"])) == 0
-        assert (b / "metrics.jsonl").read_text() == (a / "metrics.jsonl").read_text()
-        target = target_for(exp)
-        assert target.student.obs.shape[:2] == (2, 2)  # [seeds, students, ...]
-        ra, rb = restore(a, target), restore(b, target)
-        leaves_equal(ra.state, rb.state)
-        records = [json.loads(line) for line in (a / "metrics.jsonl").read_text().splitlines()]
-        last = [r for r in records if r["step"] == 3]
-        for r in last:  # the test return is the mean over both students' episodes
-            per_student = r["info/extras/test_return_per_student"]
-            assert len(per_student) == 2 and r["test_return"] == pytest.approx(np.mean(per_student), rel=1e-5)
-            assert len(r["test_return_per_level"]) == 2
-            assert r["info/extras/real_size"] == 8 and r["info/extras/ddpg_branch"] == 1  # 2 per step; updates ran
-        assert json.loads((a / "summary.json").read_text())["final_test_return_mean"] == pytest.approx(
-            np.mean([r["test_return"] for r in last]), rel=1e-5)
-        # eval: every seed's students, each on every level, episodes pooled per level
-        exp2, env, student, tests, seeds, step, students = evaluation.restore_students(a)
-        assert isinstance(student, StudentPool) and step == 4
-        body, _ = evaluation.evaluate_students(exp2, env, student, students, seeds,
-                                               evaluation.resolve_levels("test", env, exp2, tests), episodes=3)
-        assert np.asarray(body["returns"]).shape == (2, 2, 2 * 3)  # [seeds, levels, students x episodes]
+        _, student, method, tests = xp.build(exp)
+        assert isinstance(method, ParallelStudents) and student is method.pool
+        init = make_run(student, method, tests, exp.loop)[0]
+        state = jax.jit(jax.vmap(init))(xp.seed_keys(0, 2))
+        assert state.student.obs.shape[:2] == (2, 2) and state.method.s.shape == (2, 2, 10)  # [seeds, students, ...]
+        assert not np.array_equal(state.student.params["actor"]["MLP_0"]["Dense_0"]["kernel"][:, 0],
+                                  state.student.params["actor"]["MLP_0"]["Dense_0"]["kernel"][:, 1])
+        config = {"experiment": exp.to_dict(), "seeds": 2, "root_seed": 0}
+        with ck.RunCheckpointer(tmp_path, create=True) as writer:
+            writer.save(1, state, {"step": np.zeros((2, 1), np.int32)}, config)
+        leaves_equal(restore(tmp_path, target_for(exp)).state, state)
+        _, _, pool, _, seeds, step, students = evaluation.restore_students(tmp_path)  # what eval --run reads
+        assert isinstance(pool, StudentPool) and (seeds, step) == (2, 1)
+        leaves_equal(students, state.student)
