@@ -1,6 +1,7 @@
 """K students under one learning teacher (``students=K``, shed_jax/methods/parallel_students.py), on
 the tiny CartPole setup of test_teacher_x.py: the K transitions a step stores, the students'
-independence, student 0 against the one-student teacher, the test returns and evaluations pooled over the students, and a saved and restored run state."""
+independence, student 0 against the one-student teacher, test returns and evaluations pooled over
+the students, and a run state with the students' axis saved and restored."""
 import jax
 import jax.numpy as jnp
 import numpy as np
