@@ -12,6 +12,7 @@ from test_shed_method import TINY_TEACHER, _cartpole  # noqa: E402
 from shed_jax.methods.base import EvalRequest
 from shed_jax.methods.learning_teacher import HMDPXConfig, LearningTeacher, SHEDXConfig, make_hmdp_x
 from shed_jax.methods.parallel_students import ParallelStudents, StudentPool, pool_episodes, student_keys
+from shed_jax.student.config import PPOHyperparams
 
 
 def _build(k, **overrides):
@@ -129,12 +130,13 @@ def test_pool_init_and_evaluate_per_student():
     env, student, levels = _cartpole()
     pool = StudentPool(student, 3)
     key = jax.random.PRNGKey(1)
-    states = jax.jit(pool.init)(key)  # student i from key i: student 0 is checked against a lone student below
+    # one set of hyperparameters per student (as a pool state's own) is taken per student; student i
+    # comes from key i (student 0 is checked against a lone student below)
+    hp = PPOHyperparams.stack([student.config.hparams] * 3)
+    hp = jax.tree_util.tree_map(lambda x: x * jnp.array([1.0, 2.0, 3.0], jnp.float32), hp)
+    states = jax.jit(pool.init)(key, hp)
     assert states.obs.shape[0] == 3
-    # a pool state's own (per-student) hyperparameters are taken per student
-    hp = jax.tree_util.tree_map(lambda x: x * jnp.array([1.0, 2.0, 3.0], jnp.float32), states.hparams)
-    again = jax.jit(pool.init)(jax.random.PRNGKey(2), hp)
-    jax.tree_util.tree_map(np.testing.assert_array_equal, again.hparams, hp)
+    jax.tree_util.tree_map(np.testing.assert_array_equal, states.hparams, hp)
     # evaluation: student i with key i, episodes pooled per level
     lv = _at(levels, slice(0, 2))
     pooled = jax.jit(lambda s, k: pool.evaluate(s, k, lv, 2, 30))(states, key)
