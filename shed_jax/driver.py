@@ -628,11 +628,15 @@ def final_eval(exp, env, student, student_state, num_seeds: int, resolved, out: 
 
 
 def gif(env, student, state, tests, out: pathlib.Path) -> None:
-    """final_student.gif of seed 0's final student on a test level; any failure but a full disk is one line."""
+    """final_student.gif of seed 0's final student (its first, with several students) on a test level; any
+    failure but a full disk is one line."""
     print("[shed_jax] rendering a GIF of seed 0's final student on a test level...", flush=True)
     try:
+        from shed_jax.methods.parallel_students import StudentPool
         from shed_jax.visualize import student_gif
 
+        if isinstance(student, StudentPool):  # several students per seed: the first one's GIF
+            student, state = student.student, StudentPool.member(state.student, 0, axis=1)
         path = student_gif(env, student, state, tests, out / "final_student.gif")
         print(f"[shed_jax] wrote {path}")
     except ImportError as err:  # the visualisation module is optional

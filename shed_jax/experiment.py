@@ -129,7 +129,7 @@ def test_levels(name: str, env):
 
 
 def build(exp):
-    """Environment, student, method and test levels for an Experiment."""
+    """Environment, student (the method's pool of students if it has one), method and test levels for an Experiment."""
     import envs
     from shed_jax.methods.registry import make_method
     from shed_jax.student import make_student
@@ -138,7 +138,9 @@ def build(exp):
     check_bounds(exp.method_config, env)  # else numpy's broadcast error, far from the flag
     student = make_student(env, exp.ppo)
     method = make_method(exp.method, env, student, exp.method_config)
-    return env, student, method, test_levels(exp.test_set, env)
+    # a method that trains several students at once (hmdp-x/shed-x with students > 1) has their pool:
+    # the loop's student, whose state carries the students' axis
+    return env, getattr(method, "pool", student), method, test_levels(exp.test_set, env)
 
 
 def build_checked(exp, fresh: bool):

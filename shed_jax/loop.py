@@ -30,7 +30,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from shed_jax.methods.base import EvalRequest, thin_levels
+from shed_jax.methods.base import EvalRequest, nan_like, thin_levels
 
 
 @struct.dataclass
@@ -88,7 +88,6 @@ def make_run(student, method, test_levels, spec: LoopSpec) -> tuple[Callable, Ca
     ``shed_jax.methods.base.UEDMethod``; ``test_levels`` is an env params pytree with a leading
     axis (one entry per test level).
     """
-    n_test = jax.tree_util.tree_leaves(test_levels)[0].shape[0]
 
     def init(key: jax.Array, hparams=None) -> RunState:
         k_student, k_method, k_run = jax.random.split(key, 3)
@@ -133,12 +132,7 @@ def make_run(student, method, test_levels, spec: LoopSpec) -> tuple[Callable, Ca
             def run_test(s):
                 return student.evaluate(s, k_test, test_levels, spec.test_episodes, spec.test_max_steps)
 
-            test_returns = jax.lax.cond(
-                spec.tests_at(t),
-                run_test,
-                lambda s: jnp.full((n_test, spec.test_episodes), jnp.nan, jnp.float32),
-                sstate,
-            )
+            test_returns = jax.lax.cond(spec.tests_at(t), run_test, lambda s: nan_like(jax.eval_shape(run_test, s)), sstate)
         metrics = {
             "step": t,
             "episode": episode,

@@ -18,6 +18,11 @@ One budget step, top to bottom (all inside one jitted function, thresholds as ``
    synthetic, if |B_syn| > 500 and both buffers > 32, else 3 real updates if |B_real| > 32), else
    the teacher's (h-MDP: 2 real updates if |B_real| > 32) [official code].
 
+The step is three parts: ``experience`` (1.-4. for one student: act, train, evaluate, reward; it
+changes nothing of the teacher), ``learn`` (the teacher: store, synthesise, update) and
+``step_info`` (the record). ``shed_jax.methods.parallel_students`` runs ``experience`` for K students
+and ``learn`` once on their K transitions.
+
 Buffers hold raw performance vectors (returns); rewards are computed on them and z-scored per DDPG
 batch (``reward_norm='batch'``; 'none' keeps them raw). With ``time_in_state`` the teacher state is
 [s, t/T] [paper]; off by default [official code].
@@ -192,6 +197,31 @@ class HierarchicalState:
     t: jax.Array  # int32 step within the teacher episode
     pending_eval_steps: jax.Array  # int32 eval env steps of begin_episode, charged to the next step
     eval_key: Any = None  # a teacher episode's evaluation key, for teachers that reuse it (common random numbers)
+
+
+@struct.dataclass
+class Experience:
+    """One student's part of a budget step (``HierarchicalTeacher.experience``)."""
+
+    transition: Transition  # (s, u, r, s', done) as the teacher stores it (t/T in s and s' if on)
+    s_next: jax.Array  # [m] the student's new performance vector (raw mean returns)
+    levels: jax.Array  # [L, d] the levels of the step
+    played: jax.Array  # [L] bool, which of them the student trained on
+    ppo: Any  # the PPO metrics, mean over the step's updates
+    env_steps_eval: jax.Array  # int32 evaluation env steps (with begin_episode's, pending)
+    state_noise: jax.Array  # the noise SD of s' (NaN without ``state_noise_check``)
+    extras: dict  # a variant's ``extra_info``
+
+
+@struct.dataclass
+class Learned:
+    """What the teacher's learning reports (``HierarchicalTeacher.learn``)."""
+
+    td_heldout: jax.Array  # the critic's |TD error| on each new transition before any update
+    real_size: jax.Array  # |B_real|
+    syn_size: jax.Array  # |B_syn| (0 without a synthesiser)
+    branch: jax.Array  # DDPG updates: 0 none, 1 real-only, 2 mixed
+    synth_loss: jax.Array  # the synthesiser's mean diffusion loss (NaN when it did not train)
 
 
 def evaluation_levels(env, config: TeacherConfig):
@@ -436,9 +466,24 @@ class HierarchicalTeacher:
         return self._step(key, mstate, sstate, test)
 
     def _step(self, key, mstate: HierarchicalState, sstate, test: EvalRequest | None):
-        cfg, student, hp = self.config, self.student, mstate.hparams
-        reward_fn = self.reward_fn_for(hp.eta)
         k_act, k_seed, k_train, k_eval, k_synth, k_ddpg = jax.random.split(key, 6)
+        sstate, exp, test_rets = self.experience((k_act, k_seed, k_train, k_eval), mstate, sstate, test)
+        mstate, learned = self.learn((k_synth, k_ddpg), mstate, exp.transition)
+        mstate = mstate.replace(s=exp.s_next, t=mstate.t + 1, pending_eval_steps=jnp.int32(0))
+        return mstate, sstate, self.step_info(exp, learned), test_rets
+
+    # ---- the parts of a step: one student's experience, the teacher's learning, the record ----------
+
+    def experience(self, keys, mstate: HierarchicalState, sstate, test: EvalRequest | None):
+        """One student's part of a budget step -> (sstate, :class:`Experience`, test returns or None):
+        act on its state ``mstate.s`` (1.), train it (2.), evaluate s' (3.) and reward the transition (4.).
+
+        Reads the teacher (``mstate.ddpg``, hyperparameters, ``t``) and changes nothing of it, so
+        several students may take this part under one teacher (``shed_jax.methods.parallel_students``).
+        ``keys``: (act, seed, train, eval).
+        """
+        cfg, hp = self.config, mstate.hparams
+        k_act, k_seed, k_train, k_eval = keys
         ts = self.teacher_state(mstate.s, mstate.t)
         u = self.teacher.act(mstate.ddpg, ts, k_act, hp.explore_sigma)
         sstate, vecs, played, ppo = self.train_on_action((k_seed, k_train), sstate, u)
@@ -449,47 +494,62 @@ class HierarchicalTeacher:
         else:
             s_next, eval_steps, test_rets = self.performance_and_test(k_eval, sstate, test)
         ts_next = self.teacher_state(s_next, mstate.t + 1)
-        r = reward_fn(ts, u, ts_next)
+        r = self.reward_fn_for(hp.eta)(ts, u, ts_next)
         done = (mstate.t == cfg.budget_steps - 1).astype(jnp.float32)
-        real = self.teacher.store(mstate.real, Transition(s=ts, u=u, r=r, s_next=ts_next, done=done))
-        ddpg = self.teacher.ddpg.with_learning_rates(mstate.ddpg, hp.actor_lr, hp.critic_lr)
-        # diagnostics: the critic's TD error on the new transition, before any update has seen it, its
-        # reward normalised as the critic's batches are (B_real's statistics stand in for a batch's)
-        r_seen = buffer_zscore(r, real) if cfg.reward_norm == "batch" else r
-        td_heldout = self.teacher.td_error(ddpg, Transition(s=ts, u=u, r=r, s_next=ts_next, done=done), r_seen)
         if cfg.state_noise_check:  # the same student evaluated again with another key
             s_again, again_steps = self.performance(jax.random.fold_in(k_eval, 1), sstate)
             state_noise, eval_steps = noise_sd(s_next, s_again), eval_steps + again_steps
         else:
             state_noise = jnp.float32(jnp.nan)
+        exp = Experience(transition=Transition(s=ts, u=u, r=r, s_next=ts_next, done=done), s_next=s_next, levels=vecs,
+                         played=played, ppo=mean_metrics(ppo), env_steps_eval=eval_steps + mstate.pending_eval_steps,
+                         state_noise=state_noise, extras=self.extra_info(u, vecs, played))
+        return sstate, exp, test_rets
+
+    def learn(self, keys, mstate: HierarchicalState, transition: Transition) -> tuple[HierarchicalState, Learned]:
+        """The teacher's part of a budget step -> (mstate with new DDPG, buffers and synthesiser, :class:`Learned`):
+        store ``transition`` (one, or a batch with a leading axis) in B_real, the held-out TD error
+        of each, the synthesiser's ``grow`` (5.) and the DDPG updates (6.). ``keys``: (synth, ddpg)."""
+        cfg, hp = self.config, mstate.hparams
+        k_synth, k_ddpg = keys
+        real = self.teacher.store(mstate.real, transition)
+        ddpg = self.teacher.ddpg.with_learning_rates(mstate.ddpg, hp.actor_lr, hp.critic_lr)
+        # diagnostics: the critic's TD error on the new transition, before any update has seen it, its
+        # reward normalised as the critic's batches are (B_real's statistics stand in for a batch's)
+        r_seen = buffer_zscore(transition.r, real) if cfg.reward_norm == "batch" else transition.r
+        td_heldout = self.teacher.td_error(ddpg, transition, r_seen)
         if self.synthesiser is None:
             synth, synth_loss, syn_size = None, jnp.float32(jnp.nan), jnp.int32(0)
             ddpg, branch = self.teacher.updates(k_ddpg, ddpg, real)
         else:
-            synth, synth_loss = self.synthesiser.grow(k_synth, mstate.synth, real, reward_fn)
+            synth, synth_loss = self.synthesiser.grow(k_synth, mstate.synth, real, self.reward_fn_for(hp.eta))
             ddpg, branch = self.synthesiser.updates(k_ddpg, self.teacher, ddpg, real, synth, hp.psi)
             syn_size = synth.syn.count
-        info = StepInfo(
-            levels=vecs,
-            env_steps_train=jnp.int32(cfg.updates_per_step * student.env_steps_per_update),
-            env_steps_eval=eval_steps + mstate.pending_eval_steps,
-            teacher_reward=r,
-            num_new_levels=played.sum().astype(jnp.int32),
+        learned = Learned(td_heldout=td_heldout, real_size=real.count, syn_size=syn_size, branch=branch,
+                          synth_loss=synth_loss)
+        return mstate.replace(ddpg=ddpg, real=real, synth=synth), learned
+
+    def step_info(self, exp: Experience, learned: Learned) -> StepInfo:
+        """The step's record from one student's experience and the teacher's learning."""
+        return StepInfo(
+            levels=exp.levels,
+            env_steps_train=jnp.int32(self.config.updates_per_step * self.student.env_steps_per_update),
+            env_steps_eval=exp.env_steps_eval,
+            teacher_reward=exp.transition.r,
+            num_new_levels=exp.played.sum().astype(jnp.int32),
             extras={  # the same keys with or without a synthesiser (0 and NaN without)
-                "ppo": mean_metrics(ppo),
-                "teacher_state": s_next,
-                "real_size": real.count,
-                "syn_size": syn_size,
-                "ddpg_branch": branch,  # 0 none, 1 real-only, 2 mixed
-                "diffusion_loss": synth_loss,
-                "at_bound_fraction": at_bound_fraction(self.codec.space, vecs, played),
-                "td_error_heldout": td_heldout,
-                "state_noise_sd": state_noise,
-                **self.extra_info(u, vecs, played),
+                "ppo": exp.ppo,
+                "teacher_state": exp.s_next,
+                "real_size": learned.real_size,
+                "syn_size": learned.syn_size,
+                "ddpg_branch": learned.branch,  # 0 none, 1 real-only, 2 mixed
+                "diffusion_loss": learned.synth_loss,
+                "at_bound_fraction": at_bound_fraction(self.codec.space, exp.levels, exp.played),
+                "td_error_heldout": learned.td_heldout,
+                "state_noise_sd": exp.state_noise,
+                **exp.extras,
             },
         )
-        mstate = mstate.replace(ddpg=ddpg, real=real, synth=synth, s=s_next, t=mstate.t + 1, pending_eval_steps=jnp.int32(0))
-        return mstate, sstate, info, test_rets
 
 
 def make_hmdp(env, student, config: Any = None, eval_levels=None, name: str = "hmdp") -> HierarchicalTeacher:

@@ -19,6 +19,8 @@ changes, each behind a switch of :class:`HMDPXConfig` whose default is the chose
   improvement with a fixed scale, not z-scored per batch (``reward_norm='none'``); t/T in the state.
 * DDPG against saturation: ``actor_lr`` 1e-4, ``tau`` 0.01, ``preact_penalty`` on the pre-tanh
   actor outputs.
+* ``students``: K students trained side by side under the one teacher, K transitions per budget
+  step (``shed_jax.methods.parallel_students``); 1 (the default) is this teacher alone.
 
 Diagnostics as the paper teacher's (``at_bound_fraction`` over the levels played, ``td_error_heldout``,
 ``state_noise_sd``). The hyperparameter pytrees are the paper teacher's (``TeacherHyperparams``,
@@ -36,6 +38,7 @@ import jax.numpy as jnp
 from shed_jax.configs import coerce
 from shed_jax.levels import new_seeds, teacher_space
 from shed_jax.methods.hierarchical import HierarchicalState, HierarchicalTeacher, TeacherConfig
+from shed_jax.methods.parallel_students import ParallelStudents
 from shed_jax.methods.shed import SHEDConfig, SHEDHyperparams, diffusion_synthesiser
 from shed_jax.teacher.ddpg import DDPGConfig, make_ddpg
 from shed_jax.teacher.ddpg_teacher import DDPGTeacher
@@ -59,8 +62,9 @@ class HMDPXConfig(TeacherConfig):
     ddpg_updates: int = 2  # DDPG updates per budget step once |B_real| > ddpg_threshold (without a synthesiser)
     twin_critics: bool = False  # TD3's clipped double Q (DDPGConfig.twin_critics)
     actor_delay: int = 1  # the actor and targets update every k-th DDPG update (DDPGConfig.actor_delay)
+    students: int = 1  # K students under the one teacher, K transitions per budget step (methods.parallel_students)
 
-    POSITIVE: ClassVar[tuple] = TeacherConfig.POSITIVE + ("ddpg_updates", "actor_delay")
+    POSITIVE: ClassVar[tuple] = TeacherConfig.POSITIVE + ("ddpg_updates", "actor_delay", "students")
 
     def __post_init__(self):
         super().__post_init__()
@@ -74,6 +78,9 @@ class HMDPXConfig(TeacherConfig):
             raise ValueError(f"{name}.tau must lie in (0, 1], got {self.tau!r}")
         if not (isinstance(self.preact_penalty, (int, float)) and self.preact_penalty >= 0):
             raise ValueError(f"{name}.preact_penalty must be a number >= 0, got {self.preact_penalty!r}")
+        if self.students > self.real_capacity:
+            raise ValueError(f"{name}.students must be <= real_capacity ({self.real_capacity}): a budget step stores "
+                             f"one transition per student, got {self.students}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -82,7 +89,7 @@ class SHEDXConfig(HMDPXConfig, SHEDConfig):
 
     real_capacity: int = 2048  # SHED's (HMDPXConfig's fields, TeacherConfig's default included, come later in the MRO)
 
-    POSITIVE: ClassVar[tuple] = SHEDConfig.POSITIVE + ("ddpg_updates", "actor_delay")
+    POSITIVE: ClassVar[tuple] = SHEDConfig.POSITIVE + ("ddpg_updates", "actor_delay", "students")
 
 
 def teacher_x_dims(env, config: HMDPXConfig) -> tuple[int, int]:
@@ -94,7 +101,8 @@ def teacher_x_dims(env, config: HMDPXConfig) -> tuple[int, int]:
 @dataclasses.dataclass(frozen=True)
 class LearningTeacher(HierarchicalTeacher):
     """The learning teacher (module doc): the paper teacher's step with its own action, level switching,
-    evaluation keys and DDPG settings. Build with :func:`make_hmdp_x` or :func:`make_shed_x`."""
+    evaluation keys and DDPG settings, for one student (``config.students`` is read by the builders).
+    Build with :func:`make_hmdp_x` or :func:`make_shed_x`."""
 
     config: HMDPXConfig = HMDPXConfig()
     name: str = "hmdp-x"
@@ -193,13 +201,22 @@ class LearningTeacher(HierarchicalTeacher):
         return mstate.replace(s=s0, t=jnp.int32(0), pending_eval_steps=steps, eval_key=k_eval), sstate
 
 
-def make_hmdp_x(env, student, config: Any = None, eval_levels=None, name: str = "hmdp-x") -> LearningTeacher:
+def with_students(teacher: LearningTeacher):
+    """The teacher for ``config.students`` students: itself for one, else a ``ParallelStudents`` of it
+    (whose ``pool`` is the loop's student)."""
+    k = teacher.config.students
+    return teacher if k == 1 else ParallelStudents(teacher, k)
+
+
+def make_hmdp_x(env, student, config: Any = None, eval_levels=None, name: str = "hmdp-x"):
     """``hmdp-x``: the learning teacher without a synthesiser. ``config``: None, a dict or an :class:`HMDPXConfig`."""
-    return LearningTeacher(env, student, coerce(HMDPXConfig, config, f"method {name!r}"), name=name, eval_levels=eval_levels)
+    cfg = coerce(HMDPXConfig, config, f"method {name!r}")
+    return with_students(LearningTeacher(env, student, cfg, name=name, eval_levels=eval_levels))
 
 
-def make_shed_x(env, student, config: Any = None, eval_levels=None, name: str = "shed-x") -> LearningTeacher:
+def make_shed_x(env, student, config: Any = None, eval_levels=None, name: str = "shed-x"):
     """``shed-x``: the learning teacher with SHED's diffusion synthesiser. ``config``: None, a dict or a :class:`SHEDXConfig`."""
     cfg = coerce(SHEDXConfig, config, f"method {name!r}")
-    return LearningTeacher(env, student, cfg, name=name, eval_levels=eval_levels,
-                           synthesiser=diffusion_synthesiser(cfg, *teacher_x_dims(env, cfg)), hparams_class=SHEDHyperparams)
+    return with_students(LearningTeacher(env, student, cfg, name=name, eval_levels=eval_levels,
+                                         synthesiser=diffusion_synthesiser(cfg, *teacher_x_dims(env, cfg)),
+                                         hparams_class=SHEDHyperparams))

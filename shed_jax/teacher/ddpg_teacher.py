@@ -18,7 +18,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from shed_jax.teacher.buffers import RingBuffer, Transition, buffer_add, buffer_init, buffer_sample, make_transition
+from shed_jax.teacher.buffers import RingBuffer, Transition, buffer_add, buffer_add_many, buffer_init, buffer_sample, make_transition
 from shed_jax.teacher.ddpg import DDPG, DDPGState
 
 
@@ -54,7 +54,8 @@ class DDPGTeacher:
         return self.ddpg.act(st, s / self.state_scale, key, sigma)
 
     def store(self, real: RingBuffer, transition: Transition) -> RingBuffer:
-        return buffer_add(real, transition)
+        """B_real with ``transition`` added: one (a scalar ``r``), or a batch with a leading axis, in order."""
+        return buffer_add(real, transition) if jnp.ndim(transition.r) == 0 else buffer_add_many(real, transition)
 
     def ready(self, real: RingBuffer) -> jax.Array:
         """Whether B_real holds enough transitions for DDPG updates."""
@@ -66,9 +67,12 @@ class DDPGTeacher:
         return self.ddpg.update(st, batch.replace(s=batch.s * k, s_next=batch.s_next * k), real_mask)[0]
 
     def td_error(self, st: DDPGState, transition: Transition, r) -> jax.Array:
-        """The critic's |TD error| on one raw transition (scaled here), with reward ``r`` as the critic sees it."""
+        """The critic's |TD error| on one raw transition (scaled here), with reward ``r`` as the critic sees it;
+        on a batch of them (a leading axis on every field and on ``r``), one per transition."""
         k = 1.0 / self.state_scale
         item = transition.replace(s=transition.s * k, s_next=transition.s_next * k, r=jnp.asarray(r, jnp.float32))
+        if jnp.ndim(transition.r) == 1:
+            return self.ddpg.td_errors(st, item)
         return self.ddpg.td_errors(st, jax.tree_util.tree_map(lambda x: x[None], item))[0]
 
     def real_updates(self, key: jax.Array, st: DDPGState, real: RingBuffer, count: int) -> DDPGState:
