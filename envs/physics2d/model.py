@@ -80,6 +80,9 @@ class SolverConfig:
     warm_start: bool = True
     continuous: bool = True  # Box2D-style time of impact for solid slots hitting the ground
     toi_iterations: int = 4  # velocity passes of the per-body time-of-impact solve
+    # run those passes in a lax.fori_loop instead of unrolled (same arithmetic; a much smaller program
+    # for models with many solid bodies: the walker's step compiles ~3x faster on CPU)
+    toi_loop: bool = False
     unroll: int = 1  # unroll factor of the solver-iteration loops (speed knob, no effect on results)
     # how the iteration loops run: "auto" (one fused Pallas kernel per loop on GPU, XLA elsewhere),
     # "xla", "pallas" or "interpret" (the kernel through Pallas' interpreter); see physics2d/fused.py
