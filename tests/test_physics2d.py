@@ -239,3 +239,20 @@ def test_lander_step_has_no_reduced_precision_matrix_product():
     found = re.findall(r"dot_general.*?precision = \[(\w+), (\w+)\]", text)
     assert found and all(p == ("HIGHEST", "HIGHEST") for p in found), found
     assert len(re.findall(r"dot_general", text)) == len(found)  # every dot states its precision
+
+
+def test_time_of_impact_position_passes_leave_box2ds_resting_distance():
+    """A box hitting the ground within one step stops at the time of impact: at the TOI target
+    (0.005 m) without position passes; with Box2D's TOI passes (Baumgarte 0.75 until separation
+    >= -1.5 slop) pushed out to between radius - 2.5 slop and radius - slop (0.0075..0.015 m)."""
+    out = []
+    for n in (0, 20):
+        cfg = physics2d.SolverConfig(dt=DT, toi_position_iterations=n, toi_loop=n > 0)
+        m = physics2d.make_model(1, [physics2d.Polygon(0, BOX, density=2.0, friction=0.4)], (), cfg)
+        b = physics2d.bodies_from_origin(m, [[5.0, 1.0 + 0.25 + 0.1]], [0.0], vel=[[0.0, -10.0]])
+        w, info = jax.jit(lambda w: physics2d.step(m, w, FLAT, 0.0))(physics2d.init_world(m, b))
+        out.append(float(w.bodies.com[0, 1]) - 0.25 - 1.0)
+        assert bool(info["polygon_touching"][0]) and abs(float(w.bodies.vel[0, 1])) < 0.1  # from 10 m/s, 4 TOI passes
+        assert abs(float(w.bodies.angle[0])) < 5e-3  # sequential vertex passes tilt it slightly
+    assert abs(out[0] - 0.005) < 1e-3, out  # (less the residual speed over the rest of the step)
+    assert 0.0075 - 1e-4 <= out[1] <= 0.015 + 1e-4, out

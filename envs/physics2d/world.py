@@ -247,6 +247,28 @@ def step(model: Model, world: WorldState, ground, gravity, force=None, torque=No
             v_t, w_t = vel[i], omg[i]
             arms = [rotate(a_t, local_v[k] - lc[i]) for k in ks]
             on = [hit & (dot(c_t + r - plane_q[k], plane_n[k]) <= cfg.contact_radius) for r, k in zip(arms, ks)]
+            if cfg.toi_position_iterations > 0:
+                def toi_position(_, carry, i=i, ks=ks, on=on):
+                    c_, a_, done = carry
+                    c0, a0 = c_, a_
+                    min_sep = jnp.zeros((), jnp.float32)
+                    for s, k in enumerate(ks):
+                        r = rotate(a_, local_v[k] - lc[i])
+                        sep = dot(c_ + r - plane_q[k], plane_n[k]) - cfg.contact_radius
+                        min_sep = jnp.where(on[s], jnp.minimum(min_sep, sep), min_sep)
+                        corr = jnp.clip(cfg.toi_baumgarte * (sep + cfg.linear_slop), -cfg.max_linear_correction, 0.0)
+                        rn_ = cross(r, plane_n[k])
+                        kk = inv_m[i] + inv_i[i] * rn_ * rn_
+                        p = jnp.where(on[s] & (kk > 0), -corr / kk, 0.0) * plane_n[k]
+                        c_ = c_ + inv_m[i] * p
+                        a_ = a_ + inv_i[i] * cross(r, p)
+                    c_ = jnp.where(done, c0, c_)
+                    a_ = jnp.where(done, a0, a_)
+                    return c_, a_, done | (min_sep >= -1.5 * cfg.linear_slop)
+
+                c_t, a_t, _ = jax.lax.fori_loop(0, cfg.toi_position_iterations, toi_position,
+                                                (c_t, a_t, jnp.zeros((), bool)))
+                arms = [rotate(a_t, local_v[k] - lc[i]) for k in ks]
             lnn = [jnp.zeros((), jnp.float32) for _ in ks]
             ltt = [jnp.zeros((), jnp.float32) for _ in ks]
 
