@@ -73,7 +73,8 @@ def walker_model(velocity_iterations: int = VELOCITY_ITERATIONS, position_iterat
     joints = tuple(joints[g] for g in GYM_JOINT)
     cfg = physics2d.SolverConfig(dt=C.CONTROL_DT, velocity_iterations=velocity_iterations,
                                  position_iterations=position_iterations, ground_friction=C.TERRAIN_FRICTION,
-                                 unroll=unroll, kernel=kernel, toi_loop=True, toi_position_iterations=20)
+                                 unroll=unroll, kernel=kernel, toi_loop=True, toi_position_iterations=20,
+                                 toi_from_touching=True)
     return physics2d.make_model(NUM_BODIES, tuple(polygons), tuple(joints), cfg)
 
 

@@ -88,6 +88,10 @@ class SolverConfig:
     # Box2D's resting distance. 0 (the lander's setting) skips these passes.
     toi_position_iterations: int = 0
     toi_baumgarte: float = 0.75
+    # Box2D's b2TimeOfImpact also reports a shape that starts the step closer than the TOI target
+    # (+ 0.25 slop tolerance, but not overlapping) as touching at t = 0: the body goes back to its
+    # start pose and is re-solved alone for the whole step. False (the lander's setting) skips this.
+    toi_from_touching: bool = False
     unroll: int = 1  # unroll factor of the solver-iteration loops (speed knob, no effect on results)
     # how the iteration loops run: "auto" (one fused Pallas kernel per loop on GPU, XLA elsewhere),
     # "xla", "pallas" or "interpret" (the kernel through Pallas' interpreter); see physics2d/fused.py

@@ -232,9 +232,14 @@ def step(model: Model, world: WorldState, ground, gravity, force=None, torque=No
     else:
         _, _, _, inside_end = vertex_vs_polyline(end_pts, ground)
         crossing = inside & inside_end & (d0 > target) & (d1 < target)
+        if cfg.toi_from_touching:  # b2TimeOfImpact: already within target + tolerance -> touching at t = 0
+            early = inside & (d0 > 0.0) & (d0 < target + 0.25 * cfg.linear_slop)
+            crossing = crossing | early
     toi_touch = crossing
     if cfg.continuous and not free_flight:
         alpha_slot = jnp.clip((d0 - target) / jnp.maximum(d0 - d1, 1e-9), 0.0, 1.0)
+        if cfg.toi_from_touching:
+            alpha_slot = jnp.where(early, 0.0, alpha_slot)
         com, ang, vel, omg = list(com), list(ang), list(vel), list(omg)
         for i in range(nb):
             ks = [k for k in slots if sb[k] == i]
