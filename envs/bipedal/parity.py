@@ -78,11 +78,35 @@ def jax_episodes(level: str, episodes: int, seed: int = 0, chunk: int = 100, **e
     return out
 
 
-def gym_episodes(gym_id: str, episodes: int, seed: int = 0) -> dict:
+def _as_chain(walker_cls):
+    """``walker_cls._generate_terrain`` with the separate grass edges replaced by one Box2D chain (a
+    diagnostic: a chain's ghost vertices remove the contacts Box2D makes at the edges' junctions)."""
+    from Box2D.b2 import chainShape, edgeShape, fixtureDef
+
+    original = walker_cls._generate_terrain
+
+    def generate(self, hardcore):
+        original(self, hardcore)
+        edges = [t for t in self.terrain if isinstance(t.fixtures[0].shape, edgeShape)]
+        for t in edges:
+            self.world.DestroyBody(t)
+        chain = self.world.CreateStaticBody(fixtures=fixtureDef(
+            shape=chainShape(vertices=list(zip(self.terrain_x, self.terrain_y))), friction=2.5))
+        chain.color1 = chain.color2 = (76, 255, 76)
+        self.terrain = [t for t in self.terrain if t not in edges] + [chain]
+
+    return generate
+
+
+def gym_episodes(gym_id: str, episodes: int, seed: int = 0, chain: bool = False) -> dict:
+    """Gymnasium's own env and gait; ``chain``: its grass as one chain shape (see ``_as_chain``)."""
     import gymnasium as gym
+    from gymnasium.envs.box2d.bipedal_walker import BipedalWalker as GymWalker
     from gymnasium.envs.box2d.bipedal_walker import BipedalWalkerHeuristics
 
     env = gym.make(gym_id)
+    if chain:
+        env.unwrapped._generate_terrain = _as_chain(GymWalker).__get__(env.unwrapped)
     rets, lens, falls = [], [], []
     for ep in range(episodes):
         s, _ = env.reset(seed=seed + ep)
@@ -119,6 +143,8 @@ def main(argv=None) -> int:
     p.add_argument("--chunk", type=int, default=100, help="our episodes per compiled batch")
     p.add_argument("--jax-only", action="store_true")
     p.add_argument("--gym-only", action="store_true")
+    p.add_argument("--gym-chain", action="store_true",
+                   help="diagnostic: Gymnasium's grass as one chain shape (no contacts at edge junctions)")
     p.add_argument("--iterations", default=None, metavar="V/P", help="our solver passes (default Box2D's 180/60)")
     p.add_argument("--out", default=None, help="write the JSON record here (e.g. docs/results/bipedal.json)")
     args = p.parse_args(argv)
@@ -138,13 +164,13 @@ def main(argv=None) -> int:
     record = {"device": jax.devices()[0].device_kind if not args.gym_only else "cpu",
               "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
               "command": "python -m envs.bipedal.parity " + " ".join(argv if argv is not None else __import__("sys").argv[1:]),
-              "seed": args.seed, "parity": {}}
+              "seed": args.seed, "gym_terrain": "chain" if args.gym_chain else "edges", "parity": {}}
     for name in names:
         level, gym_id = SETTINGS[name]
         row = {"episodes": args.episodes}
         if not args.jax_only:
             t = time.time()
-            d = gym_episodes(gym_id, args.episodes, args.seed)
+            d = gym_episodes(gym_id, args.episodes, args.seed, chain=args.gym_chain)
             g = summarize(d["ret"], d["length"], d["fall"])
             print(f"gym  {name}: {time.time() - t:.0f}s mean {g['mean']:.1f} se {g['se']:.1f} fall {g['fall']:.2f} "
                   f"len {g['length']:.0f}", flush=True)
