@@ -16,6 +16,7 @@ _REGISTRY: dict[str, tuple[str, str, dict]] = {
     "lander": ("envs.lander", "LunarLander", {"continuous": False}),
     "lander-continuous": ("envs.lander", "LunarLander", {"continuous": True}),
     "walker": ("envs.walker", "BipedalWalker", {}),
+    "bipedal": ("envs.bipedal", "BipedalWalker", {}),
     "cartpole": ("envs.cartpole", "CartPole", {}),
 }
 

@@ -82,17 +82,22 @@ def warm_start(joint, m, ra, rb, impulse, motor_impulse, va, wa, vb, wb):
     return va, wa, vb, wb
 
 
-def solve_velocity(joint, m, ra, rb, state, impulse, motor_impulse, va, wa, vb, wb, dt):
+def solve_velocity(joint, m, ra, rb, state, impulse, motor_impulse, va, wa, vb, wb, dt, motor_speed=None,
+                   max_motor_torque=None):
     """One Gauss-Seidel pass over the joint's rows; returns new impulses and velocities.
 
     Component form (runs inside ``fused.per_world_fori_loop``): ``ra, rb, va, vb`` are ``V2``,
     ``impulse`` is the (x, y, limit) triple, ``state`` the limit state as a float.
+    ``motor_speed`` / ``max_motor_torque``: per-world values for this step (Box2D's SetMotorSpeed /
+    SetMaxMotorTorque before a step); None uses the joint's static ones.
     """
     ma, mb, ia, ib = m
     if joint.enable_motor:
         motor_mass = 1.0 / (ia + ib) if ia + ib > 0 else 0.0
-        cdot = wb - wa - joint.motor_speed
-        max_imp = dt * joint.max_motor_torque
+        speed = joint.motor_speed if motor_speed is None else motor_speed
+        torque = joint.max_motor_torque if max_motor_torque is None else max_motor_torque
+        cdot = wb - wa - speed
+        max_imp = dt * torque
         new = jnp.clip(motor_impulse - motor_mass * cdot, -max_imp, max_imp)
         new = jnp.where(state == EQUAL, motor_impulse, new)
         d = new - motor_impulse

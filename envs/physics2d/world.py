@@ -64,7 +64,7 @@ def apply_impulse(model: Model, bodies: BodyState, body: int, impulse, point) ->
 
 
 def step(model: Model, world: WorldState, ground, gravity, force=None, torque=None, projector=None,
-         position_iterations=None, free_flight: bool = False):
+         position_iterations=None, free_flight: bool = False, motor_speed=None, max_motor_torque=None):
     """Advance ``world`` by one time step. Returns (new world, info).
 
     ``projector``: optional constant (3B, 3B) matrix from ``locked_velocity_projector``; when given,
@@ -78,6 +78,10 @@ def step(model: Model, world: WorldState, ground, gravity, force=None, torque=No
     reported as no contact: the same values as the full step (up to the sign of zero in unused
     contact frames) at a fraction of its work. The lander's reset step (``projector`` given) is
     checked bitwise in tests/test_physics2d.py.
+    ``motor_speed``, ``max_motor_torque``: optional (J,) per-joint motor targets for this step (what
+    Box2D's SetMotorSpeed / SetMaxMotorTorque set before ``b2World::Step``; a batch of worlds can
+    give each its own); None keeps every joint's static ``RevoluteJoint`` values. Entries of joints
+    without a motor are ignored.
     info: ``touching`` (V,) slots and ``polygon_touching`` (num_polygons,) at the start pose or
     by a time of impact during the step, ``pair_touching`` (num_polygons, S) per ground segment,
     ``position_solved`` (), ``asleep`` ().
@@ -158,6 +162,12 @@ def step(model: Model, world: WorldState, ground, gravity, force=None, torque=No
         ra=tuple(V2.of(p[0]) for p in jprep), rb=tuple(V2.of(p[1]) for p in jprep),
         state=tuple(s.astype(f32) for s in jstate),
     )
+    if motor_speed is not None:
+        ms = jnp.asarray(motor_speed, f32)
+        vconsts["motor_speed"] = tuple(ms[j] for j in range(len(model.joints)))
+    if max_motor_torque is not None:
+        mt = jnp.asarray(max_motor_torque, f32)
+        vconsts["max_motor_torque"] = tuple(mt[j] for j in range(len(model.joints)))
     carry = (tuple(V2.of(v) for v in vel), tuple(omg), tuple((i[0], i[1], i[2]) for i in jimp), tuple(jmot),
              tuple(lam_n[k] for k in slots), tuple(lam_t[k] for k in slots))
     if projector is None:
@@ -222,9 +232,14 @@ def step(model: Model, world: WorldState, ground, gravity, force=None, torque=No
     else:
         _, _, _, inside_end = vertex_vs_polyline(end_pts, ground)
         crossing = inside & inside_end & (d0 > target) & (d1 < target)
+        if cfg.toi_from_touching:  # b2TimeOfImpact: already within target + tolerance -> touching at t = 0
+            early = inside & (d0 > 0.0) & (d0 < target + 0.25 * cfg.linear_slop)
+            crossing = crossing | early
     toi_touch = crossing
     if cfg.continuous and not free_flight:
         alpha_slot = jnp.clip((d0 - target) / jnp.maximum(d0 - d1, 1e-9), 0.0, 1.0)
+        if cfg.toi_from_touching:
+            alpha_slot = jnp.where(early, 0.0, alpha_slot)
         com, ang, vel, omg = list(com), list(ang), list(vel), list(omg)
         for i in range(nb):
             ks = [k for k in slots if sb[k] == i]
@@ -237,9 +252,33 @@ def step(model: Model, world: WorldState, ground, gravity, force=None, torque=No
             v_t, w_t = vel[i], omg[i]
             arms = [rotate(a_t, local_v[k] - lc[i]) for k in ks]
             on = [hit & (dot(c_t + r - plane_q[k], plane_n[k]) <= cfg.contact_radius) for r, k in zip(arms, ks)]
+            if cfg.toi_position_iterations > 0:
+                def toi_position(_, carry, i=i, ks=ks, on=on):
+                    c_, a_, done = carry
+                    c0, a0 = c_, a_
+                    min_sep = jnp.zeros((), jnp.float32)
+                    for s, k in enumerate(ks):
+                        r = rotate(a_, local_v[k] - lc[i])
+                        sep = dot(c_ + r - plane_q[k], plane_n[k]) - cfg.contact_radius
+                        min_sep = jnp.where(on[s], jnp.minimum(min_sep, sep), min_sep)
+                        corr = jnp.clip(cfg.toi_baumgarte * (sep + cfg.linear_slop), -cfg.max_linear_correction, 0.0)
+                        rn_ = cross(r, plane_n[k])
+                        kk = inv_m[i] + inv_i[i] * rn_ * rn_
+                        p = jnp.where(on[s] & (kk > 0), -corr / kk, 0.0) * plane_n[k]
+                        c_ = c_ + inv_m[i] * p
+                        a_ = a_ + inv_i[i] * cross(r, p)
+                    c_ = jnp.where(done, c0, c_)
+                    a_ = jnp.where(done, a0, a_)
+                    return c_, a_, done | (min_sep >= -1.5 * cfg.linear_slop)
+
+                c_t, a_t, _ = jax.lax.fori_loop(0, cfg.toi_position_iterations, toi_position,
+                                                (c_t, a_t, jnp.zeros((), bool)))
+                arms = [rotate(a_t, local_v[k] - lc[i]) for k in ks]
             lnn = [jnp.zeros((), jnp.float32) for _ in ks]
             ltt = [jnp.zeros((), jnp.float32) for _ in ks]
-            for _ in range(cfg.toi_iterations):
+
+            def toi_pass(v_t, w_t, lnn, ltt, i=i, ks=ks, arms=arms, on=on):
+                lnn, ltt = list(lnn), list(ltt)
                 for s, (r, k) in enumerate(zip(arms, ks)):
                     n, t = plane_n[k], jnp.stack([plane_n[k][1], -plane_n[k][0]])
                     rn_, rt_ = cross(r, n), cross(r, t)
@@ -255,6 +294,14 @@ def step(model: Model, world: WorldState, ground, gravity, force=None, torque=No
                     pn = (new_n - lnn[s]) * n
                     lnn[s] = new_n
                     v_t, w_t = v_t + inv_m[i] * pn, w_t + inv_i[i] * cross(r, pn)
+                return v_t, w_t, tuple(lnn), tuple(ltt)
+
+            if cfg.toi_loop:  # one traced pass in a loop: a smaller program, much less compile time
+                v_t, w_t, _, _ = jax.lax.fori_loop(0, cfg.toi_iterations, lambda _, c: toi_pass(*c),
+                                                   (v_t, w_t, tuple(lnn), tuple(ltt)))
+            else:
+                for _ in range(cfg.toi_iterations):
+                    v_t, w_t, lnn, ltt = toi_pass(v_t, w_t, lnn, ltt)
             rest = (1.0 - alpha) * dt
             com[i] = jnp.where(hit, c_t + rest * v_t, com[i])
             ang[i] = jnp.where(hit, a_t + rest * w_t, ang[i])
@@ -318,9 +365,11 @@ def _velocity_pass(model: Model, slots, c, carry):
     vel, omg, jimp, jmot, ln, lt = (list(x) for x in carry)
     for j, J in enumerate(model.joints):
         a_, b_ = J.body_a, J.body_b
+        speed = c["motor_speed"][j] if "motor_speed" in c else None
+        torque = c["max_motor_torque"][j] if "max_motor_torque" in c else None
         jimp[j], jmot[j], vel[a_], omg[a_], vel[b_], omg[b_] = jnt.solve_velocity(
             J, _masses(model, J), c["ra"][j], c["rb"][j], c["state"][j], jimp[j], jmot[j],
-            vel[a_], omg[a_], vel[b_], omg[b_], dt)
+            vel[a_], omg[a_], vel[b_], omg[b_], dt, speed, torque)
     for s, k in enumerate(slots):
         i = sb[k]
         on, arm, normal, tangent = c["on"][s], c["arm"][s], c["n"][s], c["t"][s]

@@ -86,11 +86,7 @@ class BipedalWalker(Environment):
     # ------------------------------------------------------------------ terrain
     def terrain(self, key: jax.Array, params: P.WalkerParams) -> T.Terrain:
         """The level's terrain: from ``terrain_seed`` if ``fixed_terrain``, else from ``key``."""
-        seed = jnp.asarray(params.terrain_seed, jnp.int32)
-        typed = jnp.issubdtype(jnp.asarray(key).dtype, jax.dtypes.prng_key)
-        seeded = jax.random.key(seed) if typed else jax.random.PRNGKey(seed)
-        k = jnp.where(jnp.asarray(params.fixed_terrain), seeded, key)
-        return T.generate(k, params, self.options.max_boxes)
+        return T.level_terrain(key, params, self.options.max_boxes)
 
     def _profile(self, terrain: T.Terrain):
         prof = T.rasterise(terrain, self.grid)

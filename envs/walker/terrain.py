@@ -102,6 +102,16 @@ def generate(key: jax.Array, level: Any, max_boxes: int = 64, unroll: int = 1) -
     return generate_from_uniforms(column_uniforms(key), level, max_boxes, unroll)
 
 
+def level_terrain(key: jax.Array, level: Any, max_boxes: int = 64) -> Terrain:
+    """The level's terrain: from its ``terrain_seed`` if ``fixed_terrain`` (exact replay), else from
+    ``key`` (a new terrain of the same parameters). Shared by every walker environment."""
+    seed = jnp.asarray(level.terrain_seed, jnp.int32)
+    typed = jnp.issubdtype(jnp.asarray(key).dtype, jax.dtypes.prng_key)
+    seeded = jax.random.key(seed) if typed else jax.random.PRNGKey(seed)
+    k = jnp.where(jnp.asarray(level.fixed_terrain), seeded, key)
+    return generate(k, level, max_boxes)
+
+
 def column_uniforms(key: jax.Array) -> jax.Array:
     """The generator's random numbers: 8 uniforms per column, drawn up front in one call (threefry
     inside the scan body would dominate its cost). Column i uses row i: [0] grass walk, [1] pit gap,

@@ -1,0 +1,235 @@
+"""Gymnasium's BipedalWalker on ``envs.physics2d`` (Box2D-style solver in JAX) with DCD's level space.
+
+A level is a ``WalkerParams`` (the MJX walker's: DCD's 8 parameters, terrain seed, replay flag,
+Gymnasium-hardcore switch), with the same generator, named levels, samplers and edits (``ued``), so
+every UED method runs on either walker unchanged. The rules (motors, lidar, observation, reward,
+termination) are Gymnasium's; rigid-body dynamics are ``envs.physics2d``. See docs/bipedal.md.
+
+Per env the state carries the level's terrain profile (``max(polyline, box tops)`` sampled every
+``TERRAIN_STEP / terrain_resolution``, the MJX walker's ``terrain.rasterise``): the physics collides
+the walker's polygon vertices with a window of that profile around the hull, and the lidar and the
+hull test read the same profile, so what is sensed is what is touched.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from envs import physics2d
+from envs.bipedal import model as M
+from envs.core import Box, EnvState, Environment
+from envs.walker import constants as C
+from envs.walker import levels as LV
+from envs.walker import lidar as L
+from envs.walker import params as P
+from envs.walker import terrain as T
+
+KINDS = ("auto", "xla", "pallas", "interpret")
+
+
+@dataclasses.dataclass(frozen=True)
+class BipedalOptions:
+    """Static configuration (changes the compiled program).
+
+    velocity_iterations, position_iterations: solver passes per step (Gymnasium calls Box2D with 180 / 60).
+    terrain_resolution: profile samples per TERRAIN_STEP (0.467 m); an obstacle's vertical face
+                        becomes one sample wide (0.117 m at 4).
+    window_columns:     terrain columns of the profile window the physics collides with (from 7
+                        columns behind the hull); 16 columns = 7.5 m covers every leg pose.
+    max_boxes:          obstacle box slots per level (the generator's; 64 covers DCD's FULL box).
+    unroll, solver_kernel: physics2d's loop unroll (speed only) and ``SolverConfig.kernel``.
+    """
+
+    velocity_iterations: int = M.VELOCITY_ITERATIONS
+    position_iterations: int = M.POSITION_ITERATIONS
+    terrain_resolution: int = 4
+    window_columns: int = 16
+    max_boxes: int = 64
+    unroll: int = 1
+    solver_kernel: str = "auto"
+
+    def __post_init__(self):
+        ints = dict(velocity_iterations=(1, 1000), position_iterations=(0, 1000), terrain_resolution=(1, 32),
+                    window_columns=(12, 64), max_boxes=(8, 512), unroll=(1, 64))
+        for name, (lo, hi) in ints.items():
+            v = getattr(self, name)
+            if not isinstance(v, int) or isinstance(v, bool) or not lo <= v <= hi:
+                raise ValueError(f"BipedalOptions.{name} must be an int in [{lo}, {hi}], got {v!r}")
+        if self.solver_kernel not in KINDS:
+            raise ValueError(f"BipedalOptions.solver_kernel must be one of {KINDS}, got {self.solver_kernel!r}")
+
+
+BACK_COLUMNS = 7  # window columns behind the hull's column
+
+
+def motor_targets(action: jax.Array):
+    """Gymnasium's motor settings for an action (4,): Box2D motor speed SPEED * sign(a) and maximum
+    torque 80 |a| clipped to [0, 80] (hips 4 rad/s, knees 6 rad/s). Returns (speed (4,), torque (4,))."""
+    return jnp.asarray(M.JOINT_SPEEDS) * jnp.sign(action), C.MOTORS_TORQUE * jnp.clip(jnp.abs(action), 0.0, 1.0)
+
+
+@struct.dataclass
+class BipedalState(EnvState):
+    world: physics2d.WorldState
+    profile: jax.Array  # [grid.n] terrain heights (m) at the grid samples
+    prev_shaping: jax.Array
+    leg_contact: jax.Array  # (2,) bool, Gymnasium's lower legs' ground_contact after the last step
+    leg_pairs: jax.Array  # (2, window_columns) bool, lower leg touching each terrain column's edge
+    window: jax.Array  # int32 first terrain column of the window of the last step
+
+
+class BipedalWalker(Environment):
+    """Gymnasium BipedalWalker (Box2D rules, physics2d solver) over DCD's level space."""
+
+    name = "bipedal"
+    ued = LV.UED  # the MJX walker's: Θ = FULL, edits, evaluation / test / named level sets
+
+    def __init__(self, **options):
+        fields = {f.name for f in dataclasses.fields(BipedalOptions)}
+        unknown = set(options) - fields
+        if unknown:
+            raise ValueError(f"bipedal: unknown option(s) {sorted(unknown)}; valid: {sorted(fields)}")
+        self.options = o = BipedalOptions(**options)
+        self.model = M.walker_model(o.velocity_iterations, o.position_iterations, o.unroll, o.solver_kernel)
+        self.grid = T.make_grid(o.terrain_resolution)
+        self._start = M.initial_pose()
+
+    # ------------------------------------------------------------------ spaces and params
+    @property
+    def default_params(self) -> P.WalkerParams:
+        return P.WalkerParams()
+
+    @property
+    def param_space(self):
+        return P.param_space(self.default_params)
+
+    @property
+    def param_bounds(self) -> dict:
+        return P.param_bounds()
+
+    def observation_space(self, params=None):
+        return Box(-np.inf, np.inf, (24,), jnp.float32)
+
+    def action_space(self, params=None):
+        return Box(-1.0, 1.0, (4,), jnp.float32)
+
+    # ------------------------------------------------------------------ terrain
+    def terrain(self, key: jax.Array, params: P.WalkerParams) -> T.Terrain:
+        """The level's terrain: from ``terrain_seed`` if ``fixed_terrain``, else from ``key``."""
+        return T.level_terrain(key, params, self.options.max_boxes)
+
+    def ground_window(self, profile: jax.Array, hull_x: jax.Array):
+        """The profile polyline the physics collides with: ``window_columns`` terrain columns from
+        ``BACK_COLUMNS`` behind the hull's column (clamped to the grid). Returns (points (P, 2), first column)."""
+        g, o = self.grid, self.options
+        pad_left = int(round(-g.x_min / C.TERRAIN_STEP))
+        n_cols = (g.n - 1) // o.terrain_resolution
+        col = jnp.floor(hull_x / C.TERRAIN_STEP).astype(jnp.int32) - BACK_COLUMNS
+        col = jnp.clip(col, -pad_left, n_cols - pad_left - o.window_columns)
+        j0 = (col + pad_left) * o.terrain_resolution
+        n = o.window_columns * o.terrain_resolution + 1
+        xs = g.x_min + g.dx * (j0 + jnp.arange(n, dtype=jnp.int32)).astype(jnp.float32)
+        return jnp.stack([xs, jax.lax.dynamic_slice(profile, (j0,), (n,))], -1), col
+
+    # ------------------------------------------------------------------ observation / reward
+    def hull_origin(self, world: physics2d.WorldState) -> jax.Array:
+        return physics2d.body_origin(self.model, world.bodies)[M.HULL]
+
+    def observation(self, world: physics2d.WorldState, leg_contact, profile) -> jax.Array:
+        """Gymnasium's 24 floats: hull angle, spin, velocity; per leg hip/knee angle and speed, lower-leg
+        contact; 10 lidar fractions from the hull origin."""
+        b = world.bodies
+        pos = self.hull_origin(world)
+        joints = [self.model.joints[k] for k in M.MODEL_JOINT]  # Gymnasium's order
+        ang = [b.angle[J.body_b] - b.angle[J.body_a] - J.reference_angle for J in joints]
+        spd = [b.omega[J.body_b] - b.omega[J.body_a] for J in joints]
+        c = leg_contact.astype(jnp.float32)
+        head = [
+            b.angle[M.HULL], 2.0 * b.omega[M.HULL] / C.FPS,
+            0.3 * b.vel[M.HULL, 0] * (600 / C.SCALE) / C.FPS, 0.3 * b.vel[M.HULL, 1] * (400 / C.SCALE) / C.FPS,
+            ang[0], spd[0] / C.SPEED_HIP, ang[1] + 1.0, spd[1] / C.SPEED_KNEE, c[0],
+            ang[2], spd[2] / C.SPEED_HIP, ang[3] + 1.0, spd[3] / C.SPEED_KNEE, c[1],
+        ]
+        return jnp.concatenate([jnp.stack(head), L.lidar(profile, self.grid, pos)]).astype(jnp.float32)
+
+    def shaping(self, world: physics2d.WorldState) -> jax.Array:
+        """Gymnasium's potential: 130 x / SCALE - 5 |hull angle| (x of the hull's body origin)."""
+        return C.SHAPING_X * self.hull_origin(world)[0] - C.SHAPING_ANGLE * jnp.abs(world.bodies.angle[M.HULL])
+
+    # ------------------------------------------------------------------ physics
+    def physics(self, state: BipedalState, action: jax.Array, force=None):
+        """One Box2D-style step with Gymnasium's motor settings for ``action``; updates the contact flags.
+
+        Returns (world, leg_contact, leg_pairs, window column, hull touched the ground)."""
+        speed, torque = motor_targets(action)
+        order = jnp.asarray(M.GYM_JOINT)  # to the model's (Box2D island) joint order
+        speed, torque = speed[order], torque[order]
+        ground, col = self.ground_window(state.profile, self.hull_origin(state.world)[0])
+        world, info = physics2d.step(self.model, state.world, ground, C.GRAVITY, force=force,
+                                     motor_speed=speed, max_motor_torque=torque)
+        # Gymnasium's ContactDetector: one Box2D contact per (lower leg, terrain edge) pair; BeginContact
+        # sets the leg's flag, EndContact clears it even while the leg still touches another edge.
+        r = self.options.terrain_resolution
+        pairs = info["pair_touching"][jnp.asarray([M.POLYGON[b] for b in M.LOWER])].reshape(2, self.options.window_columns, r).any(-1)
+        shift = col - state.window  # the previous window, re-indexed to this one's columns
+        idx = jnp.arange(self.options.window_columns) + shift
+        ok = (idx >= 0) & (idx < self.options.window_columns)
+        prev = jnp.where(ok[None], jnp.take(state.leg_pairs, jnp.clip(idx, 0, self.options.window_columns - 1), axis=1), False)
+        began = jnp.any(pairs & ~prev, axis=1)
+        ended = jnp.any(~pairs & prev, axis=1)
+        leg_contact = jnp.where(ended, False, jnp.where(began, True, state.leg_contact))
+        return world, leg_contact, pairs, col, info["polygon_touching"][M.POLYGON[M.HULL]]
+
+    # ------------------------------------------------------------------ reset / step
+    def reset_env(self, key: jax.Array, params: P.WalkerParams):
+        """Gymnasium's reset: terrain, the walker created as Gymnasium places it, a random horizontal
+        force U(-5, 5) on the hull, and one step with zero action (its observation is returned)."""
+        k_terrain, k_push = jax.random.split(key)
+        profile = T.rasterise(self.terrain(k_terrain, params), self.grid)
+        pos, ang = self._start
+        world = physics2d.init_world(self.model, physics2d.bodies_from_origin(self.model, pos, ang))
+        state = BipedalState(
+            time=jnp.int32(0), episode_return=jnp.float32(0.0), world=world, profile=profile,
+            prev_shaping=jnp.float32(0.0), leg_contact=jnp.zeros((2,), bool),
+            leg_pairs=jnp.zeros((2, self.options.window_columns), bool), window=jnp.int32(0))
+        _, col = self.ground_window(profile, self.hull_origin(world)[0])
+        state = state.replace(window=col)
+        push = jax.random.uniform(k_push, (), jnp.float32, -C.INITIAL_RANDOM, C.INITIAL_RANDOM)
+        force = jnp.zeros((M.NUM_BODIES, 2), jnp.float32).at[M.HULL, 0].set(push)
+        world, contact, pairs, col, _ = self.physics(state, jnp.zeros((4,), jnp.float32), force)
+        state = state.replace(world=world, leg_contact=contact, leg_pairs=pairs, window=col,
+                              prev_shaping=self.shaping(world))
+        return self.observation(world, contact, profile), state
+
+    def step_env(self, key, state: BipedalState, action, params: P.WalkerParams):
+        world, contact, pairs, col, hull_hit = self.physics(state, action)
+        b = world.bodies
+        finite = (jnp.all(jnp.isfinite(b.com)) & jnp.all(jnp.isfinite(b.vel)) & jnp.all(jnp.isfinite(b.angle))
+                  & jnp.all(jnp.isfinite(b.omega)))
+        world = jax.tree_util.tree_map(lambda n, o: jnp.where(finite, n, o), world, state.world)
+        new = state.replace(world=world, leg_contact=contact, leg_pairs=pairs, window=col)
+        shaping = self.shaping(world)
+        torque_cost = C.TORQUE_COST * jnp.sum(jnp.clip(jnp.abs(action), 0.0, 1.0))
+        reward = shaping - state.prev_shaping - torque_cost
+        x = self.hull_origin(world)[0]
+        crash = hull_hit | (x < 0.0) | ~finite
+        finish = x > C.FINISH_X
+        reward = jnp.where(crash, C.CRASH_REWARD, reward)
+        new = new.replace(prev_shaping=shaping)
+        info = {"hull_contact": hull_hit, "finished": finish & ~crash, "x": x}
+        return self.observation(world, contact, state.profile), new, reward, crash | finish, info
+
+    # ------------------------------------------------------------------ rendering
+    def render(self, state: BipedalState, params=None, width: int = 400, height: int = 267) -> np.ndarray:
+        """One unbatched state -> RGB frame [height, width, 3] uint8 (the MJX walker's drawing)."""
+        from envs.walker.render import draw
+
+        a = np.asarray(state.world.bodies.angle)
+        pos = np.asarray(self.hull_origin(state.world))
+        # the drawing's joint angles are absolute differences (it has no reference angles)
+        q = [pos[0], pos[1], a[0], a[1] - a[0], a[2] - a[1], a[3] - a[0], a[4] - a[3]]
+        return draw(np.asarray(q, np.float32), np.asarray(state.profile), self.grid, width, height)

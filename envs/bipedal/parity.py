@@ -1,0 +1,199 @@
+"""Parity harness: Gymnasium's scripted gait (``BipedalWalkerHeuristics``) in our walker (vmapped) and
+in Gymnasium's Box2D BipedalWalker, per setting: return distribution, episode length, fall rate.
+
+    python -m envs.bipedal.parity --episodes 200 --out docs/results/bipedal.json
+    python -m envs.bipedal.parity --episodes 50 --settings flat --jax-only
+
+Both sides play each episode as Gymnasium's own demo loop does: the first action is zero, every
+later one is the heuristic's answer to the last observation; an episode ends on termination or the
+level's time limit (1600 steps flat, 2000 Hardcore, as Gymnasium registers them). A fall is a
+termination with reward -100 (hull contact or x < 0). Bar (docs/bipedal.md "Parity"): mean return
+within 15 % of Gymnasium's or within 2 standard errors of the difference, whichever is wider, and
+fall rate within 0.1.
+"""
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import pathlib
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from envs.bipedal.env import BipedalWalker
+from envs.bipedal.heuristic import heuristic, heuristic_init
+from envs.walker.levels import LEVELS
+
+# setting -> (named level, Gymnasium id)
+SETTINGS = {
+    "flat": ("BipedalWalker", "BipedalWalker-v3"),
+    "hardcore": ("Hardcore", "BipedalWalkerHardcore-v3"),
+}
+
+
+def summarize(returns, lengths, falls) -> dict:
+    r = np.asarray(returns, np.float64)
+    return dict(episodes=int(r.size), mean=float(r.mean()), std=float(r.std()), se=float(r.std() / np.sqrt(r.size)),
+                fall=float(np.mean(falls)), length=float(np.mean(lengths)),
+                quartiles=[float(q) for q in np.percentile(r, [25, 50, 75])])
+
+
+def jax_episodes(level: str, episodes: int, seed: int = 0, chunk: int = 100, **env_options) -> dict:
+    """First episode of the heuristic on ``episodes`` fresh terrains of the named level (numpy arrays)."""
+    env = BipedalWalker(**env_options)
+    params = LEVELS[level]()
+    max_steps = int(params.max_steps)
+
+    def one(key):
+        k0, k1 = jax.random.split(key)
+        obs, state = env.reset(k0, params)
+
+        def body(carry, k):
+            obs, state, h, a, done_before, out = carry
+            obs, state, reward, done, info = env.step_without_reset(k, state, a, params)
+            a, h = heuristic(h, obs)
+            first = done & ~done_before
+            fell = info["terminated"] & (reward == -100.0)
+            out = jax.tree_util.tree_map(lambda o, n: jnp.where(first, n, o), out, dict(
+                ret=info["episode_return"], length=info["episode_length"], fall=fell))
+            return (obs, state, h, a, done_before | done, out), None
+
+        out0 = dict(ret=jnp.float32(0), length=jnp.int32(0), fall=jnp.bool_(False))
+        carry = (obs, state, heuristic_init(), jnp.zeros(4, jnp.float32), jnp.bool_(False), out0)
+        (_, _, _, _, _, out), _ = jax.lax.scan(body, carry, jax.random.split(k1, max_steps))
+        return out
+
+    run = jax.jit(jax.vmap(one))
+    keys = jax.random.split(jax.random.PRNGKey(seed), episodes)
+    outs = []
+    for i in range(0, episodes, chunk):
+        part = keys[i:i + chunk]
+        if part.shape[0] < chunk:  # same compiled shape for the last chunk
+            part = jnp.concatenate([part, keys[: chunk - part.shape[0]]])
+        outs.append(jax.tree_util.tree_map(np.asarray, run(part)))
+    out = {k: np.concatenate([o[k] for o in outs])[:episodes] for k in outs[0]}
+    return out
+
+
+def _as_chain(walker_cls):
+    """``walker_cls._generate_terrain`` with the separate grass edges replaced by one Box2D chain (a
+    diagnostic: a chain's ghost vertices remove the contacts Box2D makes at the edges' junctions)."""
+    from Box2D.b2 import chainShape, edgeShape, fixtureDef
+
+    original = walker_cls._generate_terrain
+
+    def generate(self, hardcore):
+        original(self, hardcore)
+        edges = [t for t in self.terrain if isinstance(t.fixtures[0].shape, edgeShape)]
+        for t in edges:
+            self.world.DestroyBody(t)
+        chain = self.world.CreateStaticBody(fixtures=fixtureDef(
+            shape=chainShape(vertices=list(zip(self.terrain_x, self.terrain_y))), friction=2.5))
+        chain.color1 = chain.color2 = (76, 255, 76)
+        self.terrain = [t for t in self.terrain if t not in edges] + [chain]
+
+    return generate
+
+
+def gym_episodes(gym_id: str, episodes: int, seed: int = 0, chain: bool = False) -> dict:
+    """Gymnasium's own env and gait; ``chain``: its grass as one chain shape (see ``_as_chain``)."""
+    import gymnasium as gym
+    from gymnasium.envs.box2d.bipedal_walker import BipedalWalker as GymWalker
+    from gymnasium.envs.box2d.bipedal_walker import BipedalWalkerHeuristics
+
+    env = gym.make(gym_id)
+    if chain:
+        env.unwrapped._generate_terrain = _as_chain(GymWalker).__get__(env.unwrapped)
+    rets, lens, falls = [], [], []
+    for ep in range(episodes):
+        s, _ = env.reset(seed=seed + ep)
+        h = BipedalWalkerHeuristics()
+        a = np.zeros(4)
+        total, n = 0.0, 0
+        while True:
+            s, r, term, trunc, _ = env.step(a)
+            total += r
+            n += 1
+            a = h.step_heuristic(s)
+            if term or trunc:
+                break
+        rets.append(total)
+        lens.append(n)
+        falls.append(bool(term and r == -100))
+    env.close()
+    return dict(ret=np.asarray(rets), length=np.asarray(lens), fall=np.asarray(falls))
+
+
+def passes(gym: dict, ours: dict) -> bool:
+    """The parity bar: |mean difference| <= max(15 % of |Gymnasium's mean|, 2 SE of the difference),
+    and |fall-rate difference| <= 0.1."""
+    se = np.sqrt(gym["se"] ** 2 + ours["se"] ** 2)
+    tol = max(0.15 * abs(gym["mean"]), 2.0 * se)
+    return bool(abs(ours["mean"] - gym["mean"]) <= tol and abs(ours["fall"] - gym["fall"]) <= 0.1)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--episodes", type=int, default=100)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--settings", default="flat", help=f"comma-separated, from {', '.join(SETTINGS)}")
+    p.add_argument("--chunk", type=int, default=100, help="our episodes per compiled batch")
+    p.add_argument("--jax-only", action="store_true")
+    p.add_argument("--gym-only", action="store_true")
+    p.add_argument("--gym-chain", action="store_true",
+                   help="diagnostic: Gymnasium's grass as one chain shape (no contacts at edge junctions)")
+    p.add_argument("--iterations", default=None, metavar="V/P", help="our solver passes (default Box2D's 180/60)")
+    p.add_argument("--out", default=None, help="write the JSON record here (e.g. docs/results/bipedal.json)")
+    args = p.parse_args(argv)
+    names = [n.strip() for n in args.settings.split(",")]
+    unknown = [n for n in names if n not in SETTINGS]
+    if unknown:
+        p.error(f"unknown setting(s) {unknown}; known: {list(SETTINGS)}")
+    if args.episodes < 1 or args.chunk < 1:
+        p.error("--episodes and --chunk must be >= 1")
+    opts = {}
+    if args.iterations:
+        try:
+            v, q = (int(x) for x in args.iterations.split("/"))
+        except ValueError:
+            p.error(f"--iterations must be V/P, e.g. 180/60; got {args.iterations!r}")
+        opts = dict(velocity_iterations=v, position_iterations=q)
+    record = {"device": jax.devices()[0].device_kind if not args.gym_only else "cpu",
+              "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
+              "command": "python -m envs.bipedal.parity " + " ".join(argv if argv is not None else __import__("sys").argv[1:]),
+              "seed": args.seed, "gym_terrain": "chain" if args.gym_chain else "edges", "parity": {}}
+    for name in names:
+        level, gym_id = SETTINGS[name]
+        row = {"episodes": args.episodes}
+        if not args.jax_only:
+            t = time.time()
+            d = gym_episodes(gym_id, args.episodes, args.seed, chain=args.gym_chain)
+            g = summarize(d["ret"], d["length"], d["fall"])
+            print(f"gym  {name}: {time.time() - t:.0f}s mean {g['mean']:.1f} se {g['se']:.1f} fall {g['fall']:.2f} "
+                  f"len {g['length']:.0f}", flush=True)
+            row.update(gym_mean=g["mean"], gym_se=g["se"], gym_std=g["std"], gym_fall=g["fall"], gym_length=g["length"],
+                       gym_quartiles=g["quartiles"])
+        if not args.gym_only:
+            t = time.time()
+            d = jax_episodes(level, args.episodes, args.seed, min(args.chunk, args.episodes), **opts)
+            o = summarize(d["ret"], d["length"], d["fall"])
+            print(f"ours {name}: {time.time() - t:.0f}s mean {o['mean']:.1f} se {o['se']:.1f} fall {o['fall']:.2f} "
+                  f"len {o['length']:.0f}", flush=True)
+            row.update(ours_mean=o["mean"], ours_se=o["se"], ours_std=o["std"], ours_fall=o["fall"],
+                       ours_length=o["length"], ours_quartiles=o["quartiles"])
+        if "gym_mean" in row and "ours_mean" in row:
+            row["pass"] = passes(dict(mean=row["gym_mean"], se=row["gym_se"], fall=row["gym_fall"]),
+                                 dict(mean=row["ours_mean"], se=row["ours_se"], fall=row["ours_fall"]))
+            print(f"{name}: parity {'PASS' if row['pass'] else 'FAIL'}", flush=True)
+        record["parity"][name] = row
+    if args.out:
+        pathlib.Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        pathlib.Path(args.out).write_text(json.dumps(record, indent=1) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

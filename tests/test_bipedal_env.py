@@ -1,0 +1,292 @@
+"""BipedalWalker on physics2d: shapes, per-env isolation in one vmapped batch, motors and joint limits
+(hand-computed), lidar on a hand-made terrain, reward identity, termination, no NaN on Insane.
+
+The walker's physics step compiles slowly on CPU, so every walker test reuses one jitted
+``vmap(step)`` at batch 4; initial states come from that same program (an episode at its time limit
+auto-resets), so the file compiles one walker program.
+"""
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import envs
+from envs import physics2d
+from envs.bipedal import BipedalWalker, heuristic, heuristic_init
+from envs.bipedal import model as BM
+from envs.bipedal.env import motor_targets
+from envs.walker import constants as C
+from envs.walker import levels as LV
+from envs.walker.levels import LEVELS
+from envs.walker.params import PARAM_NAMES
+
+B = 4
+pytestmark = pytest.mark.xdist_group("bipedal")
+
+
+def stack(ps):
+    return jax.tree_util.tree_map(lambda *x: jnp.stack(x), *ps)
+
+
+def take(tree, i):
+    return jax.tree_util.tree_map(lambda x: x[i], tree)
+
+
+@pytest.fixture(scope="module")
+def sim():
+    env = envs.make("bipedal")
+    step = jax.jit(jax.vmap(env.step))
+
+    def reset(key, params):
+        """Fresh episodes through the shared program: a state at its time limit auto-resets."""
+        dummy = jax.vmap(env.reset_env)  # structure only, never compiled
+        shape = jax.eval_shape(dummy, jax.random.split(key, B), params)[1]
+        state = jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), shape)
+        state = state.replace(time=params.max_steps - 1)
+        obs, state, _, done, _ = step(jax.random.split(key, B), state, jnp.zeros((B, 4)), params)
+        assert bool(jnp.all(done))
+        return obs, state.replace(time=jnp.zeros((B,), jnp.int32), episode_return=jnp.zeros((B,)))
+
+    return env, reset, step
+
+
+def levels(names, seeds=None):
+    seeds = range(len(names)) if seeds is None else seeds
+    return stack([LEVELS[n](terrain_seed=s, fixed_terrain=True) for n, s in zip(names, seeds)])
+
+
+def rollout(step, state, params, actions, key=0):
+    keys = jax.random.split(jax.random.PRNGKey(key), actions.shape[0])
+    out = []
+    for k, a in zip(keys, actions):
+        o, state, r, d, info = step(jax.random.split(k, B), state, jnp.asarray(a, jnp.float32), params)
+        out.append(jax.tree_util.tree_map(np.asarray, (o, state, r, d, info)))
+    return state, out
+
+
+def hull_x_angle(env, world):
+    """Hull origin x and angle from the bodies, by hand: origin = com - R(angle) local_com."""
+    lc = env.model.local_com[0]
+    a = np.asarray(world.bodies.angle)[..., 0]
+    com = np.asarray(world.bodies.com)[..., 0, :]
+    return com[..., 0] - (np.cos(a) * lc[0] - np.sin(a) * lc[1]), a
+
+
+# ----------------------------------------------------------------------------------- no physics compile
+def test_registered_options_and_spaces():
+    env = envs.make("bipedal")
+    assert isinstance(env, BipedalWalker) and env.name == "bipedal" and env.ued is LV.UED  # the MJX walker's
+    assert env.observation_space().shape == (24,) and env.action_space().shape == (4,)
+    assert env.param_space.names == PARAM_NAMES
+    with pytest.raises(ValueError, match="unknown option"):
+        BipedalWalker(substeps=3)
+    with pytest.raises(ValueError, match="window_columns"):
+        BipedalWalker(window_columns=4)
+    with pytest.raises(ValueError, match="solver_kernel"):
+        BipedalWalker(solver_kernel="cuda")
+    m = env.model
+    # Box2D's mass properties (measured in Gymnasium): hull 5.4222 / 1.99940 about the COM
+    # (-0.020036, -0.0056466); legs 0.30222 / 0.034140 and 0.24178 / 0.026796
+    np.testing.assert_allclose(m.mass, [5.4222226, 0.3022222, 0.2417778, 0.3022222, 0.2417778], rtol=1e-6)
+    np.testing.assert_allclose(m.inertia, [1.9993952, 0.0341399, 0.0267961, 0.0341399, 0.0267961], rtol=1e-5)
+    np.testing.assert_allclose(m.local_com[0], [-0.0200364, -0.0056466], atol=1e-6)
+    assert [m.joints[k].reference_angle for k in BM.MODEL_JOINT] == [-0.05, 0.0, 0.05, 0.0]  # Gymnasium order
+
+
+def test_motor_targets_are_gymnasiums():
+    speed, torque = motor_targets(jnp.asarray([0.5, -1.0, 0.0, 2.0]))
+    np.testing.assert_allclose(speed, [4.0, -6.0, 0.0, 6.0])  # hips 4, knees 6 rad/s
+    np.testing.assert_allclose(torque, [40.0, 80.0, 0.0, 80.0])
+
+
+def _rotor_model(**joint):
+    """Two boxes pinned at their common centre (no point-constraint torque), no gravity or contacts."""
+    box = ((-0.5, -0.1), (0.5, -0.1), (0.5, 0.1), (-0.5, 0.1))
+    cfg = physics2d.SolverConfig(dt=0.02, velocity_iterations=20, position_iterations=5)
+    polys = [physics2d.Polygon(0, box, 1.0, 0.1, sensor=True), physics2d.Polygon(1, box, 2.0, 0.1, sensor=True)]
+    j = physics2d.RevoluteJoint(0, 1, (0.0, 0.0), (0.0, 0.0), enable_motor=True, **joint)
+    return physics2d.make_model(2, polys, (j,), cfg)
+
+
+def test_per_step_motor_speed_and_torque_per_world():
+    m = _rotor_model()
+    ground = jnp.asarray([[-10.0, -5.0], [10.0, -5.0]])
+    w = physics2d.init_world(m, physics2d.bodies_from_origin(m, [[0.0, 0.0], [0.0, 0.0]], [0.0, 0.0]))
+
+    @jax.jit
+    @jax.vmap
+    def one_step(world, speed, torque):
+        return physics2d.step(m, world, ground, 0.0, motor_speed=speed[None], max_motor_torque=torque[None])[0]
+
+    speed = jnp.asarray([4.0, -6.0, 0.5])
+    torque = jnp.asarray([1.0, 2.0, 80.0])
+    ws = jax.tree_util.tree_map(lambda x: jnp.stack([x] * 3), w)
+    ws = one_step(ws, speed, torque)
+    rel = np.asarray(ws.bodies.omega[:, 1] - ws.bodies.omega[:, 0])
+    # saturated motors: one step changes the relative spin by dt * T * (1/I_a + 1/I_b)
+    k = float(m.inv_inertia[0] + m.inv_inertia[1])
+    np.testing.assert_allclose(rel[:2], [0.02 * 1.0 * k, -0.02 * 2.0 * k], rtol=1e-5)
+    np.testing.assert_allclose(rel[2], 0.5, rtol=1e-5)  # strong motor: at its target speed at once
+    # the motor reaction conserves angular momentum
+    np.testing.assert_allclose(np.asarray(ws.bodies.omega[:, 0] * m.inertia[0] + ws.bodies.omega[:, 1] * m.inertia[1]),
+                               0.0, atol=1e-6)
+    assert float(jnp.max(jnp.abs(ws.bodies.com))) < 1e-6  # the pin holds
+
+
+def test_joint_limit_stops_a_motor_at_each_end():
+    m = _rotor_model(enable_limit=True, lower=-0.4, upper=0.3)
+    ground = jnp.asarray([[-10.0, -5.0], [10.0, -5.0]])
+    w0 = physics2d.init_world(m, physics2d.bodies_from_origin(m, [[0.0, 0.0], [0.0, 0.0]], [0.0, 0.0]))
+
+    @jax.jit
+    def run(speed):
+        def body(w, _):
+            return physics2d.step(m, w, ground, 0.0, motor_speed=speed[None], max_motor_torque=jnp.asarray([50.0]))[0], None
+        return jax.lax.scan(body, w0, None, length=60)[0]
+
+    slop = 2.0 / 180 * np.pi
+    for speed, limit in ((3.0, 0.3), (-3.0, -0.4)):
+        w = run(jnp.float32(speed))
+        angle = float(w.bodies.angle[1] - w.bodies.angle[0])
+        assert abs(angle - limit) <= slop + 1e-4, (speed, angle)
+        assert abs(float(w.bodies.omega[1] - w.bodies.omega[0])) < 1e-4
+        assert int(w.limit_state[0]) == (2 if speed > 0 else 1)  # AT_UPPER / AT_LOWER
+
+
+def test_lidar_against_hand_made_terrain():
+    env = BipedalWalker()
+    g = env.grid
+    xs = g.x_min + g.dx * np.arange(g.n)
+    h0, h1, x1 = 3.0, 4.0, 12.0
+    profile = jnp.asarray(np.where(xs >= x1, h1, h0), jnp.float32)  # a plateau from x1 (one-cell face)
+    hx, hy = 10.0, 6.0
+    pos, ang = BM.initial_pose()
+    pos = pos + np.asarray([hx - pos[0, 0], hy - pos[0, 1]], np.float32)
+    world = physics2d.init_world(env.model, physics2d.bodies_from_origin(env.model, pos, ang))
+    obs = np.asarray(env.observation(world, jnp.zeros(2, bool), profile))
+    theta = 0.15 * np.arange(10)
+    expect = []
+    for t in theta:
+        d_low = (hy - h0) / np.cos(t)  # hits the low ground if that point lies before the face
+        x_low = hx + d_low * np.sin(t)
+        d_high = (hy - h1) / np.cos(t)
+        x_high = hx + d_high * np.sin(t)
+        d = d_low if x_low < x1 - g.dx else (d_high if x_high >= x1 else np.nan)
+        expect.append(min(d / C.LIDAR_RANGE, 1.0))
+    expect = np.asarray(expect)
+    known = np.isfinite(expect)
+    assert known.sum() >= 8
+    np.testing.assert_allclose(obs[14:][known], expect[known], rtol=1e-5)
+    assert np.all(obs[14:] > 0) and np.all(obs[14:] <= 1)
+    np.testing.assert_allclose(obs[[0, 1, 2, 3]], 0.0, atol=1e-7)  # hull at rest, level
+    np.testing.assert_allclose(obs[[4, 6, 9, 11]], [0.0, 1.0, 0.0, 1.0], atol=1e-6)  # created pose: joints at 0
+
+
+def test_heuristic_matches_gymnasiums_controller():
+    gym_bw = pytest.importorskip("gymnasium.envs.box2d.bipedal_walker")
+    rng = np.random.default_rng(0)
+    h_gym = gym_bw.BipedalWalkerHeuristics()
+    h = heuristic_init()
+    step = jax.jit(heuristic)
+    phases = set()
+    for _ in range(300):
+        s = rng.uniform(-1, 1, 24).astype(np.float32)
+        s[[8, 13]] = rng.random(2) < 0.5
+        a_gym = h_gym.step_heuristic(s)
+        a, h = step(h, jnp.asarray(s))
+        np.testing.assert_allclose(np.asarray(a), a_gym, atol=1e-5)
+        assert int(h.phase) == h_gym.state and int(h.moving_leg) == h_gym.moving_leg
+        phases.add(h_gym.state)
+    assert phases == {1, 2, 3}
+
+
+# ----------------------------------------------------------------------------------- the shared program
+def test_reset_shapes_and_created_pose(sim):
+    env, reset, _ = sim
+    params = levels(["BipedalWalker", "Stump", "Insane", "Hardcore"])
+    obs, s = reset(jax.random.PRNGKey(0), params)
+    assert obs.shape == (B, 24) and obs.dtype == jnp.float32
+    assert s.world.bodies.com.shape == (B, 5, 2) and s.profile.shape == (B, env.grid.n)
+    x, a = hull_x_angle(env, s.world)
+    # the reset step pulls the legs onto the hips (0.53 m) and lands them; the hull barely moves
+    # sideways (push U(-5, 5) N for one step) and tilts less than 0.01 rad
+    assert np.all(np.abs(x - BM.INIT_X) < 0.01) and np.all(np.abs(a) < 0.01)
+    # the first 8 rays hit the flat start pad, the same in every level (the far ones may see obstacles)
+    np.testing.assert_allclose(np.asarray(obs[:, 14:22]), np.tile(np.asarray(obs[0, 14:22]), (B, 1)), atol=1e-6)
+    assert np.all(np.asarray(obs[:, [8, 13]]) == 1.0)  # both feet land in the reset step, as in Gymnasium
+    # fixed terrains replay: the same level gives the same profile
+    _, s2 = reset(jax.random.PRNGKey(9), params)
+    np.testing.assert_array_equal(np.asarray(s.profile), np.asarray(s2.profile))
+
+
+def test_per_env_isolation(sim):
+    env, reset, step = sim
+    rng = np.random.default_rng(1)
+    params = levels(["BipedalWalker", "Stump", "Insane", "Stairs"])
+    _, s = reset(jax.random.PRNGKey(1), params)
+    actions = rng.uniform(-1, 1, (25, B, 4)).astype(np.float32)
+    _, out_a = rollout(step, s, params, actions)
+    # env 3: other actions and another level (terrain), everything else the same
+    actions_b = actions.copy()
+    actions_b[:, 3] = rng.uniform(-1, 1, (25, 4))
+    params_b = jax.tree_util.tree_map(lambda p, q: p.at[3].set(q), params, LEVELS["PitGap"](terrain_seed=7, fixed_terrain=True))
+    s_b = s.replace(profile=s.profile.at[3].set(s.profile[0] + 0.1))
+    _, out_b = rollout(step, s_b, params_b, actions_b)
+    for (oa, sa, ra, da, _), (ob, sb, rb, db, _) in zip(out_a, out_b):
+        np.testing.assert_array_equal(oa[:3], ob[:3])
+        np.testing.assert_array_equal(ra[:3], rb[:3])
+        np.testing.assert_array_equal(sa.world.bodies.com[:3], sb.world.bodies.com[:3])
+    assert not np.array_equal(out_a[-1][0][3], out_b[-1][0][3])
+
+
+def test_reward_is_gymnasiums_shaping_difference(sim):
+    env, reset, step = sim
+    rng = np.random.default_rng(2)
+    params = levels(["BipedalWalker"] * B)
+    _, s = reset(jax.random.PRNGKey(2), params)
+    for t in range(12):
+        a = rng.uniform(-1.3, 1.3, (B, 4)).astype(np.float32)
+        x0, a0 = hull_x_angle(env, s.world)
+        _, s1, r, d, info = step(jax.random.split(jax.random.PRNGKey(t), B), s, jnp.asarray(a), params)
+        x1, a1 = hull_x_angle(env, s1.world)
+        live = ~np.asarray(d)
+        expect = 130.0 / 30.0 * (x1 - x0) - 5.0 * (np.abs(a1) - np.abs(a0)) - 0.00035 * 80 * np.abs(np.clip(a, -1, 1)).sum(1)
+        np.testing.assert_allclose(np.asarray(r)[live], expect[live], atol=2e-4)
+        s = s1
+
+
+def test_termination_rules(sim):
+    env, reset, step = sim
+    params = levels(["BipedalWalker"] * B)
+    _, s = reset(jax.random.PRNGKey(3), params)
+    flat = jnp.full_like(s.profile, C.TERRAIN_HEIGHT)
+    # env 0 as is; env 1 moved to x = -0.5; env 2 past the finish line; env 3 with the hull sunk into the ground
+    x, _ = hull_x_angle(env, s.world)
+    shift = np.zeros((B, 1, 2), np.float32)
+    shift[1, 0, 0] = -0.5 - x[1]
+    shift[2, 0, 0] = C.FINISH_X + 0.2 - x[2]
+    shift[3, 0, 1] = -2.3  # the whole walker: hull bottom 0.2 m below the ground
+    world = s.world.replace(bodies=s.world.bodies.replace(com=s.world.bodies.com + shift))
+    s = s.replace(world=world, profile=flat, window=jnp.zeros((B,), jnp.int32),
+                  leg_pairs=jnp.zeros_like(s.leg_pairs))
+    _, _, r, d, info = step(jax.random.split(jax.random.PRNGKey(0), B), s, jnp.zeros((B, 4)), params)
+    r, d = np.asarray(r), np.asarray(d)
+    assert not d[0] and abs(r[0]) < 1.0
+    assert d[1] and r[1] == -100.0 and bool(info["terminated"][1])
+    assert d[2] and r[2] != -100.0 and bool(info["finished"][2]) and bool(info["terminated"][2])
+    assert d[3] and r[3] == -100.0 and bool(info["hull_contact"][3])
+
+
+def test_no_nan_under_random_actions_on_insane(sim):
+    env, reset, step = sim
+    rng = np.random.default_rng(4)
+    params = stack([LEVELS["Insane"](terrain_seed=s) for s in range(B)])  # new terrain every episode
+    obs, s = reset(jax.random.PRNGKey(4), params)
+    dones = 0
+    for t in range(150):
+        a = jnp.asarray(rng.uniform(-1, 1, (B, 4)), jnp.float32)
+        obs, s, r, d, info = step(jax.random.split(jax.random.PRNGKey(100 + t), B), s, a, params)
+        assert np.all(np.isfinite(np.asarray(obs))) and np.all(np.isfinite(np.asarray(r)))
+        assert np.all(np.isfinite(np.asarray(s.world.bodies.com)))
+        dones += int(np.sum(np.asarray(d)))
+    assert dones >= 1  # random actions fall over (and the episodes auto-reset)
