@@ -21,12 +21,13 @@ from flax import struct
 
 from envs import physics2d
 from envs.bipedal import model as M
-from envs.core import Box, EnvState, Environment
+from envs.core import EnvState, Environment
 from envs.walker import constants as C
 from envs.walker import levels as LV
 from envs.walker import lidar as L
 from envs.walker import params as P
 from envs.walker import terrain as T
+from envs.walker.interface import WalkerInterface
 
 KINDS = ("auto", "xla", "pallas", "interpret")
 
@@ -82,7 +83,7 @@ class BipedalState(EnvState):
     window: jax.Array  # int32 first terrain column of the window of the last step
 
 
-class BipedalWalker(Environment):
+class BipedalWalker(WalkerInterface, Environment):
     """Gymnasium BipedalWalker (Box2D rules, physics2d solver) over DCD's level space."""
 
     name = "bipedal"
@@ -98,29 +99,7 @@ class BipedalWalker(Environment):
         self.grid = T.make_grid(o.terrain_resolution)
         self._start = M.initial_pose()
 
-    # ------------------------------------------------------------------ spaces and params
-    @property
-    def default_params(self) -> P.WalkerParams:
-        return P.WalkerParams()
-
-    @property
-    def param_space(self):
-        return P.param_space(self.default_params)
-
-    @property
-    def param_bounds(self) -> dict:
-        return P.param_bounds()
-
-    def observation_space(self, params=None):
-        return Box(-np.inf, np.inf, (24,), jnp.float32)
-
-    def action_space(self, params=None):
-        return Box(-1.0, 1.0, (4,), jnp.float32)
-
-    # ------------------------------------------------------------------ terrain
-    def terrain(self, key: jax.Array, params: P.WalkerParams) -> T.Terrain:
-        """The level's terrain: from ``terrain_seed`` if ``fixed_terrain``, else from ``key``."""
-        return T.level_terrain(key, params, self.options.max_boxes)
+    # spaces, params and the level's terrain: envs.walker.interface.WalkerInterface
 
     def ground_window(self, profile: jax.Array, hull_x: jax.Array):
         """The profile polyline the physics collides with: ``window_columns`` terrain columns from

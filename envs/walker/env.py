@@ -18,13 +18,14 @@ import numpy as np
 from flax import struct
 from mujoco import mjx
 
-from envs.core import Box, EnvState, Environment
+from envs.core import EnvState, Environment
 from envs.walker import constants as C
 from envs.walker import levels as LV
 from envs.walker import lidar as L
 from envs.walker import model as M
 from envs.walker import params as P
 from envs.walker import terrain as T
+from envs.walker.interface import WalkerInterface
 from envs.walker.options import WalkerOptions
 
 _SPEEDS = np.array([C.SPEED_HIP, C.SPEED_KNEE, C.SPEED_HIP, C.SPEED_KNEE], np.float32)
@@ -42,7 +43,7 @@ class WalkerState(EnvState):
     clipped: jax.Array  # bool: terrain exceeded the heightfield's vertical span (clipped)
 
 
-class BipedalWalker(Environment):
+class BipedalWalker(WalkerInterface, Environment):
     """DCD's parametric BipedalWalker on MJX. Options: see ``WalkerOptions`` (all static)."""
 
     name = "walker"
@@ -64,29 +65,7 @@ class BipedalWalker(Environment):
         self._push_dv = C.INITIAL_RANDOM * C.CONTROL_DT / M.total_mass()
         self._geom_pos0 = jnp.asarray(self.mj_model.geom_pos, jnp.float32)
 
-    # ------------------------------------------------------------------ spaces and params
-    @property
-    def default_params(self) -> P.WalkerParams:
-        return P.WalkerParams()
-
-    @property
-    def param_space(self):
-        return P.param_space(self.default_params)
-
-    @property
-    def param_bounds(self) -> dict:
-        return P.param_bounds()
-
-    def observation_space(self, params=None):
-        return Box(-np.inf, np.inf, (24,), jnp.float32)
-
-    def action_space(self, params=None):
-        return Box(-1.0, 1.0, (4,), jnp.float32)
-
-    # ------------------------------------------------------------------ terrain
-    def terrain(self, key: jax.Array, params: P.WalkerParams) -> T.Terrain:
-        """The level's terrain: from ``terrain_seed`` if ``fixed_terrain``, else from ``key``."""
-        return T.level_terrain(key, params, self.options.max_boxes)
+    # spaces, params and the level's terrain: envs.walker.interface.WalkerInterface
 
     def _profile(self, terrain: T.Terrain):
         prof = T.rasterise(terrain, self.grid)
