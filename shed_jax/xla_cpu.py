@@ -62,7 +62,8 @@ FLAGS = (FLAG, "--xla_cpu_use_xnnpack=false")
 #: expensive optimisation passes. Compiling dominates the suite (a lander evaluation program: 52 s
 #: of XLA compile with the passes, 24 s without, 2-core CPU, 2026-11-25), while its programs run
 #: briefly; even the run-bound PPO tests got faster (62 s -> 51 s). The suite passed with it.
-#: Not used by the CLI: LLVM's flags also reach GPU code generation, and long CPU runs pay at run time.
+#: Not used by the CLI: LLVM's options may also reach GPU code generation (not checked), and long CPU runs
+#: would pay at run time.
 TEST_FLAGS = ("--xla_llvm_disable_expensive_passes=true",)
 
 
