@@ -10,15 +10,15 @@ module is the host side around it:
   thread ("compiling ...", a "still compiling (N s)" line every 45 s, "compiled in N s"), so that
   SIGINT/SIGTERM during start-up stop at once (:class:`StopRequest`);
 * ``train``: the chunks of budget steps. After each, the host checks the chunk for non-finite values
-  (``checkpoint.find_nonfinite``; the chunk is not saved), appends each point's records to its
-  ``metrics.jsonl``, saves a checkpoint of the whole batch and waits for it (a failed write is
-  reported at its chunk: :class:`shed_jax.errors.WriteFailedError`, naming what is safe on disk),
-  calls the caller's :class:`Reporter` (Brax's ``progress_fn`` split: the run prints its progress
-  line, the sweep its per-point returns) and stops at a chunk boundary on a signal, ``--stop-after``
-  or a deadline (:class:`StopRules`). The next chunk is dispatched before this host work (JAX's
-  asynchronous dispatch), so the device computes it meanwhile; the results are bitwise those of
-  the sequential loop. It is not started when a stop rule could fire within twice the last chunk's
-  host time, and it is dropped when one fires;
+  (``checkpoint.find_nonfinite``; the chunk is not saved), calls the caller's :class:`Reporter`
+  (Brax's ``progress_fn`` split: the run prints its progress line, the sweep its per-point returns),
+  stops at a chunk boundary on a signal, ``--stop-after`` or a deadline (:class:`StopRules`), and
+  starts the next chunk. Meanwhile a writer thread (:class:`Background`) appends each point's records
+  to its ``metrics.jsonl`` and saves a checkpoint of the whole batch, so the device never waits for
+  the disk. The next chunk's results wait for that write; a failed write is reported then, naming
+  the chunk and what is safe on disk (:class:`shed_jax.errors.WriteFailedError`). A stop waits for
+  the last write, so a stopped run always has its last chunk saved. The computations and their order
+  are those of a sequential loop, so the results are bitwise the same;
 * ``write_results``: each point's plots, final evaluations and, last, ``summary.json`` (a point with
   a summary is finished).
 
@@ -122,13 +122,6 @@ class StopRules:
         elif self.deadline is not None and time.time() >= self.deadline:
             self.stopped = (EXIT_STOPPED, f"--time-limit {self.time_limit:g}s reached")
         return self.stopped
-
-    def would_stop(self, done: int, margin: float = 0.0) -> bool:
-        """Whether ``check(done)`` could fire within ``margin`` seconds (no side effects): the loop then
-        does not start the next chunk ahead of time."""
-        return ((self.signals is not None and self.signals.poll() is not None)
-                or (self.stop_after is not None and done >= self.stop_after)
-                or (self.deadline is not None and time.time() + margin >= self.deadline))
 
     def signalled(self) -> bool:
         """A signal came (checked before a sweep's next group trains)."""
@@ -364,6 +357,8 @@ class Progress:
     previous_wall: float = 0.0  # wall time of earlier processes (from the checkpoint)
     t0: float = dataclasses.field(default_factory=time.time)  # this process's start (compile included)
     first_chunk_s: float | None = None  # compile plus first chunk
+    chunk_s: list = dataclasses.field(default_factory=list)  # per chunk of this process: its call to its results
+    write_s: list = dataclasses.field(default_factory=list)  # per chunk: its records and checkpoint (writer thread)
     saved: int | None = None  # the last checkpoint known to be complete on disk
 
     def wall(self) -> float:
@@ -443,21 +438,65 @@ def train(batch: Batch, compiled: dict, progress: Progress, out: Output, stop: S
     return outcome
 
 
+class Background:
+    """One writer thread: ``submit(fn)`` runs ``fn`` there once the previous job is done; ``wait()``
+    blocks until the last job is done and re-raises its exception, if any (the job's ``Writes``
+    stage names what failed). Jobs run in order, one at a time."""
+
+    def __init__(self):
+        self._thread: threading.Thread | None = None
+        self._error: BaseException | None = None
+
+    def submit(self, fn: Callable[[], None]) -> None:
+        self.wait()
+
+        def job():
+            try:
+                fn()
+            except BaseException as err:  # noqa: BLE001 - re-raised by wait() in the caller's thread
+                self._error = err
+
+        self._thread = threading.Thread(target=job, name="shed_jax-writer", daemon=True)
+        self._thread.start()
+
+    def wait(self) -> None:
+        if self._thread is not None:
+            self._thread.join()
+            self._thread = None
+        if self._error is not None:
+            err, self._error = self._error, None
+            raise err
+
+
 def _chunks(batch, compiled, progress, out, stop, reporter, ckpt, w) -> tuple[int, str] | None:
+    writes = Background()  # the last chunk's records and checkpoint, written while the next chunk runs
+    try:
+        outcome = _chunk_loop(batch, compiled, progress, out, stop, reporter, ckpt, w, writes)
+        writes.wait()
+        return outcome
+    except BaseException:
+        try:  # let a write in flight finish (its checkpoint stays whole); the error already raised wins
+            writes.wait()
+        except BaseException:  # noqa: BLE001
+            pass
+        raise
+
+
+def _chunk_loop(batch, compiled, progress, out, stop, reporter, ckpt, w, writes) -> tuple[int, str] | None:
     from shed_jax import reporting, sharding
     from shed_jax.checkpoint import find_nonfinite
 
     S, total = batch.num_seeds, batch.total
-    ahead = None  # the next chunk's (state, metrics), dispatched before this chunk's host work
-    host_s = 0.0  # the host work of the last chunk (records, checkpoint), to keep --time-limit's promise
     while progress.done < total:
         done = progress.done
         n = min(batch.chunk, total - done)
-        new_state, metrics = ahead if ahead is not None else compiled[n](progress.state, done)
-        ahead = None
+        t_chunk = time.time()
+        new_state, metrics = compiled[n](progress.state, done)
         flat = reporting.flatten_tree(sharding.unpad(sharding.to_host(metrics), batch.num_points * S))
+        progress.chunk_s.append(time.time() - t_chunk)
         if progress.first_chunk_s is None:
             progress.first_chunk_s = time.time() - progress.t0
+        writes.wait()  # the previous chunk's records and checkpoint; a failed write raises here
         problems = find_nonfinite(flat, new_state, done, batch.exp.loop.tests_at)
         if problems:
             w.stage = "writing nonfinite_chunk.jsonl"
@@ -467,36 +506,43 @@ def _chunks(batch, compiled, progress, out, stop, reporter, ckpt, w) -> tuple[in
                 paths[-1].unlink(missing_ok=True)
                 reporting.append_jsonl(paths[-1], reporting.step_records(batch.rows(flat, p), range(S)))
             reporter.end()
-            if ckpt is not None:
-                ckpt.wait()
             _report_nonfinite(batch, out, problems, done, n, paths, ckpt)
             stop.stopped = (EXIT_NONFINITE, "non-finite values")
             return stop.stopped
         progress.state = new_state
-        t_host = time.time()
-        if done + n < total and not stop.would_stop(done + n, margin=2 * host_s + 1.0):
-            # JAX dispatches asynchronously: the device computes the next chunk while the host writes
-            # this one's records and checkpoint. The same computations in the same order, so the
-            # results are bitwise those of the sequential loop; a stop rule that fires below drops it.
-            ahead = compiled[min(batch.chunk, total - done - n)](new_state, done + n)
         progress.history = flat if not progress.history else {
             k: np.concatenate([progress.history[k], v], axis=1) for k, v in flat.items()}
-        for p, d in enumerate(out.dirs if out.writer else ()):
-            w.stage = f"writing the records of budget steps {done}-{done + n - 1} to {d / 'metrics.jsonl'}"
-            reporting.append_jsonl(d / "metrics.jsonl", reporting.step_records(batch.rows(flat, p), range(S)))
         progress.done += n
-        if ckpt is not None:
-            w.stage = f"saving checkpoint {progress.done} in {ckpt.directory}"
-            ckpt.save(progress.done, progress.state, progress.history, out.config, extra=out.extra(progress))
-            ckpt.wait()  # a failed write is reported now, at this chunk, not at the next save
-            progress.saved = progress.done
+        writes.submit(_writer(batch, progress, out, ckpt, w, flat, done, n, extra=out.extra(progress)))
         reporter.chunk(progress, n, flat)
-        host_s = time.time() - t_host
         if progress.done >= total:
             break
         if stop.check(progress.done):
+            writes.wait()  # a stopped run has its last chunk saved
             return stop.stopped
     return None
+
+
+def _writer(batch, progress, out, ckpt, w, flat, done: int, n: int, extra: dict) -> Callable[[], None]:
+    """The host writes of one chunk (run in the writer thread): each point's records, then the
+    checkpoint of the state and history as they stand now (both immutable once made)."""
+    from shed_jax import reporting
+
+    S, state, history, step = batch.num_seeds, progress.state, progress.history, progress.done
+
+    def write():
+        t0 = time.time()
+        for p, d in enumerate(out.dirs if out.writer else ()):
+            w.stage = f"writing the records of budget steps {done}-{done + n - 1} to {d / 'metrics.jsonl'}"
+            reporting.append_jsonl(d / "metrics.jsonl", reporting.step_records(batch.rows(flat, p), range(S)))
+        if ckpt is not None:
+            w.stage = f"saving checkpoint {step} in {ckpt.directory}"
+            ckpt.save(step, state, history, out.config, extra=extra)
+            ckpt.wait()
+            progress.saved = step
+        progress.write_s.append(time.time() - t0)
+
+    return write
 
 
 def _report_nonfinite(batch, out: Output, problems: list[str], done: int, n: int, paths: list, ckpt) -> None:
@@ -837,7 +883,8 @@ def _train_run(opts, plan, batch, compiled, progress, final_sets, stop) -> int:
         print(f"[shed_jax] training done ({progress.done}/{total} budget steps); writing the plots and summary.json...",
               flush=True)
         summary, = write_results(batch, progress, output, w, wall=wall, final_sets=final_sets,
-                                 final_episodes=opts.final_eval_episodes)
+                                 final_episodes=opts.final_eval_episodes,
+                                 extras=[{"wall_time_per_chunk_s": [round(x, 3) for x in progress.chunk_s]}])
         if not opts.no_gif:
             w.stage = "writing final_student.gif"
             gif(batch.env, batch.student, progress.state, batch.tests, out)

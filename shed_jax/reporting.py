@@ -24,6 +24,7 @@ import pathlib
 from typing import Any, Iterable, Sequence
 
 import numpy as np
+import orjson
 
 # --------------------------------------------------------------------------------------------
 # statistics
@@ -65,37 +66,40 @@ def flatten_tree(tree: Any, prefix: str = "") -> dict[str, np.ndarray]:
     return out
 
 
-def _jsonable(x: np.ndarray):
+def _serialisable(x: np.ndarray) -> np.ndarray:
+    """``x`` as orjson takes it, C-contiguous. Floats become float64 (bfloat16 included, which orjson
+    lacks), so each value is written as Python writes ``float(value)``: JSON readers get the stored
+    value exactly, as float64."""
     x = np.asarray(x)
-    if x.ndim == 0:
-        v = x.item()
-        if isinstance(v, float) and not math.isfinite(v):
-            return None
-        return v
-    return [_jsonable(v) for v in x]
+    if x.dtype.kind not in "iub":
+        x = x.astype(np.float64)
+    return np.ascontiguousarray(x)
 
 
 def step_records(metrics: dict[str, np.ndarray], seed_ids: Iterable[int]) -> list[dict]:
-    """One JSON-able record per (seed, step) from flattened ``[seeds, steps, ...]`` arrays.
+    """One record per (seed, step) from flattened ``[seeds, steps, ...]`` arrays, step-major.
 
-    Non-finite floats become ``None`` (JSON has no NaN); ``records_to_arrays`` turns them back.
+    The values are numpy scalars and array views, written by :func:`append_jsonl` (orjson):
+    non-finite floats become ``null`` (JSON has no NaN; ``records_to_arrays`` turns them back into
+    NaN), and each float the shortest decimal that reads back to it as float64. A sweep
+    of 1,024 seeds writes its records while the next chunk runs, so this must take less time than
+    a chunk: orjson writes these arrays about 10x faster than ``json`` writes Python lists.
     """
     seed_ids = list(seed_ids)
-    records = []
-    num_steps = next(iter(metrics.values())).shape[1]
-    for t in range(num_steps):
-        for i, seed in enumerate(seed_ids):
-            rec = {"seed": seed}
-            for k, v in metrics.items():
-                rec[k] = _jsonable(v[i, t])
-            records.append(rec)
-    return records
+    arrays = {k: _serialisable(v) for k, v in metrics.items()}
+    num_steps = next(iter(arrays.values())).shape[1]
+    return [{"seed": int(seed), **{k: v[i, t] for k, v in arrays.items()}}
+            for t in range(num_steps) for i, seed in enumerate(seed_ids)]
+
+
+def jsonl_bytes(records: list[dict]) -> bytes:
+    """The JSON Lines text of ``records`` (numpy values allowed; NaN/Inf -> null)."""
+    return b"".join(orjson.dumps(r, option=orjson.OPT_SERIALIZE_NUMPY | orjson.OPT_APPEND_NEWLINE) for r in records)
 
 
 def append_jsonl(path: pathlib.Path, records: list[dict]) -> None:
-    with open(path, "a") as f:
-        for r in records:
-            f.write(json.dumps(r) + "\n")
+    with open(path, "ab") as f:
+        f.write(jsonl_bytes(records))
 
 
 def read_jsonl(path: pathlib.Path) -> list[dict]:

@@ -280,9 +280,7 @@ def reconcile_metrics_jsonl(path: pathlib.Path, hist: dict, step: int, num_seeds
     if backup is not None:
         shutil.copyfile(path, backup)
     flat = {k: np.asarray(v)[:, :step] for k, v in hist.items()}
-    with open(tmp, "w") as f:
-        for r in reporting.step_records(flat, range(num_seeds)):
-            f.write(json.dumps(r) + "\n")
+    tmp.write_bytes(reporting.jsonl_bytes(reporting.step_records(flat, range(num_seeds))))
     os.replace(tmp, path)
     return (f"metrics.jsonl did not hold exactly the records of steps < {step} "
             f"({len(seen & expected)}/{len(expected)} present{', duplicates' if dup else ''}); "

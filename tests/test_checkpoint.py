@@ -272,14 +272,17 @@ def test_signal_stops_at_chunk_boundary_and_saves(runs, patched, tmp_path, capsy
         np.testing.assert_array_equal(v, ra.history[k][:, :1], err_msg=k)
 
 
-def test_next_chunk_runs_during_the_host_work_and_a_stop_drops_it(runs, patched, tmp_path, capsys):
-    """The loop dispatches chunk k+1 before it writes chunk k's records and checkpoint. A signal during
-    that host work stops the run at chunk k (the chunk started ahead is dropped), and resuming gives the
-    straight run's records and state bit for bit."""
+def test_writes_overlap_the_next_chunk_and_a_stop_saves_the_last_one(runs, patched, tmp_path, capsys):
+    """The writer thread writes chunk k's records while the main thread runs chunk k+1: chunk 0's
+    write waits until chunk 1 has started (a sequential loop would time out here). A signal during
+    chunk 1 stops the run after chunk 1 with its records and checkpoint written, and resuming gives
+    the straight run's records and state bit for bit."""
+    import threading
+
     from shed_jax import reporting
 
     a = runs[0]
-    events = []
+    events, chunk1 = [], threading.Event()
     real_compile, real_append = driver.compile_batch, reporting.append_jsonl
 
     def compile_batch(*args, **kw):
@@ -288,15 +291,18 @@ def test_next_chunk_runs_during_the_host_work_and_a_stop_drops_it(runs, patched,
         def wrap(f):
             def call(state, done):
                 events.append(("chunk", int(done)))
+                if done == 1:
+                    chunk1.set()
+                    signal.raise_signal(signal.SIGTERM)  # handled at the chunk boundary
                 return f(state, done)
             return call
         return state, {n: wrap(f) for n, f in compiled.items()}
 
     def append(path, records):
-        events.append(("write", int(records[0]["step"])))
+        step = int(records[0]["step"])
+        if step == 0:
+            events.append(("chunk 1 started during write 0", chunk1.wait(timeout=60)))
         real_append(path, records)
-        if len(events) == 3:  # chunks 0 and 1 started, chunk 0's records written: a signal comes now
-            signal.raise_signal(signal.SIGTERM)
 
     c = tmp_path / "C"
     with pytest.MonkeyPatch.context() as mp:
@@ -304,8 +310,11 @@ def test_next_chunk_runs_during_the_host_work_and_a_stop_drops_it(runs, patched,
         mp.setattr(reporting, "append_jsonl", append)
         rc = run_cli.main(parse(["--out", str(c), "--seeds", str(SEEDS), "--chunk", "1", "--no-gif"]))
     assert rc == 128 + signal.SIGTERM
-    assert events == [("chunk", 0), ("chunk", 1), ("write", 0)]
-    assert steps_of(c) == [1]
+    assert ("chunk 1 started during write 0", True) in events
+    assert [e for e in events if e[0] == "chunk"] == [("chunk", 0), ("chunk", 1)]
+    assert steps_of(c)[-1] == 2
+    lines = (a / "metrics.jsonl").read_text().splitlines(keepends=True)
+    assert (c / "metrics.jsonl").read_text() == "".join(lines[:2 * SEEDS])
     capsys.readouterr()
     assert run_cli.main(parse(["--resume", str(c), "--no-gif"])) == 0
     assert (c / "metrics.jsonl").read_text() == (a / "metrics.jsonl").read_text()

@@ -44,10 +44,15 @@ def test_records_round_trip_with_nan_and_nested_arrays():
         "test_return": np.array([[1.5, np.nan], [2.5, 3.0]], np.float32),
         "info/levels": np.arange(2 * 2 * 3 * 2, dtype=np.float32).reshape(2, 2, 3, 2),
     }
-    records = reporting.step_records(metrics, [0, 1])
+    lines = reporting.jsonl_bytes(reporting.step_records(metrics, [0, 1])).decode().splitlines()
+    records = [json.loads(line) for line in lines]
     assert records[1] == {"seed": 1, "step": 0, "test_return": 2.5, "info/levels": [[12.0, 13.0], [14.0, 15.0], [16.0, 17.0]]}
     assert records[2]["test_return"] is None  # NaN -> null in JSON
-    back = reporting.records_to_arrays(json.loads(json.dumps(records)))
+    # each float as Python writes float(value): the stored value exactly, as the json module would
+    x = np.float32(0.1)
+    line = reporting.jsonl_bytes(reporting.step_records({"v": np.array([[x]]), "w": np.array([[np.inf]])}, [0]))
+    assert line == (json.dumps({"seed": 0, "v": float(x), "w": None}, separators=(",", ":")) + "\n").encode()
+    back = reporting.records_to_arrays(records)
     np.testing.assert_array_equal(back["step"], metrics["step"])
     np.testing.assert_array_equal(back["test_return"], metrics["test_return"])  # NaN compares equal here
     np.testing.assert_array_equal(back["info/levels"], metrics["info/levels"])
