@@ -14,8 +14,9 @@ module is the host side around it:
   (Brax's ``progress_fn`` split: the run prints its progress line, the sweep its per-point returns),
   stops at a chunk boundary on a signal, ``--stop-after`` or a deadline (:class:`StopRules`), and
   starts the next chunk. Meanwhile a writer thread (:class:`Background`) appends each point's records
-  to its ``metrics.jsonl`` and saves a checkpoint of the whole batch, so the device never waits for
-  the disk. The next chunk's results wait for that write; a failed write is reported then, naming
+  to its ``metrics.jsonl`` and saves a checkpoint of the whole batch (at most every ``Output.every``
+  seconds, ``--checkpoint-every``; the last chunk and a stop always save), so the device does not
+  wait for the disk unless a write takes longer than a chunk. The next chunk's results wait for that write; a failed write is reported then, naming
   the chunk and what is safe on disk (:class:`shed_jax.errors.WriteFailedError`). A stop waits for
   the last write, so a stopped run always has its last chunk saved. The computations and their order
   are those of a sequential loop, so the results are bitwise the same;
@@ -406,6 +407,7 @@ class Output:
     extra: Callable[[Progress], dict]  # caller extras saved in every checkpoint (wall time, ...)
     label: str | None = None  # a sweep group's label (message prefix); None for a run
     writer: bool = True  # this process writes (process 0 of several hosts)
+    every: float = 0.0  # seconds between checkpoints (0: after every chunk); the last chunk and a stop always save
 
 
 def train(batch: Batch, compiled: dict, progress: Progress, out: Output, stop: StopRules, reporter: Reporter,
@@ -487,6 +489,7 @@ def _chunk_loop(batch, compiled, progress, out, stop, reporter, ckpt, w, writes)
     from shed_jax.checkpoint import find_nonfinite
 
     S, total = batch.num_seeds, batch.total
+    last_save = time.time()  # the last checkpoint handed to the writer (--checkpoint-every)
     while progress.done < total:
         done = progress.done
         n = min(batch.chunk, total - done)
@@ -513,19 +516,21 @@ def _chunk_loop(batch, compiled, progress, out, stop, reporter, ckpt, w, writes)
         progress.history = flat if not progress.history else {
             k: np.concatenate([progress.history[k], v], axis=1) for k, v in flat.items()}
         progress.done += n
-        writes.submit(_writer(batch, progress, out, ckpt, w, flat, done, n, extra=out.extra(progress)))
+        final = progress.done >= total
+        stopping = not final and stop.check(progress.done) is not None
+        save = ckpt is not None and (final or stopping or time.time() - last_save >= out.every)
+        last_save = time.time() if save else last_save
+        writes.submit(_writer(batch, progress, out, ckpt if save else None, w, flat, done, n, extra=out.extra(progress)))
         reporter.chunk(progress, n, flat)
-        if progress.done >= total:
-            break
-        if stop.check(progress.done):
+        if stopping:
             writes.wait()  # a stopped run has its last chunk saved
             return stop.stopped
     return None
 
 
 def _writer(batch, progress, out, ckpt, w, flat, done: int, n: int, extra: dict) -> Callable[[], None]:
-    """The host writes of one chunk (run in the writer thread): each point's records, then the
-    checkpoint of the state and history as they stand now (both immutable once made)."""
+    """The host writes of one chunk (run in the writer thread): each point's records, then (unless
+    ``ckpt`` is None) the checkpoint of the state and history as they stand now (both immutable)."""
     from shed_jax import reporting
 
     S, state, history, step = batch.num_seeds, progress.state, progress.history, progress.done
@@ -725,6 +730,7 @@ class RunOptions:
     restart: bool = False
     keep: int = 3
     no_checkpoint: bool = False
+    checkpoint_every: float = 0.0
     stop_after: int | None = None
     time_limit: float | None = None
 
@@ -744,6 +750,7 @@ class RunOptions:
                 raise UsageError(f"--{name.replace('_', '-')} must be an integer >= 1, got {value!r}")
         if self.time_limit is not None and not 0 <= self.time_limit < math.inf:
             raise UsageError(f"--time-limit must be a finite number of seconds >= 0, got {self.time_limit!r}")
+        check_checkpoint_every(self.checkpoint_every, self.no_checkpoint)
         if self.from_step is not None and not self.resume:
             raise UsageError("--from-step N chooses the checkpoint that --resume DIR continues from; give --resume DIR as well")
         if self.restart:
@@ -751,6 +758,14 @@ class RunOptions:
                 raise UsageError("--restart starts the run in --out DIR over, --resume DIR continues it: give one of them")
             if self.out is None:
                 raise UsageError("--restart clears the run directory given with --out DIR: give --out")
+
+
+def check_checkpoint_every(seconds: float, no_checkpoint: bool) -> None:
+    """UsageError unless ``--checkpoint-every`` is a finite number of seconds >= 0 that goes with the other flags."""
+    if isinstance(seconds, bool) or not isinstance(seconds, (int, float)) or not 0 <= seconds < math.inf:
+        raise UsageError(f"--checkpoint-every must be a finite number of seconds >= 0, got {seconds!r}")
+    if seconds and no_checkpoint:
+        raise UsageError("--checkpoint-every sets how often checkpoints are saved and --no-checkpoint saves none: give one of them")
 
 
 def run(opts: RunOptions) -> int:
@@ -866,7 +881,7 @@ def _train_run(opts, plan, batch, compiled, progress, final_sets, stop) -> int:
         return "nothing resumable (--no-checkpoint)"
 
     output = Output([out], [out.name], out if checkpointing else None, opts.keep, plan.config,
-                    lambda p: {"wall_time_s": p.wall()})
+                    lambda p: {"wall_time_s": p.wall()}, every=opts.checkpoint_every)
     stopped = train(batch, compiled, progress, output, stop, _RunReporter(batch.exp, batch.num_seeds), safe)
     if stopped is not None:
         code, reason = stopped

@@ -308,7 +308,8 @@ class _GroupReporter(driver.Reporter):
 
 def run_group(built: BuiltGroup, *, out: pathlib.Path, mesh, pad: bool = True, plots: bool = True, bar=None,
               log: Callable = print, final_sets=(), final_episodes: int = 10, checkpoint: bool = True,
-              resume: bool = False, stop: driver.StopRules | None = None, made: list | None = None) -> list[dict] | None:
+              resume: bool = False, stop: driver.StopRules | None = None, made: list | None = None,
+              checkpoint_every: float = 0.0) -> list[dict] | None:
     """Run one group (all its points x seeds in one vmapped, sharded program); write each point's files.
 
     ``final_sets``: level sets resolved by ``evaluation.resolve_levels``; each point's final students
@@ -384,7 +385,7 @@ def run_group(built: BuiltGroup, *, out: pathlib.Path, mesh, pad: bool = True, p
 
     output = driver.Output(dirs, [p.name for p in group.points], ckpt_dir if checkpoint else None, 1, group_config,
                            lambda pr: {"wall_time_s": pr.wall(), "first_chunk_s": pr.first_chunk_s},
-                           label=group.label, writer=writer)
+                           label=group.label, writer=writer, every=checkpoint_every)
     stopped = driver.train(batch, compiled, progress, output, stop, _GroupReporter(say, bar, group.label, P, S), safe)
     if stopped is not None:
         if stopped[0] != EXIT_NONFINITE:
@@ -466,11 +467,12 @@ def run_sweep(groups: list[Group], *, out: pathlib.Path, make_experiment: Callab
               pad: bool = True, plots: bool = True, progress: bool = True, final_eval: str | None = "none",
               final_eval_episodes: int = 10, checkpoint: bool = True, resume: bool = False,
               time_limit: float | None = None, prepared: tuple | None = None, stop: driver.StopRules | None = None,
-              made: list | None = None) -> list[dict] | None:
+              made: list | None = None, checkpoint_every: float = 0.0) -> list[dict] | None:
     """Build every group first (all values validated before any compile), run them, write the sweep table.
 
     ``final_eval``: level sets as for ``run --final-eval`` (None: the env's default there).
-    ``checkpoint``/``resume``: see the module docstring. ``time_limit`` (seconds): stop after the chunk
+    ``checkpoint``/``resume``: see the module docstring; ``checkpoint_every``: seconds between a group's
+    checkpoints (0: every chunk). ``time_limit`` (seconds): stop after the chunk
     that passes it; returns None when the sweep stopped before its end (``stop.stopped`` says why).
     ``prepared``: what ``prepare_sweep`` returned for the same arguments (else it is called here).
     """
@@ -506,7 +508,7 @@ def run_sweep(groups: list[Group], *, out: pathlib.Path, make_experiment: Callab
                       + (f" (+{sharding.padded_size(B, mesh.size) - B} padding)" if B % mesh.size else ""))
             group_rows = run_group(b, out=out, mesh=mesh, pad=pad, plots=plots, bar=bar, final_sets=final_sets,
                                    final_episodes=final_eval_episodes, checkpoint=checkpoint, resume=resume, stop=stop,
-                                   made=made)
+                                   made=made, checkpoint_every=checkpoint_every)
             if group_rows is None:
                 return None
             rows += group_rows
@@ -573,6 +575,7 @@ class SweepOptions:
     resume: str | None = None
     time_limit: float | None = None
     no_checkpoint: bool = False
+    checkpoint_every: float = 0.0
 
     @classmethod
     def from_args(cls, args) -> "SweepOptions":
@@ -614,6 +617,7 @@ def sweep(opts: SweepOptions) -> int:
     resume = opts.resume is not None
     if resume:
         opts = resumed_args(opts)
+    driver.check_checkpoint_every(opts.checkpoint_every, opts.no_checkpoint)
     backend = jax.default_backend()
     preset = opts.preset
     if preset == "auto":
@@ -670,7 +674,8 @@ def sweep(opts: SweepOptions) -> int:
                                  root_seed=opts.seed, chunk=opts.chunk, mesh=mesh, pad=not opts.no_pad,
                                  plots=not opts.no_plots, final_eval=opts.final_eval,
                                  final_eval_episodes=opts.final_eval_episodes, checkpoint=not opts.no_checkpoint,
-                                 resume=resume, time_limit=opts.time_limit, prepared=prepared, stop=stop, made=made)
+                                 resume=resume, time_limit=opts.time_limit, prepared=prepared, stop=stop, made=made,
+                                 checkpoint_every=opts.checkpoint_every)
             except (ValueError, CheckpointError) as err:
                 raise UsageError(f"sweep: {err}") from err
         except driver.StartupInterrupted as sig:

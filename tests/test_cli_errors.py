@@ -67,6 +67,8 @@ def cwd(tmp_path, monkeypatch):
     # flag combinations
     (["--from-step", "2"], "--from-step N chooses the checkpoint that --resume DIR continues from"),
     (["--restart"], "--restart clears the run directory given with --out DIR: give --out"),
+    (["--checkpoint-every", "60", "--no-checkpoint"], "--checkpoint-every sets how often checkpoints are saved and --no-checkpoint saves none"),
+    (["--checkpoint-every", "inf"], "argument --checkpoint-every: must be a finite number >= 0, got inf"),
     (["--resume", "nowhere"], "--resume nowhere: no run directory nowhere"),
 ])
 def test_user_errors_are_one_line_exit_2_and_leave_nothing(cwd, capsys, argv, message):

@@ -287,6 +287,19 @@ def failing_save(at_step, exc):
     return save
 
 
+def test_checkpoint_every_saves_only_when_due_and_at_a_stop(finished, patched, tmp_path):
+    """With --checkpoint-every far above the run's length, only a stop (--stop-after 2) and the last
+    chunk save; the resumed run's records are still the straight run's."""
+    a, e = finished["dir"], tmp_path / "E"
+    code, out, err = run(["--out", str(e), *BASE, "--no-gif", "--checkpoint-every", "1e6", "--stop-after", "2"])
+    assert code == errors.EXIT_STOPPED, err
+    assert sorted(int(p.name) for p in (e / "checkpoints").iterdir() if p.name.isdigit()) == [2]
+    code, out, err = run(["--resume", str(e), "--no-gif", "--checkpoint-every", "1e6"])
+    assert code == 0, err
+    assert sorted(int(p.name) for p in (e / "checkpoints").iterdir() if p.name.isdigit()) == [2, 4]
+    same_records(a, e)
+
+
 def test_disk_full_is_reported_at_its_chunk_with_what_is_safe(finished, patched, tmp_path, monkeypatch):
     a, f = finished["dir"], tmp_path / "F"
     monkeypatch.setattr(ck.RunCheckpointer, "save", failing_save(3, OSError(errno.ENOSPC, "No space left on device")))

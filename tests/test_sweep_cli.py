@@ -69,6 +69,7 @@ def cwd(tmp_path, monkeypatch):
     (["--set", "num_levels=0"], "sweep: SHEDConfig.num_levels must be a positive int, got 0"),
     (["--final-eval", "hard"], "sweep: --final-eval: --levels must be 'test', 'named' or an existing JSON file"),
     (["--resume", "nowhere"], "--resume nowhere: no sweep_args.json there"),
+    (["--checkpoint-every", "60", "--no-checkpoint"], "--checkpoint-every sets how often checkpoints are saved and --no-checkpoint saves none"),
 ])
 def test_user_errors_are_one_line_exit_2_and_leave_no_sweep_dir(cwd, capsys, argv, message):
     assert main(["sweep", "--preset", "quick", *argv]) == errors.EXIT_USAGE

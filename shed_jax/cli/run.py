@@ -69,6 +69,9 @@ def add_arguments(p) -> None:
                         "over (refused when DIR holds a checkpoint or a finished run)")
     g.add_argument("--keep", type=count, default=3, metavar="K", help="keep the last K checkpoints (default 3)")
     g.add_argument("--no-checkpoint", action="store_true", help="do not save checkpoints (the run cannot be resumed)")
+    g.add_argument("--checkpoint-every", type=errors.non_negative_float, default=0.0, metavar="SECONDS",
+                   help="save a checkpoint at most this often (default 0: after every chunk); the last chunk and a "
+                        "stop always save. For states of gigabytes (SHED sweeps of hundreds of seeds)")
     g.add_argument("--stop-after", type=count, default=None, metavar="STEPS",
                    help="stop at the first chunk boundary at or after this many budget steps, save, exit 75")
     g.add_argument("--time-limit", type=errors.non_negative_float, default=None, metavar="SECONDS",
