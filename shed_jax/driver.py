@@ -375,8 +375,16 @@ class Reporter:
     def chunk(self, progress: Progress, steps: int, flat: dict) -> None:
         pass
 
+    def note(self, text: str) -> None:
+        """A one-off advice line (e.g. checkpoints that hold the run up)."""
+        print(f"[shed_jax] {text}", flush=True)
+
     def end(self) -> None:
         pass
+
+
+#: the loop says once that checkpoints hold it up when it waited this long for one (and a fifth of a chunk)
+SLOW_SAVE_S = 1.0
 
 
 class Writes:
@@ -490,6 +498,8 @@ def _chunk_loop(batch, compiled, progress, out, stop, reporter, ckpt, w, writes)
 
     S, total = batch.num_seeds, batch.total
     last_save = time.time()  # the last checkpoint handed to the writer (--checkpoint-every)
+    saving_every_chunk, hinted = ckpt is not None and out.every <= 0, False
+    where = f"{out.label}: " if out.label else ""
     while progress.done < total:
         done = progress.done
         n = min(batch.chunk, total - done)
@@ -499,7 +509,15 @@ def _chunk_loop(batch, compiled, progress, out, stop, reporter, ckpt, w, writes)
         progress.chunk_s.append(time.time() - t_chunk)
         if progress.first_chunk_s is None:
             progress.first_chunk_s = time.time() - progress.t0
+        t_wait = time.time()
         writes.wait()  # the previous chunk's records and checkpoint; a failed write raises here
+        waited = time.time() - t_wait
+        if (not hinted and saving_every_chunk and progress.write_s
+                and waited > max(SLOW_SAVE_S, 0.2 * progress.chunk_s[-1])):
+            hinted = True
+            reporter.note(f"{where}the last chunk's records and checkpoint took {progress.write_s[-1]:.1f} s to "
+                          f"write, longer than a chunk ({progress.chunk_s[-1]:.1f} s), and training waited {waited:.1f} s "
+                          "for them; --checkpoint-every SECONDS saves checkpoints less often")
         problems = find_nonfinite(flat, new_state, done, batch.exp.loop.tests_at)
         if problems:
             w.stage = "writing nonfinite_chunk.jsonl"
@@ -861,6 +879,9 @@ class _RunReporter(Reporter):
         self.bar.write(f"step {progress.done:5d}/{self.total}  episode {int(flat['episode'][0, -1])}  "
                        f"student env steps/seed {steps_train:,.0f}  {test}  teacher reward {teacher_r:8.3f}  "
                        f"{steps_train * self.num_seeds / max(progress.wall(), 1e-9):,.0f} train steps/s")
+
+    def note(self, text):
+        self.bar.write(f"[shed_jax] {text}")
 
     def end(self):
         if self.bar is not None:

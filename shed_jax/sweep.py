@@ -298,6 +298,9 @@ class _GroupReporter(driver.Reporter):
     def begin(self, progress, total):
         self.total = total
 
+    def note(self, text):
+        self.say(f"[shed_jax] {text}")
+
     def chunk(self, progress, steps, flat):
         if self.bar is not None:
             self.bar.update(1)

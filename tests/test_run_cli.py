@@ -300,6 +300,23 @@ def test_checkpoint_every_saves_only_when_due_and_at_a_stop(finished, patched, t
     same_records(a, e)
 
 
+def test_a_save_slower_than_a_chunk_is_said_once(patched, tmp_path, monkeypatch):
+    """Checkpoints that take longer than the chunks they follow hold training up: the run says so,
+    once, and names --checkpoint-every."""
+    real_save = ck.RunCheckpointer.save
+
+    def slow_save(self, *args, **kw):
+        time.sleep(1.5)
+        return real_save(self, *args, **kw)
+
+    monkeypatch.setattr(ck.RunCheckpointer, "save", slow_save)
+    monkeypatch.setattr(driver, "SLOW_SAVE_S", 0.5)
+    code, out, err = run(["--out", str(tmp_path / "S"), *BASE, "--no-gif", "--stop-after", "3"])
+    assert code == errors.EXIT_STOPPED, err
+    assert out.count("--checkpoint-every SECONDS saves checkpoints less often") == 1, out
+    assert "the last chunk's records and checkpoint took 1." in out
+
+
 def test_disk_full_is_reported_at_its_chunk_with_what_is_safe(finished, patched, tmp_path, monkeypatch):
     a, f = finished["dir"], tmp_path / "F"
     monkeypatch.setattr(ck.RunCheckpointer, "save", failing_save(3, OSError(errno.ENOSPC, "No space left on device")))
