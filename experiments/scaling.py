@@ -2,7 +2,7 @@
 
     python -m experiments.scaling --out DIR [--configs dr:256,dr:1024,shed:256,shed:1024]
         [--devices 1,2,4] [--chunk 2] [--chunks 3] [--trace dr:1024@1+2] [--old-tree .old --old-config dr:1024@2]
-        [--checkpoint-max-gb G]
+        [--checkpoint-max-gb G] [--checkpoint-every SECONDS]
     python -m experiments.scaling --record DIR --to docs/results/scaling.json   # the record, from a run's files
 
 One worker process per (method, seeds, devices), each on its own ``CUDA_VISIBLE_DEVICES`` subset,
@@ -100,7 +100,8 @@ def orchestrate(args) -> int:
                                                  env.get("PYTHONPATH", "")])
         cmd = [sys.executable, "-m", "experiments.scaling", "--worker", json.dumps(job), "--out", str(out),
                "--chunk", str(args.chunk), "--chunks", str(args.chunks), "--barrier", str(len(jobs)),
-               "--trace", args.trace or "", "--checkpoint-max-gb", str(args.checkpoint_max_gb)]
+               "--trace", args.trace or "", "--checkpoint-max-gb", str(args.checkpoint_max_gb),
+               "--checkpoint-every", str(args.checkpoint_every)]
         log = open(out / f"{job['name']}.log", "w")
         procs.append((job, subprocess.Popen(cmd, env=env, stdout=log, stderr=subprocess.STDOUT), log))
     t0 = time.time()
@@ -171,6 +172,8 @@ def worker(args) -> int:
     progress = driver.Progress(state=state)
     output = driver.Output([rundir], [name], rundir if checkpoint else None, 1, {"scaling": name},
                            lambda p: {"wall_time_s": p.wall()}, label=name)
+    if args.checkpoint_every:  # the driver before --checkpoint-every (--old-tree) has no such field
+        output.every = args.checkpoint_every
     t_train = time.time()
     driver.train(batch, compiled, progress, output, driver.StopRules(stop_after=chunks * args.chunk), Cadence(),
                  lambda: "")
@@ -186,7 +189,8 @@ def worker(args) -> int:
               "seconds_per_chunk": float(np.median(timed)),
               "write_s": list(getattr(progress, "write_s", [])), "final_step": progress.done,
               "final_test_return_mean": float(mean), "final_test_return_se": float(se),
-              "method_overrides": overrides, "state_gb": state_gb, "checkpoint": checkpoint, "device_kind": devices[0].device_kind, "jax": jax.__version__}
+              "method_overrides": overrides, "state_gb": state_gb, "checkpoint": checkpoint,
+              "checkpoint_every": args.checkpoint_every, "device_kind": devices[0].device_kind, "jax": jax.__version__}
     if traced:
         result["trace"] = trace_summary(trace_dir, gaps[-1])
     (out / f"{name}.json").write_text(json.dumps(result, indent=2))
@@ -241,7 +245,7 @@ def record(run_dir: pathlib.Path, to: pathlib.Path, command: str = "") -> dict:
                      "seconds_per_chunk": round(r["seconds_per_chunk"], 3), "budget_steps_per_chunk": r["chunk_budget_steps"],
                      "speedup": round(one / r["seconds_per_chunk"], 3) if one else None,
                      "compile_s": round(r["compile_s"], 1), "state_gb": round(r.get("state_gb", 0.0), 2),
-                     "checkpoint": r.get("checkpoint", True),
+                     "checkpoint": r.get("checkpoint", True), "checkpoint_every": r.get("checkpoint_every", 0.0),
                      "writer_s_per_chunk": [round(x, 2) for x in r["write_s"]],
                      "final_step": r["final_step"], "final_test_return_mean": round(r["final_test_return_mean"], 2),
                      "final_test_return_se": round(r["final_test_return_se"], 2)})
@@ -269,6 +273,8 @@ def main(argv=None) -> int:
     p.add_argument("--chunk", type=int, default=2)
     p.add_argument("--chunks", type=int, default=3)
     p.add_argument("--trace", default="")
+    p.add_argument("--checkpoint-every", type=float, default=0.0,
+                   help="seconds between checkpoints (driver.Output.every; 0: every chunk, as sweeps default)")
     p.add_argument("--checkpoint-max-gb", type=float, default=float("inf"),
                    help="time batches whose state is larger without checkpoints (recorded per row)")
     p.add_argument("--old-tree", default="")
