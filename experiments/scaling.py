@@ -116,6 +116,7 @@ def orchestrate(args) -> int:
             print(f"[scaling] stopping the workers after {args.max_seconds} s", flush=True)
             for _, p, _ in procs:
                 p.kill()
+                p.wait()
             break
     for job, p, log in procs:
         log.close()
@@ -181,7 +182,7 @@ def worker(args) -> int:
         jax.profiler.stop_trace()
     (out / "sync" / f"turn-{job['turn'] + 1}").touch()
     gaps = np.diff(np.asarray([t_train] + stamps))
-    timed = gaps[1:args.chunks] if len(gaps) > 1 else gaps
+    timed = gaps[1:args.chunks] if args.chunks > 1 else gaps[:1]  # one chunk: it is all there is
     tr = np.asarray(progress.history["test_return"])[:, -1]
     mean, se = reporting.mean_se(tr)
     result = {"name": name, "method": job["method"], "seeds": S, "devices": d, "gpus": job["gpus"], "tree": job["tree"],

@@ -417,6 +417,10 @@ class Output:
     writer: bool = True  # this process writes (process 0 of several hosts)
     every: float = 0.0  # seconds between checkpoints (0: after every chunk); the last chunk and a stop always save
 
+    def __post_init__(self):
+        if isinstance(self.every, bool) or not isinstance(self.every, (int, float)) or not 0 <= self.every < math.inf:
+            raise ValueError(f"Output.every must be a finite number of seconds >= 0, got {self.every!r}")
+
 
 def train(batch: Batch, compiled: dict, progress: Progress, out: Output, stop: StopRules, reporter: Reporter,
           safe: Callable[[], str]) -> tuple[int, str] | None:
@@ -520,6 +524,11 @@ def _chunk_loop(batch, compiled, progress, out, stop, reporter, ckpt, w, writes)
                           "for them; --checkpoint-every SECONDS saves checkpoints less often")
         problems = find_nonfinite(flat, new_state, done, batch.exp.loop.tests_at)
         if problems:
+            if ckpt is not None and progress.done > 0 and progress.saved != progress.done:
+                # --checkpoint-every skipped the last good chunk's save: make it now, so the run can
+                # resume from just before the bad chunk
+                writes.submit(_writer(batch, progress, out, ckpt, w, None, done, 0, extra=out.extra(progress)))
+                writes.wait()
             w.stage = "writing nonfinite_chunk.jsonl"
             paths = []
             for p, d in enumerate(out.dirs if out.writer else ()):
@@ -547,15 +556,16 @@ def _chunk_loop(batch, compiled, progress, out, stop, reporter, ckpt, w, writes)
 
 
 def _writer(batch, progress, out, ckpt, w, flat, done: int, n: int, extra: dict) -> Callable[[], None]:
-    """The host writes of one chunk (run in the writer thread): each point's records, then (unless
-    ``ckpt`` is None) the checkpoint of the state and history as they stand now (both immutable)."""
+    """The host writes of one chunk (run in the writer thread): each point's records (unless ``flat``
+    is None), then (unless ``ckpt`` is None) the checkpoint of the state and history as they stand
+    now (both immutable)."""
     from shed_jax import reporting
 
     S, state, history, step = batch.num_seeds, progress.state, progress.history, progress.done
 
     def write():
         t0 = time.time()
-        for p, d in enumerate(out.dirs if out.writer else ()):
+        for p, d in enumerate(out.dirs if out.writer and flat is not None else ()):
             w.stage = f"writing the records of budget steps {done}-{done + n - 1} to {d / 'metrics.jsonl'}"
             reporting.append_jsonl(d / "metrics.jsonl", reporting.step_records(batch.rows(flat, p), range(S)))
         if ckpt is not None:

@@ -67,13 +67,13 @@ def flatten_tree(tree: Any, prefix: str = "") -> dict[str, np.ndarray]:
 
 
 def _serialisable(x: np.ndarray) -> np.ndarray:
-    """``x`` as orjson takes it, C-contiguous. Floats become float64 (bfloat16 included, which orjson
-    lacks), so each value is written as Python writes ``float(value)``: JSON readers get the stored
-    value exactly, as float64."""
+    """``x`` as orjson takes it: C-contiguous, native byte order. Floats become float64 (bfloat16
+    included, which orjson lacks), so each value is written with the shortest digits that read back
+    to it as float64, as Python's ``repr`` (small exponents are spelt out: ``0.00001``, not ``1e-05``)."""
     x = np.asarray(x)
     if x.dtype.kind not in "iub":
         x = x.astype(np.float64)
-    return np.ascontiguousarray(x)
+    return np.ascontiguousarray(x.astype(x.dtype.newbyteorder("="), copy=False))
 
 
 def step_records(metrics: dict[str, np.ndarray], seed_ids: Iterable[int]) -> list[dict]:
@@ -93,7 +93,8 @@ def step_records(metrics: dict[str, np.ndarray], seed_ids: Iterable[int]) -> lis
 
 
 def jsonl_bytes(records: list[dict]) -> bytes:
-    """The JSON Lines text of ``records`` (numpy values allowed; NaN/Inf -> null)."""
+    """The JSON Lines text of ``records`` (values: Python scalars, numpy scalars and arrays of one
+    dimension or more; NaN/Inf -> null)."""
     return b"".join(orjson.dumps(r, option=orjson.OPT_SERIALIZE_NUMPY | orjson.OPT_APPEND_NEWLINE) for r in records)
 
 

@@ -22,9 +22,10 @@ refuse), trained, checked, saved and reported by ``shed_jax.driver`` exactly as 
 Output, per point ``OUT/<method>/<point>/``: a run's ``config.json`` (plus the point),
 ``metrics.jsonl``, plots, final evaluations and ``summary.json`` (plus the point's values); for the
 sweep ``OUT/sweep.json`` and ``OUT/sweep.md``: the table point -> final test return mean +- SE over
-seeds. After every chunk the group in progress saves its whole batch under
-``OUT/checkpoints/<group>/`` (the last one kept), and ``OUT/sweep_args.json`` holds the command's
-arguments: ``--resume OUT`` re-plans from those, keeps the groups whose points all have a
+seeds. After every chunk (or at most every ``--checkpoint-every`` seconds) the group in progress
+saves its whole batch under ``OUT/checkpoints/<group>/`` (the last one kept), and
+``OUT/sweep_args.json`` holds the command's arguments: ``--resume OUT`` re-plans from those, keeps
+the groups whose points all have a
 ``summary.json``, restores the group in progress (its configuration must match), cuts its points'
 ``metrics.jsonl`` back to the checkpoint's step and continues (docs/sweeps.md).
 """
@@ -317,7 +318,8 @@ def run_group(built: BuiltGroup, *, out: pathlib.Path, mesh, pad: bool = True, p
 
     ``final_sets``: level sets resolved by ``evaluation.resolve_levels``; each point's final students
     are evaluated on them as ``run --final-eval`` does (seed i with ``fold_in(PRNGKey(0), i)``).
-    ``checkpoint``: save the state and history after every chunk (``group_checkpoint_dir``);
+    ``checkpoint``: save the state and history after every chunk, or at most every ``checkpoint_every``
+    seconds (``group_checkpoint_dir``);
     ``resume``: continue from the latest such checkpoint if there is one. ``stop``: when to stop at a
     chunk boundary (returns None, not finished; ``stop.stopped`` says why). ``made`` collects the
     directories and files made before training starts (removed if start-up is interrupted).
@@ -586,7 +588,8 @@ class SweepOptions:
 
 
 def resumed_args(args):
-    """``args`` with the saved arguments of the sweep in ``args.resume`` (its ``--time-limit`` kept)."""
+    """``args`` with the saved arguments of the sweep in ``args.resume`` (its ``--time-limit`` and
+    ``--checkpoint-every`` kept)."""
     out = pathlib.Path(args.resume)
     path = out / ARGS_FILE
     if not path.is_file():

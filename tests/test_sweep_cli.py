@@ -123,7 +123,9 @@ def test_failed_save_is_one_line_and_the_sweep_resumes(tiny_sweep, run_a, tmp_pa
     assert (f / "plr" / "default" / "metrics.jsonl").read_text() == (run_a / "metrics.jsonl").read_text()
 
 
-def test_nonfinite_guard_stops_the_sweep_without_saving_the_chunk(tiny_sweep, tmp_path, monkeypatch):
+@pytest.mark.parametrize("every", [[], ["--checkpoint-every", "1e6"]], ids=["every-chunk", "checkpoint-every"])
+def test_nonfinite_guard_stops_the_sweep_without_saving_the_chunk(tiny_sweep, tmp_path, monkeypatch, every):
+    """The bad chunk is not saved; the last good one is, also when --checkpoint-every skipped its save."""
     g = tmp_path / "G"
     original = ck.find_nonfinite
 
@@ -132,7 +134,7 @@ def test_nonfinite_guard_stops_the_sweep_without_saving_the_chunk(tiny_sweep, tm
             else original(metrics, state, start_step, tests_at)
 
     monkeypatch.setattr(ck, "find_nonfinite", guard)
-    code, out, err = run_sweep_cli(["--out", str(g), *BASE])
+    code, out, err = run_sweep_cli(["--out", str(g), *BASE, *every])
     assert code == errors.EXIT_NONFINITE == 3
     assert "[shed_jax] plr: non-finite values in budget steps 2-2; stopping without saving this chunk" in err
     assert f"this chunk's metrics: {g / 'plr' / 'default' / 'nonfinite_chunk.jsonl'}; the last good checkpoint is step 2" in err

@@ -47,7 +47,8 @@ def add_arguments(p) -> None:
     p.add_argument("--out", default=None, help="sweep directory (default runs/sweep-<env>-<preset>-<time>)")
     p.add_argument("--resume", default=None, metavar="DIR",
                    help="continue the sweep in DIR with its saved arguments: finished groups are kept, the "
-                        "group in progress continues from its last checkpoint (other arguments are ignored)")
+                        "group in progress continues from its last checkpoint (other arguments are ignored, except "
+                        "--time-limit and --checkpoint-every)")
     p.add_argument("--time-limit", type=non_negative_float, default=None, metavar="SECONDS",
                    help="after the chunk in which this many seconds have passed, save and stop (exit code 75); "
                         "continue with --resume")
@@ -55,7 +56,7 @@ def add_arguments(p) -> None:
                    help="checkpoint the group in progress at most this often (default 0: after every chunk); its "
                         "last chunk and a stop always save. A SHED state is about 9.4 MB per seed")
     p.add_argument("--no-checkpoint", action="store_true",
-                   help="do not checkpoint the group in progress after each chunk (the sweep cannot be resumed)")
+                   help="do not checkpoint the group in progress (the sweep cannot be resumed)")
 
 
 
