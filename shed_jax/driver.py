@@ -365,6 +365,10 @@ class Progress:
     def wall(self) -> float:
         return self.previous_wall + time.time() - self.t0
 
+    def wall_per_chunk(self) -> list[float]:
+        """``chunk_s`` rounded to the millisecond (``summary.json``'s ``wall_time_per_chunk_s``)."""
+        return [round(x, 3) for x in self.chunk_s]
+
 
 class Reporter:
     """The caller's side of training: called once before the first chunk, after every chunk, at the end."""
@@ -930,7 +934,7 @@ def _train_run(opts, plan, batch, compiled, progress, final_sets, stop) -> int:
               flush=True)
         summary, = write_results(batch, progress, output, w, wall=wall, final_sets=final_sets,
                                  final_episodes=opts.final_eval_episodes,
-                                 extras=[{"wall_time_per_chunk_s": [round(x, 3) for x in progress.chunk_s]}])
+                                 extras=[{"wall_time_per_chunk_s": progress.wall_per_chunk()}])
         if not opts.no_gif:
             w.stage = "writing final_student.gif"
             gif(batch.env, batch.student, progress.state, batch.tests, out)

@@ -401,7 +401,7 @@ def run_group(built: BuiltGroup, *, out: pathlib.Path, mesh, pad: bool = True, p
     wall = progress.wall()
     # the group's runs shared the wall time: per run, divide by all of them
     extras = [dict(wall_time_per_seed_s=wall / (P * S), runs_in_group=P * S, group=group.label,
-                   first_chunk_s=progress.first_chunk_s, wall_time_per_chunk_s=[round(x, 3) for x in progress.chunk_s],
+                   first_chunk_s=progress.first_chunk_s, wall_time_per_chunk_s=progress.wall_per_chunk(),
                    devices=mesh.size, point=p.name, values=p.values) for p in group.points]
     with driver.Writes(safe) as w:
         summaries = driver.write_results(batch, progress, output, w, wall=wall, plots=plots, final_sets=final_sets,
