@@ -3,7 +3,7 @@
     python -m experiments.scaling --out DIR [--configs dr:256,dr:1024,shed:256,shed:1024]
         [--devices 1,2,4] [--chunk 2] [--chunks 3] [--trace dr:1024@1+2] [--old-tree .old --old-config dr:1024@2]
         [--checkpoint-max-gb G] [--checkpoint-every SECONDS]
-    python -m experiments.scaling --record DIR --to docs/results/scaling.json   # the record, from a run's files
+    python -m experiments.scaling --record DIR --to docs/results/scaling.json [--keep]   # the record, from a run's files
 
 One worker process per (method, seeds, devices), each on its own ``CUDA_VISIBLE_DEVICES`` subset,
 all started at once. Every worker builds its batch with the sweep's own code (the paper preset;
@@ -235,13 +235,28 @@ def trace_summary(trace_dir: pathlib.Path, wall: float) -> dict:
     return summary
 
 
-def record(run_dir: pathlib.Path, to: pathlib.Path, command: str = "") -> dict:
-    """``scaling.json`` from the workers' files: rows with speed-ups against the same run on one GPU."""
+def record(run_dir: pathlib.Path, to: pathlib.Path, command: str = "", keep: bool = False) -> dict:
+    """``scaling.json`` from the workers' files: rows with speed-ups against the same run on one GPU.
+
+    A row's speed-up is against the one-GPU row of the same run, method, seeds, code and checkpoint
+    mode. With ``keep``, the rows already in ``to`` that this run did not measure again (same code,
+    method, seeds, devices and checkpoint mode) stay, with the run that measured them: every row
+    names its run by index into ``runs`` (date and command)."""
     results = [json.loads(p.read_text()) for p in sorted(run_dir.glob("*gpu-*.json"))]
-    base = {(r["method"], r["seeds"], r["tree"]): r["seconds_per_chunk"] for r in results if r["devices"] == 1}
+    today = datetime.date.today().isoformat()
+    command = command or "python -m experiments.scaling " + " ".join(sys.argv[1:])
+    old = json.loads(to.read_text()) if keep and to.exists() else {}
+    runs = old.get("runs") or ([{"date": old["date"], "command": old["command"]}] if old else [])
+    run = len(runs)
+    runs.append({"date": today, "command": command})
+
+    def key(r):
+        return (r.get("code", r.get("tree")), r["method"], r["seeds"], r["devices"], r.get("checkpoint", True))
+
+    base = {key(r)[:3] + (key(r)[4],): r["seconds_per_chunk"] for r in results if r["devices"] == 1}
     rows = []
-    for r in sorted(results, key=lambda r: (r["tree"], r["method"], r["seeds"], r["devices"])):
-        one = base.get((r["method"], r["seeds"], r["tree"]))
+    for r in results:
+        one = base.get(key(r)[:3] + (key(r)[4],))
         rows.append({"method": r["method"], "seeds": r["seeds"], "devices": r["devices"], "code": r["tree"],
                      "seconds_per_chunk": round(r["seconds_per_chunk"], 3), "budget_steps_per_chunk": r["chunk_budget_steps"],
                      "speedup": round(one / r["seconds_per_chunk"], 3) if one else None,
@@ -249,20 +264,25 @@ def record(run_dir: pathlib.Path, to: pathlib.Path, command: str = "") -> dict:
                      "checkpoint": r.get("checkpoint", True), "checkpoint_every": r.get("checkpoint_every", 0.0),
                      "writer_s_per_chunk": [round(x, 2) for x in r["write_s"]],
                      "final_step": r["final_step"], "final_test_return_mean": round(r["final_test_return_mean"], 2),
-                     "final_test_return_se": round(r["final_test_return_se"], 2)})
-    traces = {r["name"]: r["trace"] for r in results if "trace" in r}
-    device = results[0]["device_kind"] if results else "unknown"
-    rec = {"device": device, "date": datetime.date.today().isoformat(),
-           "command": command or "python -m experiments.scaling " + " ".join(sys.argv[1:]),
-           "jax": results[0]["jax"] if results else None,
+                     "final_test_return_se": round(r["final_test_return_se"], 2), "run": run})
+    fresh = {key(r) for r in rows}
+    kept = [dict(r, run=r.get("run", 0)) for r in old.get("rows", []) if key(r) not in fresh]
+    rows = sorted(kept + rows, key=lambda r: (r["code"], r["method"], not r["checkpoint"], r["seeds"], r["devices"]))
+    traces = dict(old.get("traces", {}))
+    traces.update({f"{r['name']} (run {run})": r["trace"] for r in results if "trace" in r})
+    device = results[0]["device_kind"] if results else old.get("device", "unknown")
+    rec = {"device": device, "date": today, "command": command, "runs": runs,
+           "jax": results[0]["jax"] if results else old.get("jax"),
            "note": "seconds_per_chunk: median seconds between consecutive chunks' results (first chunk left out); "
-                   "SHED with ddpg/diffusion/syn thresholds at 1 so every teacher update runs in the timed chunks",
+                   "speedup: against the one-GPU row of the same run, code, method, seeds and checkpoint mode; "
+                   "SHED with ddpg/diffusion/syn thresholds at 1 so every teacher update runs in the timed chunks; "
+                   "run: index into runs",
            "rows": rows, "traces": traces}
     to.write_text(json.dumps(rec, indent=2))
     for row in rows:
         print(f"{row['code']:4s} {row['method']:5s} {row['seeds']:5d} seeds {row['devices']} GPU  "
-              f"{row['seconds_per_chunk']:7.2f} s/chunk  x{row['speedup']}  test {row['final_test_return_mean']:.1f}"
-              f" ± {row['final_test_return_se']:.1f}")
+              f"{'ckpt' if row['checkpoint'] else '    '}  {row['seconds_per_chunk']:7.2f} s/chunk  x{row['speedup']}  "
+              f"test {row['final_test_return_mean']:.1f} ± {row['final_test_return_se']:.1f}  (run {row['run']})")
     return rec
 
 
@@ -284,13 +304,15 @@ def main(argv=None) -> int:
     p.add_argument("--record", default="")
     p.add_argument("--to", default="docs/results/scaling.json")
     p.add_argument("--command", default="", help="with --record: the measuring command(s) to name in the record")
+    p.add_argument("--keep", action="store_true",
+                   help="with --record: keep the rows of --to that this run did not measure again")
     p.add_argument("--worker", default="", help=argparse.SUPPRESS)
     p.add_argument("--barrier", type=int, default=1, help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if args.worker:
         return worker(args)
     if args.record:
-        record(pathlib.Path(args.record), pathlib.Path(args.to), args.command)
+        record(pathlib.Path(args.record), pathlib.Path(args.to), args.command, args.keep)
         return 0
     return orchestrate(args)
 

@@ -26,6 +26,38 @@ def test_record_speedups_are_against_the_same_run_on_one_gpu(tmp_path):
     assert json.loads((tmp_path / "out.json").read_text())["command"] == "cmd"
 
 
+def _worker_file(d, method, seeds, devices, sec, checkpoint=True, tree="new"):
+    d.mkdir(exist_ok=True)
+    (d / f"{method}-{seeds}-{devices}gpu-{tree}.json").write_text(json.dumps({
+        "name": f"{method}-{seeds}-{devices}gpu-{tree}", "method": method, "seeds": seeds, "devices": devices,
+        "tree": tree, "seconds_per_chunk": sec, "chunk_budget_steps": 2, "compile_s": 1.0, "write_s": [0.5],
+        "final_step": 6, "final_test_return_mean": 1.0, "final_test_return_se": 0.1, "checkpoint": checkpoint,
+        "device_kind": "x", "jax": "y"}))
+
+
+def test_record_keep_adds_a_run_and_keeps_the_rows_it_did_not_measure_again(tmp_path):
+    to = tmp_path / "scaling.json"
+    _worker_file(tmp_path / "r0", "dr", 8, 1, 6.0)
+    _worker_file(tmp_path / "r0", "dr", 8, 2, 4.0)
+    _worker_file(tmp_path / "r0", "shed", 8, 1, 9.0)
+    scaling.record(tmp_path / "r0", to, "first")
+    # the second run times DR on 2 GPUs again and SHED without checkpoints: a mode of its own
+    _worker_file(tmp_path / "r1", "dr", 8, 1, 6.0)
+    _worker_file(tmp_path / "r1", "dr", 8, 2, 3.0)
+    _worker_file(tmp_path / "r1", "shed", 8, 1, 4.0, checkpoint=False)
+    _worker_file(tmp_path / "r1", "shed", 8, 2, 2.5, checkpoint=False)
+    rec = scaling.record(tmp_path / "r1", to, "second", keep=True)
+    assert [r["command"] for r in rec["runs"]] == ["first", "second"]
+    got = {(r["method"], r["devices"], r["checkpoint"]): (r["seconds_per_chunk"], r["speedup"], r["run"])
+           for r in rec["rows"]}
+    assert got == {("dr", 1, True): (6.0, 1.0, 1), ("dr", 2, True): (3.0, 2.0, 1),
+                   ("shed", 1, True): (9.0, 1.0, 0),              # kept: not measured again
+                   ("shed", 1, False): (4.0, 1.0, 1), ("shed", 2, False): (2.5, 1.6, 1)}  # against 4.0, not 9.0
+    assert len(rec["rows"]) == 5
+    # without keep, the record is this run's alone
+    assert len(scaling.record(tmp_path / "r1", to, "third")["rows"]) == 4
+
+
 def test_trace_busy_time_is_the_union_of_kernel_intervals(tmp_path):
     events = [{"ph": "M", "name": "process_name", "pid": 1, "args": {"name": "/device:GPU:0"}},
               {"ph": "M", "name": "process_name", "pid": 2, "args": {"name": "/host:CPU"}},
