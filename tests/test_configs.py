@@ -55,7 +55,7 @@ def test_literal_modes_are_checked_with_the_allowed_values():
     assert configs.modes(RewardConfig, "form") == ("paper_l1", "signed_sum", "code_mean")
     with pytest.raises(ValueError, match=r"^RewardConfig.form must be one of 'paper_l1', 'signed_sum', 'code_mean', got 'l2'$"):
         RewardConfig(form="l2")
-    with pytest.raises(ValueError, match=r"^SHEDConfig.syn_action must be one of 'uniform', 'bc', got 'x'$"):
+    with pytest.raises(ValueError, match=r"^SHEDConfig.syn_action must be one of 'uniform', 'bc', 'policy', got 'x'$"):
         SHEDConfig(syn_action="x")
     with pytest.raises(ValueError, match=r"^PPOConfig.activation must be one of 'tanh', 'relu'"):
         PPOConfig(activation="sigmoid")

@@ -177,3 +177,94 @@ def test_crn_off_and_block_levels_are_h_mdp_like():
     crn = _build("hmdp-x", crn=True, level_switch="block", action="levels", actor_out_init="lecun")
     np.testing.assert_array_equal(np.asarray(crn.evaluation_key(m, k)), np.asarray(m.eval_key))
     assert not np.array_equal(np.asarray(m.eval_key), np.asarray(k))
+
+
+# ---- shed-x's synthesiser switches ---------------------------------------------------------------
+
+
+def _linear_buffer(key, n=128, m=3, da=2):
+    """Transitions with a deterministic s' = s + 10 [a, 0], so a trained model predicts them well."""
+    from shed_jax.teacher.buffers import buffer_add_many, buffer_init, make_transition
+    k_s, k_a = jax.random.split(key)
+    s = 100.0 + 20.0 * jax.random.normal(k_s, (n, m))
+    a = jax.random.uniform(k_a, (n, da), minval=-1, maxval=1)
+    s_next = s + 10.0 * jnp.pad(a, ((0, 0), (0, m - da)))
+    tr = Transition(s=s, u=a, r=jnp.zeros((n,)), s_next=s_next, done=jnp.zeros((n,)))
+    return tr, buffer_add_many(buffer_init(make_transition(m, da), n), tr)
+
+
+def test_heldout_loss_is_the_training_loss_on_unseen_transitions_and_falls_with_training():
+    from shed_jax.teacher.diffusion import DiffusionConfig, make_diffusion, normalize
+    model = make_diffusion(DiffusionConfig(3, 2, hidden=32, batch_size=64))
+    _, buf = _linear_buffer(jax.random.PRNGKey(0))
+    fresh, _ = _linear_buffer(jax.random.PRNGKey(1), n=64)  # never trained on
+    key = jax.random.PRNGKey(5)
+
+    @jax.jit
+    def run(key):
+        st0 = model.refresh_norm(model.init(key), buf)
+        st1, _ = model.train_steps(st0, jax.random.fold_in(key, 1), buf, 300)
+        held = lambda st: model.heldout_loss(st, jax.random.fold_in(key, 2), fresh.s, fresh.u, fresh.s_next, 16)
+        return st0, st1, held(st0), held(st1)
+
+    st0, st1, before, after = run(key)
+    # by hand: the mean of the training loss over the 16 draws, on the normalised batch
+    s_n, sn_n = normalize(st1.norm, fresh.s), normalize(st1.norm, fresh.s_next)
+    hand = np.mean([float(model.loss(st1.params, k, s_n, fresh.u, sn_n))
+                    for k in jax.random.split(jax.random.fold_in(key, 2), 16)])
+    assert float(after) == pytest.approx(hand, rel=1e-5)
+    # s' is a deterministic function of (s, a): training must cut the loss on unseen transitions
+    assert float(after) < 0.5 * float(before), (float(before), float(after))
+
+
+def test_grow_passes_the_policy_with_syn_sigma_and_reports_the_heldout_loss_of_the_new_transitions():
+    method = _build("shed-x", syn_action="policy", syn_sigma=0.3)
+    synth = method.synthesiser
+    m = method.init(jax.random.PRNGKey(0))
+    tr, real = _linear_buffer(jax.random.PRNGKey(1), n=16, m=method.state_dim, da=method.action_dim)
+    new = jax.tree_util.tree_map(lambda x: x[-2:], tr)  # the step's transitions, already in B_real
+    policy = lambda k, s, sigma: jnp.full((s.shape[0], method.action_dim), sigma)  # marks the sigma it got
+    rf = lambda s, a, s_next: jnp.sum(s_next - s)
+    grow = jax.jit(lambda sst, real: synth.grow(jax.random.PRNGKey(2), sst, real, rf, new, policy))
+    expect = jax.jit(lambda d: synth.model.heldout_loss(d, jax.random.fold_in(jax.random.PRNGKey(2), 1), new.s, new.u,
+                                                        new.s_next, synth.heldout_draws))(m.synth.diffusion)
+    sst, loss, held = grow(m.synth, real)
+    n = synth.num_syn
+    np.testing.assert_allclose(sst.syn.data.u[:n], 0.3)
+    assert int(sst.syn.count) == n and np.isfinite(float(loss))
+    assert float(held) == pytest.approx(float(expect), rel=1e-5)  # measured before the model trained on them
+    # below the training threshold nothing trains and both losses are NaN
+    _, loss, held = grow(m.synth, real.replace(count=jnp.int32(synth.train_threshold)))
+    assert np.isnan(float(loss)) and np.isnan(float(held))
+
+
+def test_syn_loss_bar_gates_mixed_updates_on_the_heldout_loss():
+    from shed_jax.teacher.buffers import buffer_add_many, buffer_init, make_transition
+    method = _build("shed-x", ddpg_batch=8, syn_threshold=3, syn_loss_bar=0.5)
+    m = method.init(jax.random.PRNGKey(0))
+    d, a = method.state_dim, method.action_dim
+    fill = lambda n: buffer_add_many(buffer_init(make_transition(d, a), 16), make_transition(d, a, (n,)).replace(
+        r=jnp.arange(n, dtype=jnp.float32), s_next=jnp.ones((n, d))))
+    real, syn = fill(5), fill(4)
+    synth = method.synthesiser
+    rule = jax.jit(lambda held: synth.updates(jax.random.PRNGKey(3), method.teacher, m.ddpg, real,
+                                              m.synth.replace(syn=syn), 0.75, held)[1])
+    assert int(rule(0.4)) == 2  # below the bar: mixed
+    assert int(rule(0.6)) == 1  # above it: real updates only
+    assert int(rule(jnp.nan)) == 1  # no held-out loss yet: real only
+    # without a bar (SHED's rule) the held-out loss is not read
+    free = _build("shed-x", ddpg_batch=8, syn_threshold=3).synthesiser
+    assert int(free.updates(jax.random.PRNGKey(3), method.teacher, m.ddpg, real, m.synth.replace(syn=syn), 0.75,
+                            jnp.nan)[1]) == 2
+
+
+def test_policy_synthetic_actions_in_the_loop_come_from_the_actor_before_its_update():
+    """syn_sigma 0: the first synthetic batch (step 2, before the first DDPG update) holds the untrained
+    actor's actions, exactly 0 with the zero-initialised output layer (uniform ones are 0 with
+    probability 0)."""
+    method = _build("shed-x", syn_action="policy", syn_sigma=0.0)
+    m, _, info, _ = _run(method)
+    n = method.synthesiser.num_syn
+    np.testing.assert_array_equal(np.asarray(m.synth.syn.data.u[:n]), 0.0)
+    held = np.asarray(info.extras["diffusion_heldout_loss"])
+    assert np.isnan(held[0]) and np.all(np.isfinite(held[1:]))

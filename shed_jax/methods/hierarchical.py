@@ -222,6 +222,7 @@ class Learned:
     syn_size: jax.Array  # |B_syn| (0 without a synthesiser)
     branch: jax.Array  # DDPG updates: 0 none, 1 real-only, 2 mixed
     synth_loss: jax.Array  # the synthesiser's mean diffusion loss (NaN when it did not train)
+    synth_heldout: jax.Array  # its loss on the step's new transitions before training on them (NaN likewise)
 
 
 def evaluation_levels(env, config: TeacherConfig):
@@ -519,14 +520,16 @@ class HierarchicalTeacher:
         r_seen = buffer_zscore(transition.r, real) if cfg.reward_norm == "batch" else transition.r
         td_heldout = self.teacher.td_error(ddpg, transition, r_seen)
         if self.synthesiser is None:
-            synth, synth_loss, syn_size = None, jnp.float32(jnp.nan), jnp.int32(0)
+            synth, synth_loss, synth_heldout, syn_size = None, jnp.float32(jnp.nan), jnp.float32(jnp.nan), jnp.int32(0)
             ddpg, branch = self.teacher.updates(k_ddpg, ddpg, real)
         else:
-            synth, synth_loss = self.synthesiser.grow(k_synth, mstate.synth, real, self.reward_fn_for(hp.eta))
-            ddpg, branch = self.synthesiser.updates(k_ddpg, self.teacher, ddpg, real, synth, hp.psi)
+            policy = lambda k, s, sigma, st=ddpg: self.teacher.act(st, s, k, sigma)  # before this step's updates
+            synth, synth_loss, synth_heldout = self.synthesiser.grow(k_synth, mstate.synth, real, self.reward_fn_for(hp.eta),
+                                                                     transition, policy)
+            ddpg, branch = self.synthesiser.updates(k_ddpg, self.teacher, ddpg, real, synth, hp.psi, synth_heldout)
             syn_size = synth.syn.count
         learned = Learned(td_heldout=td_heldout, real_size=real.count, syn_size=syn_size, branch=branch,
-                          synth_loss=synth_loss)
+                          synth_loss=synth_loss, synth_heldout=synth_heldout)
         return mstate.replace(ddpg=ddpg, real=real, synth=synth), learned
 
     def step_info(self, exp: Experience, learned: Learned) -> StepInfo:
@@ -544,6 +547,7 @@ class HierarchicalTeacher:
                 "syn_size": learned.syn_size,
                 "ddpg_branch": learned.branch,  # 0 none, 1 real-only, 2 mixed
                 "diffusion_loss": learned.synth_loss,
+                "diffusion_heldout_loss": learned.synth_heldout,
                 "at_bound_fraction": at_bound_fraction(self.codec.space, exp.levels, exp.played),
                 "td_error_heldout": learned.td_heldout,
                 "state_noise_sd": exp.state_noise,

@@ -21,6 +21,11 @@ changes, each behind a switch of :class:`HMDPXConfig` whose default is the chose
   actor outputs.
 * ``students``: K students trained side by side under the one teacher, K transitions per budget
   step (``shed_jax.methods.parallel_students``); 1 (the default) is this teacher alone.
+* ``shed-x``'s synthesiser, where it could help (defaults: SHED's): ``syn_action='policy'``
+  draws synthetic actions from the current policy plus N(0, ``syn_sigma``²) noise instead of
+  uniformly, so B_syn covers the actions the critic is asked about; ``syn_loss_bar`` allows mixed
+  updates only while the diffusion model's loss on the step's new, unseen transitions is below the
+  bar (the ``diffusion_heldout_loss`` diagnostic); ``syn_threshold`` (e.g. 32) mixes from the start.
 
 Diagnostics as the paper teacher's (``at_bound_fraction`` over the levels played, ``td_error_heldout``,
 ``state_noise_sd``). The hyperparameter pytrees are the paper teacher's (``TeacherHyperparams``,
@@ -88,8 +93,18 @@ class SHEDXConfig(HMDPXConfig, SHEDConfig):
     """``shed-x``: ``hmdp-x``'s settings plus SHED's synthesiser (B_real of 2,048, psi, B_syn, thresholds)."""
 
     real_capacity: int = 2048  # SHED's (HMDPXConfig's fields, TeacherConfig's default included, come later in the MRO)
+    syn_sigma: float = 0.1  # syn_action='policy': noise SD around the policy's synthetic actions
+    syn_loss_bar: float = math.inf  # mixed updates only while D's held-out loss is below this (inf: SHED's rule)
 
     POSITIVE: ClassVar[tuple] = SHEDConfig.POSITIVE + ("ddpg_updates", "actor_delay", "students")
+
+    def __post_init__(self):
+        super().__post_init__()
+        name = type(self).__name__
+        if not (isinstance(self.syn_sigma, (int, float)) and math.isfinite(self.syn_sigma) and self.syn_sigma >= 0):
+            raise ValueError(f"{name}.syn_sigma must be a finite number >= 0, got {self.syn_sigma!r}")
+        if not (isinstance(self.syn_loss_bar, (int, float)) and self.syn_loss_bar > 0):
+            raise ValueError(f"{name}.syn_loss_bar must be a number > 0 (inf: no bar), got {self.syn_loss_bar!r}")
 
 
 def teacher_x_dims(env, config: HMDPXConfig) -> tuple[int, int]:
@@ -218,5 +233,6 @@ def make_shed_x(env, student, config: Any = None, eval_levels=None, name: str = 
     """``shed-x``: the learning teacher with SHED's diffusion synthesiser. ``config``: None, a dict or a :class:`SHEDXConfig`."""
     cfg = coerce(SHEDXConfig, config, f"method {name!r}")
     return with_students(LearningTeacher(env, student, cfg, name=name, eval_levels=eval_levels,
-                                         synthesiser=diffusion_synthesiser(cfg, *teacher_x_dims(env, cfg)),
+                                         synthesiser=dataclasses.replace(diffusion_synthesiser(cfg, *teacher_x_dims(env, cfg)),
+                                                                         syn_sigma=cfg.syn_sigma, loss_bar=cfg.syn_loss_bar),
                                          hparams_class=SHEDHyperparams))

@@ -194,7 +194,8 @@ class ParallelStudents:
         sstate, exp, test_rets = jax.vmap(one, in_axes=(0, self.axes(mstate), 0, None if test is None else 0))(
             keys, mstate, sstate, k_test)
         learned_state, learned = base.learn((k_synth, k_ddpg), mstate, exp.transition)  # all K transitions, one teacher
-        per_learned = Learned(td_heldout=0, real_size=None, syn_size=None, branch=None, synth_loss=None)
+        per_learned = Learned(td_heldout=0, real_size=None, syn_size=None, branch=None, synth_loss=None,
+                              synth_heldout=None)
         infos = jax.vmap(base.step_info, in_axes=(0, per_learned))(exp, learned)
         info = self.pooled_info(infos, exp, test_rets)
         mstate = learned_state.replace(s=exp.s_next, t=mstate.t + 1, pending_eval_steps=jnp.zeros((k,), jnp.int32))

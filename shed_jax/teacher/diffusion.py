@@ -12,6 +12,8 @@
   the next-state head [s, a, t_emb, s'_k] -> 3 x (256, Mish) -> m and the behaviour-cloning action
   head [a_k, t_emb, s] -> 3 x (256, Mish) -> d_a. The time input is the code's index t = k - 1.
   The action head is trained only when ``train_bc`` is set (``syn_action='bc'``).
+* Synthetic actions (``synthesize``): uniform on [-1, 1]^{d_a} (the paper's), from the BC head
+  ('bc'), or from the teacher's current policy with noise ('policy', an ``action_fn`` the caller gives).
 * Normalisation of s and s' (performance vectors are returns in the hundreds): ``normalizer``
   'buffer' (default) standardises each dimension with the mean/std of the valid entries of the real
   buffer (s and s' pooled), refreshed at every ``train_steps`` call and kept in the state so sampling
@@ -41,7 +43,7 @@ from shed_jax.teacher.buffers import RingBuffer, Transition, buffer_sample
 
 Sampler = Literal["ancestral", "code_posterior"]
 Normalizer = Literal["buffer", "scale", "none"]
-SynAction = Literal["uniform", "bc"]
+SynAction = Literal["uniform", "bc", "policy"]
 SynReward = Literal["recompute", "copy"]
 SYN_ACTIONS, SYN_REWARDS = get_args(SynAction), get_args(SynReward)
 
@@ -360,6 +362,13 @@ class DiffusionModel:
         )
         return jnp.clip(self._reverse(key, s.shape[:-1] + (c.action_dim,), eps_fn, -1.0, 1.0), -1.0, 1.0)
 
+    def heldout_loss(self, state: DiffusionState, key: jax.Array, s, a, s_next, draws: int = 16) -> jax.Array:
+        """The training loss of the current parameters on transitions (s, a, s' each [B, .]) it has not
+        been trained on, normalised as training normalises, averaged over ``draws`` noise draws."""
+        s_n, sn_n = normalize(state.norm, s), normalize(state.norm, s_next)
+        losses = jax.vmap(lambda k: self.loss(state.params, k, s_n, a, sn_n))(jax.random.split(key, draws))
+        return jnp.mean(losses)
+
     def synthesize(
         self,
         state: DiffusionState,
@@ -369,12 +378,14 @@ class DiffusionModel:
         reward_fn: Callable,
         syn_action: str = "uniform",
         syn_reward: str = "recompute",
+        action_fn: Callable | None = None,
     ) -> Transition:
         """``n`` synthetic transitions (docs/design.md §7) as a Transition batch with leading axis n.
 
-        s from uniformly drawn real transitions; a ~ U[-1,1]^{d_a} ('uniform') or from the BC head
-        ('bc'); s' from the reverse chain; r = reward_fn(s, a, s') ('recompute', vmapped over the
-        batch) or the source's r ('copy'); done copied from the source.
+        s from uniformly drawn real transitions; a ~ U[-1,1]^{d_a} ('uniform'), from the BC head
+        ('bc') or ``action_fn(key, s)`` ('policy': the teacher's current policy, [n, m] -> [n, d_a]);
+        s' from the reverse chain; r = reward_fn(s, a, s') ('recompute', vmapped over the batch) or
+        the source's r ('copy'); done copied from the source.
         """
         if syn_action not in SYN_ACTIONS:
             raise ValueError(f"syn_action must be one of {SYN_ACTIONS}, got {syn_action!r}")
@@ -382,10 +393,14 @@ class DiffusionModel:
             raise ValueError(f"syn_reward must be one of {SYN_REWARDS}, got {syn_reward!r}")
         if syn_action == "bc" and not self.config.train_bc:
             raise ValueError("syn_action='bc' needs a model built with DiffusionConfig(train_bc=True)")
+        if syn_action == "policy" and action_fn is None:
+            raise ValueError("syn_action='policy' needs action_fn, the teacher's policy (key, s) -> a")
         k_src, k_a, k_s = jax.random.split(key, 3)
         src: Transition = buffer_sample(real_buffer, k_src, n)
         if syn_action == "uniform":
             a = jax.random.uniform(k_a, (n, self.config.action_dim), jnp.float32, -1.0, 1.0)
+        elif syn_action == "policy":
+            a = jnp.asarray(action_fn(k_a, src.s), jnp.float32)
         else:
             a = self.sample_action(state, k_a, src.s)
         s_next = self.sample_next_state(state, k_s, src.s, a)
