@@ -409,9 +409,17 @@ def run_group(built: BuiltGroup, *, out: pathlib.Path, mesh, pad: bool = True, p
     return [_row(out, group, point, summary, S) for point, summary in zip(group.points, summaries)]
 
 
+def fixed_values(point) -> dict:
+    """The dynamic values a point runs with that neither its group label (static keys) nor its name
+    (grid values) shows: those of ``--set``, as the user spelt the keys."""
+    dynamic = {**point.method_hparams, **{STUDENT_PREFIX + k: v for k, v in point.student_hparams.items()}}
+    return {k: v for k, v in dynamic.items() if k not in point.values}
+
+
 def _row(out: pathlib.Path, group, point, summary: dict, num_seeds: int) -> dict:
     """The sweep table's row of one point, from its summary."""
     return {"method": group.method, "group": group.label, "point": point.name, "values": point.values,
+            "set": fixed_values(point),
             "final_test_return_mean": summary["final_test_return_mean"],
             "final_test_return_se": summary["final_test_return_se"], "seeds": num_seeds,
             "dir": str(point_dir(out, group, point).relative_to(out)),
@@ -424,11 +432,15 @@ def _row_from_summary(out: pathlib.Path, group, point, num_seeds: int) -> dict:
 
 
 def table(rows: list[dict]) -> str:
-    """A markdown table: method | point | final test return mean +- SE (n)."""
-    lines = ["| method | point | final test return (mean ± SE) | seeds |", "|---|---|---|---|"]
+    """A markdown table: method | point | final test return mean +- SE (n), and a column of the
+    ``--set`` values the labels do not show when there are any."""
+    fixed = any(r.get("set") for r in rows)
+    lines = ["| method | point | final test return (mean ± SE) | seeds |" + (" also set |" if fixed else ""),
+             "|---|---|---|---|" + ("---|" if fixed else "")]
     for r in rows:
         m, se = r["final_test_return_mean"], r["final_test_return_se"]
-        lines.append(f"| {r['group']} | {r['point']} | {m:.2f} ± {se:.2f} | {r['seeds']} |")
+        extra = f" {point_name(r['set']) if r.get('set') else ''} |" if fixed else ""
+        lines.append(f"| {r['group']} | {r['point']} | {m:.2f} ± {se:.2f} | {r['seeds']} |" + extra)
     return "\n".join(lines)
 
 

@@ -99,6 +99,18 @@ def test_plan_groups_dynamic_points_and_splits_static():
     assert g5.label == "shed[num_eval_levels=5,ppo.num_envs=8]"
 
 
+def test_the_table_names_dynamic_set_values_that_neither_label_nor_point_shows():
+    groups, _ = sweep.plan(SHED_SPACE, {"eta": [0, 10]}, {"psi": 0.5, "ppo.lr": 1e-4, "num_eval_levels": 5})
+    (g,) = groups
+    assert [sweep.fixed_values(p) for p in g.points] == [{"psi": 0.5, "ppo.lr": 1e-4}] * 2  # not eta: the point's name
+    rows = [{"group": g.label, "point": p.name, "final_test_return_mean": 1.0, "final_test_return_se": 0.5,
+             "seeds": 2, "set": sweep.fixed_values(p)} for p in g.points]
+    lines = sweep.table(rows).splitlines()
+    assert lines[0].endswith("| seeds | also set |")
+    assert lines[2] == "| shed[num_eval_levels=5] | eta=0 | 1.00 ± 0.50 | 2 | psi=0.5,ppo.lr=0.0001 |"
+    assert "also set" not in sweep.table([dict(rows[0], set={})])  # without --set values: the old table
+
+
 def test_plan_refuses_a_key_the_method_lacks():
     with pytest.raises(ValueError, match="method 'hmdp' has no hyperparameter or config field 'psi'"):
         sweep.plan(HMDP_SPACE, {"eta": [0, 10], "psi": [0.25, 0.5]})
