@@ -250,13 +250,16 @@ def record(run_dir: pathlib.Path, to: pathlib.Path, command: str = "", keep: boo
     run = len(runs)
     runs.append({"date": today, "command": command})
 
-    def key(r):
-        return (r.get("code", r.get("tree")), r["method"], r["seeds"], r["devices"], r.get("checkpoint", True))
+    def mode(r):  # what a speed-up compares across device counts (a worker file says "tree", a row "code")
+        return r.get("code", r.get("tree")), r["method"], r["seeds"], r.get("checkpoint", True)
 
-    base = {key(r)[:3] + (key(r)[4],): r["seconds_per_chunk"] for r in results if r["devices"] == 1}
+    def key(r):  # what a new run measures again
+        return mode(r) + (r["devices"],)
+
+    base = {mode(r): r["seconds_per_chunk"] for r in results if r["devices"] == 1}
     rows = []
     for r in results:
-        one = base.get(key(r)[:3] + (key(r)[4],))
+        one = base.get(mode(r))
         rows.append({"method": r["method"], "seeds": r["seeds"], "devices": r["devices"], "code": r["tree"],
                      "seconds_per_chunk": round(r["seconds_per_chunk"], 3), "budget_steps_per_chunk": r["chunk_budget_steps"],
                      "speedup": round(one / r["seconds_per_chunk"], 3) if one else None,

@@ -8,6 +8,8 @@ field whose default is itself a config (PLR's ``sampler``, the teacher's ``rewar
 * :func:`from_dict` rebuilds a config from its JSON form (``dataclasses.asdict`` as ``config.json``
   and checkpoints hold it): nested dicts become their dataclasses, lists become tuples, and fields
   missing from the dict keep their defaults.
+* :func:`check_number` checks a numeric field against a bound, with the one-line message every
+  config uses.
 * :func:`with_overrides` replaces fields by name; a dict given for a nested field is merged into it.
   Unknown fields and values of the wrong kind are a ``ValueError`` of one line that names the field
   and what it takes.
@@ -17,6 +19,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import json
+import math
 import typing
 from typing import Literal
 
@@ -45,6 +48,19 @@ def check_modes(obj) -> None:
 def modes(cls, name: str) -> tuple:
     """The allowed values of ``cls``'s Literal field ``name``."""
     return _modes(cls)[name]
+
+
+def check_number(obj, field: str, *, above: float | None = None, at_least: float | None = None,
+                 finite: bool = True) -> None:
+    """``obj.field`` must be a number (``finite``: and finite) ``> above`` or ``>= at_least``; else a
+    ``ValueError`` of one line naming the class, the field and the rule, e.g. ``SHEDXConfig.syn_sigma
+    must be a finite number >= 0, got -1``."""
+    v = getattr(obj, field)
+    ok = isinstance(v, (int, float)) and (not finite or math.isfinite(v))
+    ok = ok and (above is None or v > above) and (at_least is None or v >= at_least)
+    if not ok:
+        rule = f"> {above:g}" if above is not None else f">= {at_least:g}"
+        raise ValueError(f"{type(obj).__name__}.{field} must be a {'finite ' if finite else ''}number {rule}, got {v!r}")
 
 
 def _field_names(cls) -> list[str]:

@@ -93,3 +93,20 @@ def test_a_saved_run_from_before_level_switch_resumes_in_the_mode_it_ran():
         assert experiment_from_dict(saved).method_config.level_switch == "rollout"
     hm = build_experiment("lander", "hmdp", "quick").to_dict()  # no such field, nothing added
     assert "level_switch" not in experiment_from_dict(hm).to_dict()["method_config"]
+
+
+def test_check_number_bounds_finiteness_and_message():
+    import dataclasses as dc
+
+    @dc.dataclass(frozen=True)
+    class C:
+        x: float = 1.0
+
+    configs.check_number(C(0.0), "x", at_least=0)  # the bound itself passes >=
+    configs.check_number(C(float("inf")), "x", above=0, finite=False)
+    for value, kw, rule in ((0.0, dict(above=0), "finite number > 0"), (-1e-9, dict(at_least=0), "finite number >= 0"),
+                            (float("inf"), dict(above=0), "finite number > 0"), (float("nan"), dict(above=0, finite=False), "number > 0"),
+                            ("1", dict(at_least=0), "finite number >= 0")):
+        with pytest.raises(ValueError, match=rf"^C\.x must be a {rule}, got {value!r}$".replace("(", r"\(").replace(")", r"\)")):
+            configs.check_number(C(value), "x", **kw)
+

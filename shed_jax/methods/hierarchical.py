@@ -49,7 +49,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from shed_jax.configs import check_modes, coerce
+from shed_jax.configs import check_modes, check_number, coerce
 from shed_jax.levels import LevelCodec, evaluation_set, new_seeds, teacher_space
 from shed_jax.methods.base import EvalRequest, StepInfo, mean_metrics
 from shed_jax.teacher.buffers import RingBuffer, Transition
@@ -110,11 +110,8 @@ class TeacherConfig:
             if not isinstance(getattr(self, field), bool):
                 raise ValueError(f"{name}.{field} must be True or False, got {getattr(self, field)!r}")
         for field in ("actor_lr", "critic_lr"):
-            v = getattr(self, field)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-                raise ValueError(f"{name}.{field} must be a finite number > 0, got {v!r}")
-        if not (isinstance(self.explore_sigma, (int, float)) and math.isfinite(self.explore_sigma) and self.explore_sigma >= 0):
-            raise ValueError(f"{name}.explore_sigma must be a finite number >= 0, got {self.explore_sigma!r}")
+            check_number(self, field, above=0)
+        check_number(self, "explore_sigma", at_least=0)
         if not self.state_scale > 0:
             raise ValueError(f"{name}.state_scale must be > 0, got {self.state_scale}")
         if self.real_capacity < self.ddpg_batch:

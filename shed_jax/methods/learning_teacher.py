@@ -40,7 +40,7 @@ from typing import Any, ClassVar, Literal
 import jax
 import jax.numpy as jnp
 
-from shed_jax.configs import coerce
+from shed_jax.configs import check_number, coerce
 from shed_jax.levels import new_seeds, teacher_space
 from shed_jax.methods.hierarchical import HierarchicalState, HierarchicalTeacher, TeacherConfig
 from shed_jax.methods.parallel_students import ParallelStudents
@@ -77,12 +77,10 @@ class HMDPXConfig(TeacherConfig):
         for flag in ("crn", "twin_critics"):
             if not isinstance(getattr(self, flag), bool):
                 raise ValueError(f"{name}.{flag} must be True or False, got {getattr(self, flag)!r}")
-        if not (isinstance(self.reward_scale, (int, float)) and math.isfinite(self.reward_scale) and self.reward_scale > 0):
-            raise ValueError(f"{name}.reward_scale must be a finite number > 0, got {self.reward_scale!r}")
+        check_number(self, "reward_scale", above=0)
         if not 0.0 < self.tau <= 1.0:
             raise ValueError(f"{name}.tau must lie in (0, 1], got {self.tau!r}")
-        if not (isinstance(self.preact_penalty, (int, float)) and self.preact_penalty >= 0):
-            raise ValueError(f"{name}.preact_penalty must be a number >= 0, got {self.preact_penalty!r}")
+        check_number(self, "preact_penalty", at_least=0, finite=False)
         if self.students > self.real_capacity:
             raise ValueError(f"{name}.students must be <= real_capacity ({self.real_capacity}): a budget step stores "
                              f"one transition per student, got {self.students}")
@@ -100,11 +98,8 @@ class SHEDXConfig(HMDPXConfig, SHEDConfig):
 
     def __post_init__(self):
         super().__post_init__()
-        name = type(self).__name__
-        if not (isinstance(self.syn_sigma, (int, float)) and math.isfinite(self.syn_sigma) and self.syn_sigma >= 0):
-            raise ValueError(f"{name}.syn_sigma must be a finite number >= 0, got {self.syn_sigma!r}")
-        if not (isinstance(self.syn_loss_bar, (int, float)) and self.syn_loss_bar > 0):
-            raise ValueError(f"{name}.syn_loss_bar must be a number > 0 (inf: no bar), got {self.syn_loss_bar!r}")
+        check_number(self, "syn_sigma", at_least=0)
+        check_number(self, "syn_loss_bar", above=0, finite=False)  # inf: no bar
 
 
 def teacher_x_dims(env, config: HMDPXConfig) -> tuple[int, int]:
