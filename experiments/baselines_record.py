@@ -8,9 +8,12 @@ kept beside it. Walker sweeps must have run
 with ``--final-eval named``; their entry holds, per named level, the mean return over seeds and the
 solved rate (return > 230), and ``dcd_six_solved_mean`` is the solved rate averaged over DCD's six
 test levels (the comparison of DCD's table). The device is the one the sweeps ran on (sweeps do not record it).
+With ``--keep``, the entries already in ``--out`` that these sweeps do not measure again stay; every
+entry then names the run that measured it by index into ``runs`` (device, date, command, note).
 
     python -m experiments.baselines_record --device "NVIDIA H200" --date 2026-11-25 \\
         --lander runs/ep_plr --lander runs/ep_accel --walker runs/wdr --out docs/results/baselines.json
+    python -m experiments.baselines_record --keep --device "NVIDIA H100 80GB HBM3" --walker runs/wpaired
 """
 from __future__ import annotations
 
@@ -58,17 +61,24 @@ def main(argv=None) -> int:
     p.add_argument("--walker", action="append", default=[], metavar="SWEEP_DIR")
     p.add_argument("--note", default="", help="a sentence kept in the record (what was not run, and why)")
     p.add_argument("--out", default="docs/results/baselines.json")
+    p.add_argument("--keep", action="store_true",
+                   help="keep the entries of --out that these sweeps do not measure again (each entry names its run)")
     args = p.parse_args(argv)
-    record = {"device": args.device, "date": args.date,
-              "command": "python -m experiments.baselines_record " + " ".join(sys.argv[1:] if argv is None else argv),
-              "lander": {}, "walker": {}}
-    for path in args.lander:
-        record["lander"].update(lander_entries(path))
-    for path in args.walker:
-        record["walker"].update(walker_entries(path))
+    command = "python -m experiments.baselines_record " + " ".join(sys.argv[1:] if argv is None else argv)
+    out = pathlib.Path(args.out)
+    old = json.loads(out.read_text()) if args.keep and out.exists() else {}
+    runs = old.get("runs") or ([{k: old[k] for k in ("device", "date", "command", "note") if k in old}] if old else [])
+    run = len(runs)
+    runs.append({"device": args.device, "date": args.date, "command": command, **({"note": args.note} if args.note else {})})
+    record = {"device": args.device, "date": args.date, "command": command, "runs": runs, "lander": {}, "walker": {}}
+    for env, paths, entries in (("lander", args.lander, lander_entries), ("walker", args.walker, walker_entries)):
+        kept = {m: dict(e, run=e.get("run", 0)) for m, e in old.get(env, {}).items()}
+        for path in paths:
+            kept.update({m: dict(e, run=run) for m, e in entries(path).items()})
+        record[env] = kept
     if args.note:
         record["note"] = args.note
-    out = pathlib.Path(args.out)
+    record["note_runs"] = "run: index into runs, the run (device, date, command) that measured the entry"
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(record, indent=2) + "\n")
     print(f"wrote {out}")

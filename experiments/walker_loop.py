@@ -114,9 +114,10 @@ def main(argv=None) -> int:
     p.add_argument("--loops-from", default=None,
                    help="take the loop timings from an earlier walker_loop JSON instead of measuring them "
                         "(its device, date and command are kept under loops_source)")
-    p.add_argument("--named", action="append", default=[], metavar="METHOD=FILE",
+    p.add_argument("--named", action="append", default=[], metavar="METHOD=FILE[@DEVICE]",
                    help="a run's final_eval_named.json (run/sweep --final-eval named) to fold in as "
-                        "named_solved_rate[METHOD] (repeatable)")
+                        "named_solved_rate[METHOD] (repeatable); @DEVICE names the card it ran on when it is "
+                        "not the record's")
     p.add_argument("--out", default="runs/walker_loop.json")
     args = p.parse_args(argv)
     record = {"device": jax.devices()[0].device_kind, "date": time.strftime("%Y-%m-%d", time.gmtime()),
@@ -130,10 +131,12 @@ def main(argv=None) -> int:
         record["ppo_flat"] = ppo_flat(args.ppo_results)
     for item in args.named:
         method, _, path = item.partition("=")
+        path, _, device = path.partition("@")
         ev = json.loads(pathlib.Path(path).read_text())
         record["named_solved_rate"] = record["named_solved_rate"] or {}
         record["named_solved_rate"][method] = {r["label"]: r["solved_rate"] for r in ev["per_level"]}
-        record.setdefault("named_sources", {})[method] = {"file": path, "seeds": ev["seeds"], "episodes": ev["episodes"]}
+        record.setdefault("named_sources", {})[method] = {"file": path, "seeds": ev["seeds"], "episodes": ev["episodes"],
+                                                          **({"device": device} if device else {})}
     if args.profile:
         record["profile"] = json.loads(pathlib.Path(args.profile).read_text())
     if args.loops_from:  # compose the record from measured parts; nothing is measured here

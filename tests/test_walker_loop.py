@@ -64,10 +64,11 @@ def test_named_solved_rates_fold_in_per_method(tmp_path):
     _named_eval(tmp_path / "accel.json", [("BipedalWalker", 250.0, 3.0, 0.9)], seeds=3)
     out = tmp_path / "record.json"
     assert walker_loop.main(["--loops-from", str(tmp_path / "loops.json"), "--named", f"dr={tmp_path / 'dr.json'}",
-                             "--named", f"accel={tmp_path / 'accel.json'}", "--out", str(out)]) == 0
+                             "--named", f"accel={tmp_path / 'accel.json'}@NVIDIA H100", "--out", str(out)]) == 0
     rec = json.loads(out.read_text())
     assert rec["named_solved_rate"] == {"dr": {"BipedalWalker": 0.0, "Stump": 0.0}, "accel": {"BipedalWalker": 0.9}}
     assert rec["named_sources"]["accel"]["seeds"] == 3 and rec["named_sources"]["dr"]["episodes"] == 10
+    assert rec["named_sources"]["accel"]["device"] == "NVIDIA H100" and "device" not in rec["named_sources"]["dr"]
 
 
 def test_baselines_record_reads_sweeps(tmp_path):
@@ -101,3 +102,34 @@ def test_baselines_record_reads_sweeps(tmp_path):
     assert dr["test_set_b"] == {"mean": -33.4, "se": 7.3}
     assert dr["dcd_six_solved_mean"] is None  # not all six levels were evaluated
     assert rec["walker"]["accel"]["dcd_six_solved_mean"] == pytest.approx(1.2 / 6)
+
+
+def test_baselines_record_keep_adds_a_run_and_keeps_the_entries_it_did_not_measure(tmp_path):
+    from experiments import baselines_record
+
+    def sweep(d, method, mean):
+        (d / method / "default").mkdir(parents=True)
+        (d / "sweep.json").write_text(json.dumps({"rows": [{"method": method, "seeds": 5, "dir": f"{method}/default",
+                                                            "final_test_return_mean": mean, "final_test_return_se": 1.0}]}))
+        (d / "sweep_args.json").write_text(json.dumps({"env": "walker", "methods": method, "set": []}))
+        _named_eval(d / method / "default" / "final_eval_named.json", [("BipedalWalker", mean, 1.0, 0.5)])
+
+    sweep(tmp_path / "a", "dr", -33.4)
+    sweep(tmp_path / "b", "dr", -20.0)
+    sweep(tmp_path / "c", "paired", -29.8)
+    out = tmp_path / "baselines.json"
+    assert baselines_record.main(["--device", "H200", "--date", "2026-11-25", "--walker", str(tmp_path / "a"),
+                                  "--note", "first", "--out", str(out)]) == 0
+    assert baselines_record.main(["--keep", "--device", "H100", "--date", "2026-11-26", "--walker", str(tmp_path / "c"),
+                                  "--out", str(out)]) == 0
+    rec = json.loads(out.read_text())
+    assert [(r["device"], r["date"]) for r in rec["runs"]] == [("H200", "2026-11-25"), ("H100", "2026-11-26")]
+    assert rec["runs"][0]["note"] == "first"
+    assert (rec["walker"]["dr"]["run"], rec["walker"]["dr"]["test_set_b"]["mean"]) == (0, -33.4)
+    assert (rec["walker"]["paired"]["run"], rec["walker"]["paired"]["test_set_b"]["mean"]) == (1, -29.8)
+    # a method measured again replaces its entry and names the new run
+    assert baselines_record.main(["--keep", "--device", "H100", "--date", "2026-11-27", "--walker", str(tmp_path / "b"),
+                                  "--out", str(out)]) == 0
+    rec = json.loads(out.read_text())
+    assert len(rec["runs"]) == 3 and (rec["walker"]["dr"]["run"], rec["walker"]["dr"]["test_set_b"]["mean"]) == (2, -20.0)
+    assert rec["walker"]["paired"]["run"] == 1
