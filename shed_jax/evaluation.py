@@ -31,7 +31,7 @@ from shed_jax.errors import UsageError
 
 CVAR_ALPHA = 0.1
 # --final-eval when not given: the walker's named levels (DCD's six of docs/design.md §9.2 set A first) with solved rates
-DEFAULT_FINAL_EVAL = {"walker": "named"}
+DEFAULT_FINAL_EVAL = {"walker": "named", "bipedal": "named"}
 
 
 class LevelFileError(ValueError):

@@ -18,7 +18,7 @@ import numpy as np
 
 from shed_jax.errors import UsageError
 
-ENVS = ("lander", "lander-continuous", "walker")  # the environments with UED presets (shed_jax/presets.py)
+ENVS = ("lander", "lander-continuous", "walker", "bipedal")  # the environments with UED presets (shed_jax/presets.py)
 
 DEFAULT_ENV = "lander"
 DEFAULT_METHOD = "shed"

@@ -124,8 +124,11 @@ TABLE: dict[tuple[str, str], Preset] = {
         student=dict(num_envs=16, num_steps=16, update_epochs=1, num_minibatches=2), steps_per_episode=4,
         teacher_episodes=2, test_set="walker-test-b", test_episodes=1, test_max_steps=100,
         method={"updates_per_step": 2, "num_levels": 4}, teacher={"num_eval_episodes": 1, "eval_max_steps": 100},
-    ),
-}
+    ),}
+# The Box2D-faithful walker on physics2d shares the MJX walker's level space, level sets and student
+# (docs/bipedal.md), so it runs the walker's protocol; only its physics (and speed) differ.
+TABLE[("bipedal", "paper")] = TABLE[("walker", "paper")]
+TABLE[("bipedal", "quick")] = TABLE[("walker", "quick")]
 
 
 def preset_row(env: str, name: str) -> Preset:

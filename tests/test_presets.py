@@ -34,6 +34,21 @@ def test_walker_paper_budget_is_1e7_steps():
     assert shed.loop.num_episodes == 20 and build_experiment("lander", "shed", "paper").method_config.num_eval_episodes == 8
 
 
+@pytest.mark.parametrize("method", ["dr", "shed"])
+def test_bipedal_runs_the_walker_protocol_with_the_walker_student(method):
+    """The physics2d walker shares the MJX walker's levels, so its presets, student and default final
+    evaluation are the walker's; the method builds on it (construction only)."""
+    from shed_jax.evaluation import DEFAULT_FINAL_EVAL
+    from shed_jax.experiment import ENVS
+
+    for preset in ("paper", "quick"):
+        b, w = build_experiment("bipedal", method, preset), build_experiment("walker", method, preset)
+        assert b.env == "bipedal" and (b.ppo, b.method_config, b.loop, b.test_set) == (w.ppo, w.method_config, w.loop, w.test_set)
+    assert b.ppo.normalize_observations and "bipedal" in ENVS and DEFAULT_FINAL_EVAL["bipedal"] == "named"
+    env = envs.make("bipedal")
+    make_method(method, env, make_student(env, b.ppo), b.method_config)
+
+
 def test_walker_baselines_test_every_fifth_budget_step_and_the_last():
     import numpy as np
 

@@ -207,6 +207,11 @@ PRESETS: dict[str, PPOConfig] = {
 }
 
 
+# The Box2D-faithful walker on physics2d (envs/bipedal): the MJX walker's task, observations and
+# reward, so the same student; not yet tuned on it.
+PRESETS["bipedal"] = PRESETS["walker"]
+
+
 def parse_overrides(items) -> dict:
     """Command-line ``KEY=VALUE`` strings -> PPO overrides for :meth:`PPOConfig.with_overrides`.
 
