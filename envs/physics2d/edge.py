@@ -103,7 +103,7 @@ def edge_polygon_manifold(e1, e2, vertices, normals, centroid, radius):
     s2 = dot(-normals, vertices - e2[None])
     poly_s = jnp.minimum(s1, s2)
     poly_index = jnp.argmax(poly_s)
-    poly_sep = poly_s[poly_index]
+    poly_sep = jnp.max(poly_s)
     touching = (edge_sep <= radius) & (poly_sep <= radius)
     face_b = poly_sep > RELATIVE_TOL * edge_sep + ABSOLUTE_TOL
 
