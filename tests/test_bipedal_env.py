@@ -84,13 +84,37 @@ def test_registered_options_and_spaces():
         BipedalWalker(window_columns=4)
     with pytest.raises(ValueError, match="solver_kernel"):
         BipedalWalker(solver_kernel="cuda")
+    with pytest.raises(ValueError, match="contacts"):
+        BipedalWalker(contacts="polygon")
     m = env.model
+    # legs against Box2D-style separate terrain edges by default; the vertex model on request
+    assert m.config.edge_contacts == BM.EDGE_CONTACTS and m.edge_polygons == (0, 1, 3, 4)  # not the hull (sensor)
+    assert BipedalWalker(contacts="vertex").model.config.edge_contacts == 0
     # Box2D's mass properties (measured in Gymnasium): hull 5.4222 / 1.99940 about the COM
     # (-0.020036, -0.0056466); legs 0.30222 / 0.034140 and 0.24178 / 0.026796
     np.testing.assert_allclose(m.mass, [5.4222226, 0.3022222, 0.2417778, 0.3022222, 0.2417778], rtol=1e-6)
     np.testing.assert_allclose(m.inertia, [1.9993952, 0.0341399, 0.0267961, 0.0341399, 0.0267961], rtol=1e-5)
     np.testing.assert_allclose(m.local_com[0], [-0.0200364, -0.0056466], atol=1e-6)
     assert [m.joints[k].reference_angle for k in BM.MODEL_JOINT] == [-0.05, 0.0, 0.05, 0.0]  # Gymnasium order
+
+
+def test_terrain_edges_are_gymnasiums_grass_edges():
+    """A straight terrain column (grass: flat or sloped) is one Box2D edge from column end to column end,
+    as Gymnasium's edge fixtures; a column with an obstacle keeps one edge per profile segment."""
+    env = envs.make("bipedal")
+    r = env.options.terrain_resolution
+    dx = C.TERRAIN_STEP / r
+    ys = np.concatenate([np.full(r, 1.0), 1.0 + 0.2 * np.arange(r) / r, [1.2, 1.5, 1.5, 1.2][:r], np.full(r + 1, 1.2)])
+    ground = jnp.asarray(np.stack([np.arange(ys.size) * dx, ys], -1), jnp.float32)
+    edges, valid = env.terrain_edges(ground)
+    ground = np.asarray(ground)
+    assert edges.shape == (4 * r, 2, 2) and valid.shape == (4 * r,)
+    first = np.arange(4 * r) % r == 0
+    np.testing.assert_array_equal(np.asarray(valid), first | (np.arange(4 * r) // r == 2))
+    for c in (0, 1, 3):  # one edge per straight column, over the whole column
+        np.testing.assert_allclose(np.asarray(edges[c * r]), np.asarray(ground[[c * r, (c + 1) * r]]), atol=1e-6)
+    np.testing.assert_allclose(np.asarray(edges[2 * r: 3 * r]),
+                               np.stack([ground[2 * r: 3 * r], ground[2 * r + 1: 3 * r + 1]], 1), atol=1e-6)
 
 
 def test_motor_targets_are_gymnasiums():

@@ -30,6 +30,7 @@ from envs.walker import terrain as T
 from envs.walker.interface import WalkerInterface
 
 KINDS = ("auto", "xla", "pallas", "interpret")
+CONTACTS = ("edge", "vertex")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -43,6 +44,10 @@ class BipedalOptions:
                         columns behind the hull); 16 columns = 7.5 m covers every leg pose.
     max_boxes:          obstacle box slots per level (the generator's; 64 covers DCD's FULL box).
     unroll, solver_kernel: physics2d's loop unroll (speed only) and ``SolverConfig.kernel``.
+    contacts:           "edge": the legs collide with the terrain as Box2D does with Gymnasium's
+                        separate edge fixtures (``physics2d`` edge manifolds, ``terrain_edges``);
+                        "vertex": each leg vertex against the profile polyline under it (the first
+                        milestone's model).
     """
 
     velocity_iterations: int = M.VELOCITY_ITERATIONS
@@ -52,6 +57,7 @@ class BipedalOptions:
     max_boxes: int = 64
     unroll: int = 1
     solver_kernel: str = "auto"
+    contacts: str = "edge"
 
     def __post_init__(self):
         ints = dict(velocity_iterations=(1, 1000), position_iterations=(0, 1000), terrain_resolution=(1, 32),
@@ -62,6 +68,8 @@ class BipedalOptions:
                 raise ValueError(f"BipedalOptions.{name} must be an int in [{lo}, {hi}], got {v!r}")
         if self.solver_kernel not in KINDS:
             raise ValueError(f"BipedalOptions.solver_kernel must be one of {KINDS}, got {self.solver_kernel!r}")
+        if self.contacts not in CONTACTS:
+            raise ValueError(f"BipedalOptions.contacts must be one of {CONTACTS}, got {self.contacts!r}")
 
 
 BACK_COLUMNS = 7  # window columns behind the hull's column
@@ -95,7 +103,8 @@ class BipedalWalker(WalkerInterface, Environment):
         if unknown:
             raise ValueError(f"bipedal: unknown option(s) {sorted(unknown)}; valid: {sorted(fields)}")
         self.options = o = BipedalOptions(**options)
-        self.model = M.walker_model(o.velocity_iterations, o.position_iterations, o.unroll, o.solver_kernel)
+        self.model = M.walker_model(o.velocity_iterations, o.position_iterations, o.unroll, o.solver_kernel,
+                                    M.EDGE_CONTACTS if o.contacts == "edge" else 0)
         self.grid = T.make_grid(o.terrain_resolution)
         self._start = M.initial_pose()
 
@@ -113,6 +122,27 @@ class BipedalWalker(WalkerInterface, Environment):
         n = o.window_columns * o.terrain_resolution + 1
         xs = g.x_min + g.dx * (j0 + jnp.arange(n, dtype=jnp.int32)).astype(jnp.float32)
         return jnp.stack([xs, jax.lax.dynamic_slice(profile, (j0,), (n,))], -1), col
+
+    def terrain_edges(self, ground: jax.Array):
+        """The window polyline (P, 2) as separate Box2D edges, edge s starting at point s: a terrain
+        column whose samples are collinear is one edge (Gymnasium's grass edge, TERRAIN_STEP long; its
+        other segments invalid), any other column (an obstacle's face or top) one edge per sample
+        segment. Returns (edges (P - 1, 2, 2), valid (P - 1,) bool)."""
+        r = self.options.terrain_resolution
+        seg = jnp.stack([ground[:-1], ground[1:]], 1)
+        if r == 1:
+            return seg, jnp.ones((seg.shape[0],), bool)
+        start, end = ground[:-1:r], ground[r::r]  # (W, 2) column ends
+        inner = ground[1:].reshape(-1, r, 2)[:, :-1]  # (W, r - 1, 2) samples inside each column
+        frac = (inner[..., 0] - start[:, None, 0]) / (end[:, None, 0] - start[:, None, 0])
+        chord_y = start[:, None, 1] + frac * (end[:, None, 1] - start[:, None, 1])
+        straight = jnp.all(jnp.abs(inner[..., 1] - chord_y) < 1e-4, -1)  # (W,)
+        s = jnp.arange(seg.shape[0])
+        col, first = s // r, (s % r) == 0
+        column_edge = jnp.stack([start[col], end[col]], 1)
+        merged = straight[col]
+        edges = jnp.where((merged & first)[:, None, None], column_edge, seg)
+        return edges, ~merged | first
 
     # ------------------------------------------------------------------ observation / reward
     def hull_origin(self, world: physics2d.WorldState) -> jax.Array:
@@ -148,8 +178,9 @@ class BipedalWalker(WalkerInterface, Environment):
         order = jnp.asarray(M.GYM_JOINT)  # to the model's (Box2D island) joint order
         speed, torque = speed[order], torque[order]
         ground, col = self.ground_window(state.profile, self.hull_origin(state.world)[0])
+        edges, valid = self.terrain_edges(ground) if self.options.contacts == "edge" else (None, None)
         world, info = physics2d.step(self.model, state.world, ground, C.GRAVITY, force=force,
-                                     motor_speed=speed, max_motor_torque=torque)
+                                     motor_speed=speed, max_motor_torque=torque, edges=edges, edge_valid=valid)
         # Gymnasium's ContactDetector: one Box2D contact per (lower leg, terrain edge) pair; BeginContact
         # sets the leg's flag, EndContact clears it even while the leg still touches another edge.
         r = self.options.terrain_resolution

@@ -36,6 +36,10 @@ MODEL_JOINT = tuple(GYM_JOINT.index(g) for g in range(4))  # Gymnasium's joint g
 VELOCITY_ITERATIONS = 6 * 30
 POSITION_ITERATIONS = 2 * 30
 
+#: ground edges per leg segment solved with Box2D's edge-vs-polygon manifold (a shin spans at most
+#: three 0.467 m terrain edges at the tilts the gait reaches; more touching edges are dropped)
+EDGE_CONTACTS = 3
+
 #: per joint (Gymnasium's order): motor speed of a full action, Box2D's SetMotorSpeed(SPEED * sign(a))
 JOINT_SPEEDS = np.array([C.SPEED_HIP, C.SPEED_KNEE, C.SPEED_HIP, C.SPEED_KNEE], np.float32)
 
@@ -49,8 +53,9 @@ def _box(hx: float, hy: float) -> tuple:
 
 @functools.lru_cache(maxsize=None)
 def walker_model(velocity_iterations: int = VELOCITY_ITERATIONS, position_iterations: int = POSITION_ITERATIONS,
-                 unroll: int = 1, kernel: str = "auto") -> physics2d.Model:
-    """The (cached, static) walker model for the given solver iteration counts."""
+                 unroll: int = 1, kernel: str = "auto", edge_contacts: int = 0) -> physics2d.Model:
+    """The (cached, static) walker model for the given solver iteration counts; ``edge_contacts``:
+    ``physics2d.SolverConfig.edge_contacts`` (0: leg vertices against the polyline)."""
     # Gymnasium lists the hull clockwise; Box2D reorders any convex polygon counter-clockwise
     hull = physics2d.Polygon(body=HULL, vertices=tuple((x / C.SCALE, y / C.SCALE) for x, y in reversed(C.HULL_POLY)),
                              density=C.HULL_DENSITY, friction=C.HULL_FRICTION, sensor=True)
@@ -74,7 +79,7 @@ def walker_model(velocity_iterations: int = VELOCITY_ITERATIONS, position_iterat
     cfg = physics2d.SolverConfig(dt=C.CONTROL_DT, velocity_iterations=velocity_iterations,
                                  position_iterations=position_iterations, ground_friction=C.TERRAIN_FRICTION,
                                  unroll=unroll, kernel=kernel, toi_loop=True, toi_position_iterations=20,
-                                 toi_from_touching=True)
+                                 toi_from_touching=True, edge_contacts=edge_contacts)
     return physics2d.make_model(NUM_BODIES, tuple(polygons), tuple(joints), cfg)
 
 

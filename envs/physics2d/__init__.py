@@ -1,6 +1,7 @@
 """A small 2-D rigid-body solver in JAX (Box2D 2.3-style sequential impulses), fixed-size and vmappable.
 
-Bodies carry convex polygons; contacts are polygon vertices against a static height-field polyline
+Bodies carry convex polygons; contacts are polygon vertices against a static height-field polyline,
+or (``SolverConfig.edge_contacts``) Box2D's edge-vs-polygon manifolds against separate ground edges
 (with friction, no restitution, warm starting and non-linear position correction); revolute joints
 have motors and angle limits; Box2D-style sleep timers say when the island comes to rest. Nothing
 here knows about any particular game: environments build a ``Model`` and call ``step``.

@@ -92,6 +92,11 @@ class SolverConfig:
     # (+ 0.25 slop tolerance, but not overlapping) as touching at t = 0: the body goes back to its
     # start pose and is re-solved alone for the whole step. False (the lander's setting) skips this.
     toi_from_touching: bool = False
+    # ground contacts of solid polygons: 0 = every polygon vertex against the polyline segment under it
+    # (the lander's model); k > 0 = Box2D's edge-vs-polygon manifold (b2CollideEdgeAndPolygon, up to
+    # two points, face A or face B) of each polygon against every ground edge as a separate Box2D edge
+    # (no ghost vertices), the first k touching edges per polygon solved (Box2D's 2-point block solver)
+    edge_contacts: int = 0
     unroll: int = 1  # unroll factor of the solver-iteration loops (speed knob, no effect on results)
     # how the iteration loops run: "auto" (one fused Pallas kernel per loop on GPU, XLA elsewhere),
     # "xla", "pallas" or "interpret" (the kernel through Pallas' interpreter); see physics2d/fused.py
@@ -107,6 +112,8 @@ class SolverConfig:
             )
         if self.toi_position_iterations < 0:
             raise ValueError(f"SolverConfig.toi_position_iterations must be >= 0, got {self.toi_position_iterations}")
+        if self.edge_contacts < 0:
+            raise ValueError(f"SolverConfig.edge_contacts must be >= 0, got {self.edge_contacts}")
         if self.unroll < 1:
             raise ValueError(f"SolverConfig.unroll must be >= 1, got {self.unroll}")
         if self.kernel not in ("auto", "xla", "pallas", "interpret"):
@@ -142,6 +149,19 @@ class Model:
     @property
     def num_slots(self) -> int:
         return len(self.slot_body)
+
+    @property
+    def edge_polygons(self) -> tuple:
+        """Polygons solved against ground edges (``config.edge_contacts > 0``): the non-sensor ones."""
+        return tuple(k for k, p in enumerate(self.polygons) if not p.sensor) if self.config.edge_contacts else ()
+
+    @property
+    def num_contacts(self) -> int:
+        """Length of the solver's contact arrays: vertex slots, or 2 points x ``edge_contacts`` edges
+        per solid polygon with edge contacts."""
+        if self.config.edge_contacts:
+            return 2 * self.config.edge_contacts * len(self.edge_polygons)
+        return self.num_slots
 
 
 def make_model(num_bodies: int, polygons, joints=(), config: Optional[SolverConfig] = None) -> Model:
@@ -205,6 +225,10 @@ class WorldState:
     limit_state: jax.Array  # (J,) int32 joint limit state of the last step (see joint.py)
     touching: jax.Array  # (V,) bool: slot touched the ground at the start of the last step
     asleep: jax.Array  # () bool: the island fell asleep during the last step
+    # edge contacts only (``SolverConfig.edge_contacts``; None otherwise, so other models' state is
+    # unchanged): per contact point (round(1000 x edge start x), Box2D contact feature key), int32 (V, 2);
+    # an impulse is warm started only when both match (Box2D matches points by feature per fixture pair)
+    contact_key: Optional[jax.Array] = None
 
 
 def body_origin(model: Model, bodies: BodyState) -> jax.Array:
@@ -228,7 +252,7 @@ def bodies_from_origin(model: Model, origin, angle, vel=None, omega=None) -> Bod
 
 def init_world(model: Model, bodies: BodyState) -> WorldState:
     """A world at rest in the solver sense: no contacts, no accumulated impulses, awake."""
-    v, j = model.num_slots, len(model.joints)
+    v, j = model.num_contacts, len(model.joints)
     return WorldState(
         bodies=bodies,
         sleep_time=jnp.zeros((model.num_bodies,), jnp.float32),
@@ -239,4 +263,5 @@ def init_world(model: Model, bodies: BodyState) -> WorldState:
         limit_state=jnp.zeros((j,), jnp.int32),
         touching=jnp.zeros((v,), bool),
         asleep=jnp.zeros((), bool),
+        contact_key=jnp.zeros((v, 2), jnp.int32) if model.config.edge_contacts else None,
     )

@@ -22,7 +22,9 @@ import numpy as np
 
 from envs.physics2d import fused
 from envs.physics2d import joint as jnt
+from envs.physics2d import edge as edg
 from envs.physics2d.collision import polyline_points_in_polygon, vertex_segment_touching, vertex_vs_polyline
+from envs.physics2d.mass import polygon_mass
 from envs.physics2d.model import BodyState, Model, WorldState
 from envs.physics2d.vec import V2, cross, cross_sv, cross_sv2, dot, rotate, rotate2
 
@@ -54,6 +56,49 @@ def collide(model: Model, bodies: BodyState, ground):
     return touching, jnp.stack(poly_touch), normal, sep, arm
 
 
+def edge_constraints(model: Model, bodies: BodyState, edges, valid):
+    """Box2D's edge-vs-polygon manifolds of every solid polygon against every ground edge, the first
+    ``config.edge_contacts`` touching edges per polygon kept as contact points.
+
+    ``edges`` (S, 2, 2) world segments (each a separate Box2D edge), ``valid`` (S,) bool. Returns a
+    dict of (E,) leaves, E = ``model.num_contacts`` (polygon-major, then edge, then point): ``on``,
+    ``body`` (static tuple), ``normal`` and ``point`` (Box2D's velocity-constraint frame, world),
+    ``face_b``, ``ref_normal``, ``ref_point``, ``clip`` (the manifold, world), ``key`` (E, 2) int32;
+    plus ``pairs`` (num_polygons, S) bool: polygon k's manifold with edge s has points.
+    """
+    cfg = model.config
+    k_edges = cfg.edge_contacts
+    lc = np.asarray(model.local_com, np.float64)
+    parts, pairs = [], []
+    for k, poly in enumerate(model.polygons):
+        if k not in model.edge_polygons:
+            pairs.append(jnp.zeros((edges.shape[0],), bool))
+            continue
+        i = poly.body
+        local = np.asarray(poly.vertices, np.float64) - lc[i]
+        verts = bodies.com[i] + rotate(bodies.angle[i], jnp.asarray(local, jnp.float32))
+        normals = rotate(bodies.angle[i], jnp.asarray(edg.polygon_normals(poly.vertices), jnp.float32))
+        _, centroid, _ = polygon_mass(np.asarray(poly.vertices, np.float64), 1.0)  # Box2D's m_centroid
+        centroid = bodies.com[i] + rotate(bodies.angle[i], jnp.asarray(centroid - lc[i], jnp.float32))
+        m = edg.polygon_edges_manifolds(edges, valid, verts, normals, centroid, cfg.contact_radius)
+        pairs.append(m["on"][:, 0])
+        sel = edg.select_edges(m, k_edges)  # leaves (K, 2, ...) per point or (K, ...) per manifold
+        x0 = jnp.sum(jnp.where(jnp.arange(edges.shape[0])[None] == sel["edge"][:, None], edges[None, :, 0, 0], 0.0), 1)
+        edge_key = jnp.round(x0 * 1000.0).astype(jnp.int32)
+        two = lambda a: jnp.repeat(a, 2, axis=0)  # per manifold -> per point
+        parts.append(dict(
+            on=sel["on"].reshape(-1), normal=two(sel["normal"]), point=sel["point"].reshape(-1, 2),
+            face_b=two(sel["face_b"]), ref_normal=two(sel["ref_normal"]), ref_point=two(sel["ref_point"]),
+            clip=sel["clip"].reshape(-1, 2),
+            key=jnp.stack([two(edge_key), sel["id"].reshape(-1)], -1)))
+    out = {name: jnp.concatenate([q[name] for q in parts]) for name in parts[0]}
+    out["body"] = tuple(model.polygons[k].body for k in model.edge_polygons for _ in range(2 * k_edges))
+    out["friction"] = tuple(float(np.sqrt(model.polygons[k].friction * cfg.ground_friction))  # Box2D mixing
+                            for k in model.edge_polygons for _ in range(2 * k_edges))
+    out["pairs"] = jnp.stack(pairs)
+    return out
+
+
 def apply_impulse(model: Model, bodies: BodyState, body: int, impulse, point) -> BodyState:
     """Box2D ApplyLinearImpulse: instant change of COM velocity and spin (point in world frame)."""
     impulse = jnp.asarray(impulse, jnp.float32)
@@ -64,7 +109,8 @@ def apply_impulse(model: Model, bodies: BodyState, body: int, impulse, point) ->
 
 
 def step(model: Model, world: WorldState, ground, gravity, force=None, torque=None, projector=None,
-         position_iterations=None, free_flight: bool = False, motor_speed=None, max_motor_torque=None):
+         position_iterations=None, free_flight: bool = False, motor_speed=None, max_motor_torque=None,
+         edges=None, edge_valid=None):
     """Advance ``world`` by one time step. Returns (new world, info).
 
     ``projector``: optional constant (3B, 3B) matrix from ``locked_velocity_projector``; when given,
@@ -82,6 +128,11 @@ def step(model: Model, world: WorldState, ground, gravity, force=None, torque=No
     Box2D's SetMotorSpeed / SetMaxMotorTorque set before ``b2World::Step``; a batch of worlds can
     give each its own); None keeps every joint's static ``RevoluteJoint`` values. Entries of joints
     without a motor are ignored.
+    ``edges`` (S, 2, 2), ``edge_valid`` (S,) bool: with ``config.edge_contacts`` the ground as separate
+    Box2D edges, edge s starting at ground point s (S = P - 1; a longer edge may cover several
+    segments, the ones it covers then invalid); None: every ground segment is its own edge. Solid
+    polygons then touch the ground through Box2D's edge-vs-polygon manifolds (``edge_constraints``)
+    instead of their vertices; the time of impact still uses the vertices against the polyline.
     info: ``touching`` (V,) slots and ``polygon_touching`` (num_polygons,) at the start pose or
     by a time of impact during the step, ``pair_touching`` (num_polygons, S) per ground segment,
     ``position_solved`` (), ``asleep`` ().
@@ -110,9 +161,21 @@ def step(model: Model, world: WorldState, ground, gravity, force=None, torque=No
         touching, poly_touch, normal, _, arm = collide(model, b, ground)
     solid = jnp.asarray([(not s) and projector is None for s in model.slot_sensor])
     active = touching & solid
-    keep = active & world.touching & cfg.warm_start
-    lam_n = jnp.where(keep, world.normal_impulse, 0.0)
-    lam_t = jnp.where(keep, world.tangent_impulse, 0.0)
+    edge_mode = bool(cfg.edge_contacts) and projector is None
+    if edge_mode:  # solver contacts: Box2D edge manifolds, warm started by (edge, feature)
+        edges = jnp.stack([ground[:-1], ground[1:]], 1) if edges is None else jnp.asarray(edges, jnp.float32)
+        valid = jnp.ones((edges.shape[0],), bool) if edge_valid is None else jnp.asarray(edge_valid, bool)
+        if free_flight:
+            valid = jnp.zeros_like(valid)
+        ec = edge_constraints(model, b, edges, valid)
+        e_on = ec["on"]
+        keep = e_on & world.touching & jnp.all(ec["key"] == world.contact_key, -1) & cfg.warm_start
+        lam_n = jnp.where(keep, world.normal_impulse, 0.0)
+        lam_t = jnp.where(keep, world.tangent_impulse, 0.0)
+    else:
+        keep = active & world.touching & cfg.warm_start
+        lam_n = jnp.where(keep, world.normal_impulse, 0.0)
+        lam_t = jnp.where(keep, world.tangent_impulse, 0.0)
 
     # 2. integrate velocities
     vel = [b.vel[i] + dt * (gravity + inv_m[i] * force[i]) for i in range(nb)]
@@ -129,11 +192,21 @@ def step(model: Model, world: WorldState, ground, gravity, force=None, torque=No
     normal_mass = 1.0 / (mslot + islot * rn**2)
     tangent_mass = 1.0 / (mslot + islot * rt**2)
     mu = jnp.asarray(model.slot_friction, jnp.float32)
-    for k in slots:
-        p = lam_n[k] * normal[k] + lam_t[k] * tangent[k]
-        i = sb[k]
-        vel[i] = vel[i] + inv_m[i] * p
-        omg[i] = omg[i] + inv_i[i] * cross(arm[k], p)
+    if edge_mode:
+        econ = _edge_velocity_constants(model, b, ec)
+        ebody = ec["body"]
+        for k in range(model.num_contacts):  # warm start (a second point Box2D drops is not applied)
+            on_k = econ["on"][k]
+            p = on_k * (lam_n[k] * econ["n"][k].array() + lam_t[k] * econ["t"][k].array())
+            i = ebody[k]
+            vel[i] = vel[i] + inv_m[i] * p
+            omg[i] = omg[i] + inv_i[i] * cross(econ["arm"][k].array(), p)
+    else:
+        for k in slots:
+            p = lam_n[k] * normal[k] + lam_t[k] * tangent[k]
+            i = sb[k]
+            vel[i] = vel[i] + inv_m[i] * p
+            omg[i] = omg[i] + inv_i[i] * cross(arm[k], p)
 
     # joints: arms, limit states, warm start
     jprep = []
@@ -168,11 +241,17 @@ def step(model: Model, world: WorldState, ground, gravity, force=None, torque=No
     if max_motor_torque is not None:
         mt = jnp.asarray(max_motor_torque, f32)
         vconsts["max_motor_torque"] = tuple(mt[j] for j in range(len(model.joints)))
+    cslots = list(range(model.num_contacts)) if edge_mode else slots
     carry = (tuple(V2.of(v) for v in vel), tuple(omg), tuple((i[0], i[1], i[2]) for i in jimp), tuple(jmot),
-             tuple(lam_n[k] for k in slots), tuple(lam_t[k] for k in slots))
+             tuple(lam_n[k] for k in cslots), tuple(lam_t[k] for k in cslots))
+    if edge_mode:
+        vconsts.update(econ)
+        vpass = functools.partial(_velocity_pass_edges, model, ebody, ec["friction"])
+    else:
+        vpass = functools.partial(_velocity_pass, model, slots)
     if projector is None:
         vel, omg, jimp, jmot, ln, lt = fused.per_world_fori_loop(
-            cfg.velocity_iterations, functools.partial(_velocity_pass, model, slots), vconsts, carry,
+            cfg.velocity_iterations, vpass, vconsts, carry,
             mode=cfg.kernel, unroll=cfg.unroll)
         vel, omg = [v.array() for v in vel], list(omg)
         jimp = [jnp.stack(list(i)) for i in jimp]
@@ -208,9 +287,14 @@ def step(model: Model, world: WorldState, ground, gravity, force=None, torque=No
 
     pconsts = dict(on=tuple(active[k].astype(f32) for k in slots), q=tuple(V2.of(plane_q[k]) for k in slots),
                    n=tuple(V2.of(plane_n[k]) for k in slots), state=tuple(s.astype(f32) for s in jstate))
+    if edge_mode:
+        pconsts = dict(_edge_position_constants(model, b, ec), state=pconsts["state"])
+        ppass = functools.partial(_position_pass_edges, model, ebody)
+    else:
+        ppass = functools.partial(_position_pass, model, slots)
     if n_pos > 0:
         com, ang, solved = fused.per_world_fori_loop(
-            n_pos, functools.partial(_position_pass, model, slots),
+            n_pos, ppass,
             pconsts, (tuple(V2.of(c) for c in com), tuple(ang), jnp.zeros((), f32)),
             mode=cfg.kernel, unroll=cfg.unroll)
         com, ang, solved = [c.array() for c in com], list(ang), solved > 0.5
@@ -316,9 +400,14 @@ def step(model: Model, world: WorldState, ground, gravity, force=None, torque=No
     asleep = (jnp.min(sleep_time) >= cfg.time_to_sleep) & solved
 
     zero = jnp.zeros((), jnp.float32)
-    pos_of = {k: s for s, k in enumerate(slots)}
-    ln_full = jnp.stack([ln[pos_of[k]] if k in pos_of else zero for k in range(model.num_slots)])
-    lt_full = jnp.stack([lt[pos_of[k]] if k in pos_of else zero for k in range(model.num_slots)])
+    if edge_mode:
+        ln_full, lt_full = jnp.stack(ln), jnp.stack(lt)
+        contact_key, stored_touching = ec["key"], e_on
+    else:
+        pos_of = {k: s for s, k in enumerate(slots)}
+        ln_full = jnp.stack([ln[pos_of[k]] if k in pos_of else zero for k in range(model.num_slots)])
+        lt_full = jnp.stack([lt[pos_of[k]] if k in pos_of else zero for k in range(model.num_slots)])
+        contact_key, stored_touching = world.contact_key, active
     new_world = WorldState(
         bodies=BodyState(com=jnp.stack(com), angle=jnp.stack(ang), vel=vel_a, omega=omg_a),
         sleep_time=sleep_time,
@@ -327,8 +416,9 @@ def step(model: Model, world: WorldState, ground, gravity, force=None, torque=No
         joint_impulse=jnp.stack(jimp) if jimp else world.joint_impulse,
         motor_impulse=jnp.stack(jmot) if jmot else world.motor_impulse,
         limit_state=jnp.stack(jstate) if jstate else world.limit_state,
-        touching=active,
+        touching=stored_touching,
         asleep=asleep,
+        contact_key=contact_key,
     )
     # per (polygon, ground segment) touching: start pose, plus segments hit by a time of impact
     if free_flight:
@@ -338,6 +428,13 @@ def step(model: Model, world: WorldState, ground, gravity, force=None, torque=No
         pairs_v = vertex_segment_touching(start_pts, ground, cfg.contact_radius) | (seg_sel & toi_touch[:, None])
     pairs = jnp.stack([jnp.any(jnp.stack([pairs_v[i] for i, p in enumerate(model.slot_polygon) if p == k]), 0)
                        for k in range(len(model.polygons))])
+    if edge_mode and not free_flight:  # solid polygons: Box2D's touching (manifold points) per edge, or a time of impact
+        toi_pairs = seg_sel & toi_touch[:, None]
+        solid_poly = jnp.asarray([k in model.edge_polygons for k in range(len(model.polygons))])
+        toi_rows = jnp.stack([jnp.any(jnp.stack([toi_pairs[i] for i, p in enumerate(model.slot_polygon) if p == k]), 0)
+                              for k in range(len(model.polygons))])
+        pairs = jnp.where(solid_poly[:, None], ec["pairs"] | toi_rows, pairs)
+        poly_touch = poly_touch | jnp.any(ec["pairs"], 1)
     began = []
     for k, poly in enumerate(model.polygons):
         idx = [i for i, p in enumerate(model.slot_polygon) if p == k]
@@ -418,6 +515,177 @@ def _position_pass(model: Model, slots, c, carry):
         p = imp * normal
         com[i] = com[i] + inv_m[i] * p
         ang[i] = ang[i] + inv_i[i] * arm_k.cross(p)
+    ok = min_sep >= -3.0 * cfg.linear_slop
+    for j, J in enumerate(model.joints):
+        a_, b_ = J.body_a, J.body_b
+        com[a_], ang[a_], com[b_], ang[b_], jok = jnt.solve_position(
+            J, _masses(model, J), V2(*lc[a_]), V2(*lc[b_]), c["state"][j], com[a_], ang[a_], com[b_], ang[b_], cfg)
+        ok = ok & jok
+    done = solved > 0.5
+    com = tuple(c0.where(done, c1) for c0, c1 in zip(com0, com))
+    ang = tuple(jnp.where(done, a0, a1) for a0, a1 in zip(ang0, ang))
+    return com, ang, jnp.where(done | ok, 1.0, 0.0).astype(jnp.float32)
+
+
+MAX_CONDITION_NUMBER = 1000.0  # Box2D's k_maxConditionNumber for the 2-point block solver
+
+
+def _edge_velocity_constants(model: Model, bodies: BodyState, ec):
+    """Per edge contact point (E) and per manifold (E / 2), as b2ContactSolver::InitializeVelocityConstraints:
+    arm from the body's centre to Box2D's world point, normal / tangent and their effective masses; for
+    two-point manifolds the block matrix K and its inverse, used when K is well conditioned (otherwise
+    Box2D solves the first point only, so the second is switched off here). Per-world scalars."""
+    inv_m, inv_i = model.inv_mass, model.inv_inertia
+    body = ec["body"]
+    ne = len(body)
+    com = jnp.stack([bodies.com[i] for i in body])
+    arm = ec["point"] - com
+    n = ec["normal"]
+    t = jnp.stack([n[:, 1], -n[:, 0]], -1)
+    mb = jnp.asarray([inv_m[i] for i in body], jnp.float32)
+    ib = jnp.asarray([inv_i[i] for i in body], jnp.float32)
+    rn, rt = cross(arm, n), cross(arm, t)
+    kn, kt = mb + ib * rn**2, mb + ib * rt**2
+    nm = jnp.where(kn > 0, 1.0 / kn, 0.0)
+    tm = jnp.where(kt > 0, 1.0 / kt, 0.0)
+    on = ec["on"]
+    c = dict(n=[], t=[], arm=[], nm=[], tm=[], on=[], blk=[], k11=[], k12=[], k22=[], m11=[], m12=[], m22=[])
+    for p in range(ne // 2):
+        a, b_ = 2 * p, 2 * p + 1
+        k11, k22 = kn[a], kn[b_]
+        k12 = mb[a] + ib[a] * rn[a] * rn[b_]
+        det = k11 * k22 - k12 * k12
+        well = k11 * k11 < MAX_CONDITION_NUMBER * det
+        inv = jnp.where(det != 0.0, 1.0 / jnp.where(det != 0.0, det, 1.0), 0.0)
+        blk = on[a] & on[b_] & well
+        for name, val in (("k11", k11), ("k12", k12), ("k22", k22), ("m11", inv * k22), ("m12", -inv * k12),
+                          ("m22", inv * k11)):
+            c[name].append(val)
+        c["blk"].append(blk.astype(jnp.float32))
+        for k, on_k in ((a, on[a]), (b_, on[b_] & well)):
+            c["on"].append(on_k.astype(jnp.float32))
+            c["n"].append(V2.of(n[k]))
+            c["t"].append(V2.of(t[k]))
+            c["arm"].append(V2.of(arm[k]))
+            c["nm"].append(nm[k])
+            c["tm"].append(tm[k])
+    return {name: tuple(v) for name, v in c.items()}
+
+
+def _edge_position_constants(model: Model, bodies: BodyState, ec):
+    """Per edge contact point, what b2PositionSolverManifold needs, in the frame that stays fixed:
+    face A: the edge's plane (world point ``a``, normal ``nrm``) and the clip point in the body frame
+    (``pt``, from the body's centre); face B: the polygon face's point and normal in the body frame
+    (``a``, ``nrm``) and the clip point on the edge (world ``pt``). Per-world scalars."""
+    body = ec["body"]
+    com = jnp.stack([bodies.com[i] for i in body])
+    ang = jnp.stack([bodies.angle[i] for i in body])
+    fb = ec["face_b"]
+    to_body = lambda v: rotate(-ang, v)
+    a = jnp.where(fb[:, None], to_body(ec["ref_point"] - com), ec["ref_point"])
+    nrm = jnp.where(fb[:, None], to_body(ec["ref_normal"]), ec["ref_normal"])
+    pt = jnp.where(fb[:, None], ec["clip"], to_body(ec["clip"] - com))
+    return dict(on=tuple(ec["on"][k].astype(jnp.float32) for k in range(len(body))),
+                fb=tuple(fb[k].astype(jnp.float32) for k in range(len(body))),
+                a=tuple(V2.of(a[k]) for k in range(len(body))), nrm=tuple(V2.of(nrm[k]) for k in range(len(body))),
+                pt=tuple(V2.of(pt[k]) for k in range(len(body))))
+
+
+def _joint_velocity_pass(model: Model, c, vel, omg, jimp, jmot):
+    """The joints' part of a velocity pass (in place on the lists)."""
+    dt = model.config.dt
+    for j, J in enumerate(model.joints):
+        a_, b_ = J.body_a, J.body_b
+        speed = c["motor_speed"][j] if "motor_speed" in c else None
+        torque = c["max_motor_torque"][j] if "max_motor_torque" in c else None
+        jimp[j], jmot[j], vel[a_], omg[a_], vel[b_], omg[b_] = jnt.solve_velocity(
+            J, _masses(model, J), c["ra"][j], c["rb"][j], c["state"][j], jimp[j], jmot[j],
+            vel[a_], omg[a_], vel[b_], omg[b_], dt, speed, torque)
+
+
+def _velocity_pass_edges(model: Model, body, friction, c, carry):
+    """One velocity pass with edge manifolds (b2ContactSolver::SolveVelocityConstraints): joints, then
+    per manifold the friction of each point, then the normal impulses, by Box2D's 2-point block solver
+    (its four cases: both points, first only, second only, none) when both points are on and K is well
+    conditioned, else the first point alone. Per-world scalars only (``fused`` contract)."""
+    inv_m, inv_i = [float(x) for x in model.inv_mass], [float(x) for x in model.inv_inertia]
+    vel, omg, jimp, jmot, ln, lt = (list(x) for x in carry)
+    _joint_velocity_pass(model, c, vel, omg, jimp, jmot)
+    for p in range(len(body) // 2):
+        k1, k2 = 2 * p, 2 * p + 1
+        i = body[k1]
+        mi, ii = inv_m[i], inv_i[i]
+        n, t = c["n"][k1], c["t"][k1]
+        for k in (k1, k2):  # friction
+            arm = c["arm"][k]
+            vt = (vel[i] + cross_sv2(omg[i], arm)).dot(t)
+            max_f = np.float32(friction[k]) * ln[k]
+            new_t = jnp.clip(lt[k] - c["tm"][k] * vt, -max_f, max_f) * c["on"][k]
+            pt = (new_t - lt[k]) * t
+            lt[k] = new_t
+            vel[i] = vel[i] + mi * pt
+            omg[i] = omg[i] + ii * arm.cross(pt)
+        r1, r2 = c["arm"][k1], c["arm"][k2]
+        vn1 = (vel[i] + cross_sv2(omg[i], r1)).dot(n)
+        vn2 = (vel[i] + cross_sv2(omg[i], r2)).dot(n)
+        # one point (Box2D's pointCount == 1)
+        s_new = jnp.maximum(ln[k1] - c["nm"][k1] * vn1, 0.0) * c["on"][k1]
+        # block solve of both points
+        a1, a2 = ln[k1], ln[k2]
+        k11, k12, k22 = c["k11"][p], c["k12"][p], c["k22"][p]
+        bx = vn1 - (k11 * a1 + k12 * a2)
+        by = vn2 - (k12 * a1 + k22 * a2)
+        x1 = -(c["m11"][p] * bx + c["m12"][p] * by)
+        y1 = -(c["m12"][p] * bx + c["m22"][p] * by)
+        ok1 = (x1 >= 0.0) & (y1 >= 0.0)
+        x2 = -c["nm"][k1] * bx
+        ok2 = (x2 >= 0.0) & (k12 * x2 + by >= 0.0)
+        y3 = -c["nm"][k2] * by
+        ok3 = (y3 >= 0.0) & (k12 * y3 + bx >= 0.0)
+        ok4 = (bx >= 0.0) & (by >= 0.0)
+        bxn = jnp.where(ok1, x1, jnp.where(ok2, x2, jnp.where(ok3, 0.0, jnp.where(ok4, 0.0, a1))))
+        byn = jnp.where(ok1, y1, jnp.where(ok2, 0.0, jnp.where(ok3, y3, jnp.where(ok4, 0.0, a2))))
+        blk = c["blk"][p] > 0.5
+        new1 = jnp.where(blk, bxn, s_new)
+        new2 = jnp.where(blk, byn, ln[k2])
+        d1, d2 = new1 - ln[k1], new2 - ln[k2]
+        ln[k1], ln[k2] = new1, new2
+        p1, p2 = d1 * n, d2 * n
+        vel[i] = vel[i] + mi * (p1 + p2)
+        omg[i] = omg[i] + ii * (r1.cross(p1) + r2.cross(p2))
+    return tuple(vel), tuple(omg), tuple(jimp), tuple(jmot), tuple(ln), tuple(lt)
+
+
+def _position_pass_edges(model: Model, body, c, carry):
+    """One position pass with edge manifolds (b2ContactSolver::SolvePositionConstraints with
+    b2PositionSolverManifold): face A, the body's clip point against the edge's fixed plane; face B,
+    the edge's fixed clip point against the body's face (its normal turns with the body, the
+    impulse acts along its negation); then the joints. Frozen once solved, as ``_position_pass``."""
+    cfg = model.config
+    inv_m, inv_i = [float(x) for x in model.inv_mass], [float(x) for x in model.inv_inertia]
+    lc = np.asarray(model.local_com, np.float32)
+    com0, ang0, solved = carry
+    com, ang = list(com0), list(ang0)
+    min_sep = jnp.zeros((), jnp.float32)
+    for k, i in enumerate(body):
+        on, fb = c["on"][k] > 0.5, c["fb"][k] > 0.5
+        ra_ = rotate2(ang[i], c["a"][k])
+        rn_ = rotate2(ang[i], c["nrm"][k])
+        rp_ = rotate2(ang[i], c["pt"][k])
+        ref_n = rn_.where(fb, c["nrm"][k])
+        plane = (com[i] + ra_).where(fb, c["a"][k])
+        clip = c["pt"][k].where(fb, com[i] + rp_)
+        sep = (clip - plane).dot(ref_n) - cfg.contact_radius
+        normal = (ref_n * -1.0).where(fb, ref_n)
+        min_sep = jnp.where(on, jnp.minimum(min_sep, sep), min_sep)
+        corr = jnp.clip(cfg.baumgarte * (sep + cfg.linear_slop), -cfg.max_linear_correction, 0.0)
+        arm = clip - com[i]
+        rnk = arm.cross(normal)
+        kk = inv_m[i] + inv_i[i] * rnk * rnk
+        imp = jnp.where(on & (kk > 0), -corr / kk, 0.0)
+        p = normal * imp
+        com[i] = com[i] + inv_m[i] * p
+        ang[i] = ang[i] + inv_i[i] * arm.cross(p)
     ok = min_sep >= -3.0 * cfg.linear_slop
     for j, J in enumerate(model.joints):
         a_, b_ = J.body_a, J.body_b
