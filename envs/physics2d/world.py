@@ -499,7 +499,7 @@ def _position_pass(model: Model, slots, c, carry):
     sb = model.slot_body
     lc = np.asarray(model.local_com, np.float32)
     local_v = np.asarray(model.slot_vertex, np.float32)
-    com0, ang0, solved = carry
+    com0, ang0, _ = carry
     com, ang = list(com0), list(ang0)
     min_sep = jnp.zeros((), jnp.float32)
     for s, k in enumerate(slots):
@@ -508,13 +508,27 @@ def _position_pass(model: Model, slots, c, carry):
         arm_k = rotate2(ang[i], V2(*(local_v[k] - lc[i])))
         sep = (com[i] + arm_k - c["q"][s]).dot(normal) - cfg.contact_radius
         min_sep = jnp.where(on, jnp.minimum(min_sep, sep), min_sep)
-        corr = jnp.clip(cfg.baumgarte * (sep + cfg.linear_slop), -cfg.max_linear_correction, 0.0)
-        rnk = arm_k.cross(normal)
-        kk = inv_m[i] + inv_i[i] * rnk * rnk
-        imp = jnp.where(on & (kk > 0), -corr / kk, 0.0)
-        p = imp * normal
-        com[i] = com[i] + inv_m[i] * p
-        ang[i] = ang[i] + inv_i[i] * arm_k.cross(p)
+        com[i], ang[i] = _position_impulse(cfg, inv_m[i], inv_i[i], com[i], ang[i], arm_k, normal, sep, on)
+    return _joint_positions_then_freeze(model, c, lc, carry, com, ang, min_sep)
+
+
+def _position_impulse(cfg, inv_m, inv_i, com, ang, arm, normal, sep, on):
+    """One contact point's position correction (Box2D's SolvePositionConstraints step): the
+    Baumgarte-scaled, clamped push along ``normal`` at ``arm`` from the centre of mass -> (com, angle)."""
+    corr = jnp.clip(cfg.baumgarte * (sep + cfg.linear_slop), -cfg.max_linear_correction, 0.0)
+    rnk = arm.cross(normal)
+    kk = inv_m + inv_i * rnk * rnk
+    imp = jnp.where(on & (kk > 0), -corr / kk, 0.0)
+    p = imp * normal
+    return com + inv_m * p, ang + inv_i * arm.cross(p)
+
+
+def _joint_positions_then_freeze(model: Model, c, lc, carry, com, ang, min_sep):
+    """The joints' position pass after the contacts' -> the pass's new carry: worlds already solved
+    keep their start pose; a world is solved when no contact is deeper than 3 slops and every joint
+    is within tolerance."""
+    cfg = model.config
+    com0, ang0, solved = carry
     ok = min_sep >= -3.0 * cfg.linear_slop
     for j, J in enumerate(model.joints):
         a_, b_ = J.body_a, J.body_b
@@ -664,7 +678,7 @@ def _position_pass_edges(model: Model, body, c, carry):
     cfg = model.config
     inv_m, inv_i = [float(x) for x in model.inv_mass], [float(x) for x in model.inv_inertia]
     lc = np.asarray(model.local_com, np.float32)
-    com0, ang0, solved = carry
+    com0, ang0, _ = carry
     com, ang = list(com0), list(ang0)
     min_sep = jnp.zeros((), jnp.float32)
     for k, i in enumerate(body):
@@ -678,21 +692,5 @@ def _position_pass_edges(model: Model, body, c, carry):
         sep = (clip - plane).dot(ref_n) - cfg.contact_radius
         normal = (ref_n * -1.0).where(fb, ref_n)
         min_sep = jnp.where(on, jnp.minimum(min_sep, sep), min_sep)
-        corr = jnp.clip(cfg.baumgarte * (sep + cfg.linear_slop), -cfg.max_linear_correction, 0.0)
-        arm = clip - com[i]
-        rnk = arm.cross(normal)
-        kk = inv_m[i] + inv_i[i] * rnk * rnk
-        imp = jnp.where(on & (kk > 0), -corr / kk, 0.0)
-        p = normal * imp
-        com[i] = com[i] + inv_m[i] * p
-        ang[i] = ang[i] + inv_i[i] * arm.cross(p)
-    ok = min_sep >= -3.0 * cfg.linear_slop
-    for j, J in enumerate(model.joints):
-        a_, b_ = J.body_a, J.body_b
-        com[a_], ang[a_], com[b_], ang[b_], jok = jnt.solve_position(
-            J, _masses(model, J), V2(*lc[a_]), V2(*lc[b_]), c["state"][j], com[a_], ang[a_], com[b_], ang[b_], cfg)
-        ok = ok & jok
-    done = solved > 0.5
-    com = tuple(c0.where(done, c1) for c0, c1 in zip(com0, com))
-    ang = tuple(jnp.where(done, a0, a1) for a0, a1 in zip(ang0, ang))
-    return com, ang, jnp.where(done | ok, 1.0, 0.0).astype(jnp.float32)
+        com[i], ang[i] = _position_impulse(cfg, inv_m[i], inv_i[i], com[i], ang[i], clip - com[i], normal, sep, on)
+    return _joint_positions_then_freeze(model, c, lc, carry, com, ang, min_sep)
