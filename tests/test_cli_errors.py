@@ -49,7 +49,7 @@ def cwd(tmp_path, monkeypatch):
     (["--seeds", "two"], "argument --seeds: must be an integer >= 1, got 'two'"),
     (["--time-limit", "-5"], "argument --time-limit: must be a finite number >= 0, got -5"),
     # names: the allowed values are listed
-    (["--env", "foo"], "argument --env: invalid choice: 'foo' (choose from 'lander', 'lander-continuous', 'walker')"),
+    (["--env", "foo"], "argument --env: invalid choice: 'foo' (choose from 'lander', 'lander-continuous', 'walker', 'bipedal')"),
     (["--method", "bogus"], "argument --method: invalid choice: 'bogus' (choose from 'dr', 'plr'"),
     # config fields: the field and what it takes
     (["--set", "bogus=1"], "--set: method 'shed' has no config field(s) 'bogus'; known: actor_lr, budget_steps"),
