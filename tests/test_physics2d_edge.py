@@ -8,6 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from box2d_reference import box_trajectory
 from envs import physics2d
 from envs.physics2d import edge as E
 
@@ -123,17 +124,7 @@ def test_sliding_shin_across_junctions_follows_box2d():
     ang0 = 0.3
     y0 = 0.302 + hy * np.cos(ang0) + hx * np.sin(ang0)
     edges = [((0.0, 0.3), (4.9, 0.3)), ((4.9, 0.3), (5.367, 0.3)), ((5.367, 0.3), (10.0, 0.3))]
-    world = b2.b2World(gravity=(0, -10))
-    for e in edges:
-        world.CreateStaticBody(fixtures=b2.b2FixtureDef(shape=b2.b2EdgeShape(vertices=list(e)), friction=2.5))
-    body = world.CreateDynamicBody(position=(4.8, y0), angle=ang0, fixtures=b2.b2FixtureDef(
-        shape=b2.b2PolygonShape(box=(hx, hy)), density=1.0, friction=0.2))
-    body.linearVelocity = (1.0, 0.0)
-    ref = []
-    for _ in range(20):
-        world.Step(1 / 50, 180, 60)
-        ref.append([body.position[0], body.position[1], body.angle])
-    ref = np.asarray(ref)
+    ref = box_trajectory(b2, edges, (4.8, y0), ang0, (hx, hy))
     ground = jnp.asarray([edges[0][0]] + [e[1] for e in edges], jnp.float32)
     box = ((-hx, -hy), (hx, -hy), (hx, hy), (-hx, hy))
     out = {}

@@ -456,17 +456,10 @@ def _velocity_pass(model: Model, slots, c, carry):
 
     Per-world scalars only (``V2`` for vectors), as ``fused.per_world_fori_loop`` requires.
     """
-    dt = model.config.dt
     inv_m, inv_i = [float(x) for x in model.inv_mass], [float(x) for x in model.inv_inertia]
     sb = model.slot_body
     vel, omg, jimp, jmot, ln, lt = (list(x) for x in carry)
-    for j, J in enumerate(model.joints):
-        a_, b_ = J.body_a, J.body_b
-        speed = c["motor_speed"][j] if "motor_speed" in c else None
-        torque = c["max_motor_torque"][j] if "max_motor_torque" in c else None
-        jimp[j], jmot[j], vel[a_], omg[a_], vel[b_], omg[b_] = jnt.solve_velocity(
-            J, _masses(model, J), c["ra"][j], c["rb"][j], c["state"][j], jimp[j], jmot[j],
-            vel[a_], omg[a_], vel[b_], omg[b_], dt, speed, torque)
+    _joint_velocity_pass(model, c, vel, omg, jimp, jmot)
     for s, k in enumerate(slots):
         i = sb[k]
         on, arm, normal, tangent = c["on"][s], c["arm"][s], c["n"][s], c["t"][s]
