@@ -29,13 +29,14 @@ import jax
 import numpy as np
 
 
-def time_steps(method: str, seeds: int, repeats: int, preset: str = "paper") -> dict:
-    """Compile one budget step of ``method`` on a walker preset and time each step kind."""
+def time_steps(method: str, seeds: int, repeats: int, preset: str = "paper", env: str = "walker") -> dict:
+    """Compile one budget step of ``method`` on a walker preset (``env``: ``walker`` on MJX or
+    ``bipedal`` on physics2d, which share the presets) and time each step kind."""
     from shed_jax.experiment import build, seed_keys
     from shed_jax.loop import make_run
     from shed_jax.presets import build_experiment
 
-    exp = build_experiment("walker", method, preset)
+    exp = build_experiment(env, method, preset)
     _, student, m, tests = build(exp)
     init, run = make_run(student, m, tests, exp.loop)
     spec = exp.loop
@@ -65,7 +66,7 @@ def time_steps(method: str, seeds: int, repeats: int, preset: str = "paper") -> 
         out[kind] = float(np.median(times))
     est = protocol_estimate(spec, out)
     return {
-        "method": method, "seeds": seeds, "steps_per_episode": T, "episodes": spec.num_episodes,
+        "env": env, "method": method, "seeds": seeds, "steps_per_episode": T, "episodes": spec.num_episodes,
         "env_steps_per_budget_step": exp.env_steps_per_budget_step,
         "compile_and_first_step_s": compile_and_first,
         "step_s": out, **est,
@@ -106,6 +107,8 @@ def ppo_flat(path: str, target: float = 230.0) -> dict:
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--methods", default="shed,dr", help="comma-separated UED methods")
+    p.add_argument("--env", default="walker", choices=("walker", "bipedal"),
+                   help="the MJX walker or the physics2d bipedal walker (the same presets)")
     p.add_argument("--seeds", type=int, default=5)
     p.add_argument("--repeats", type=int, default=2, help="timed steps of each kind (median)")
     p.add_argument("--preset", default="paper", choices=("paper", "quick"))
@@ -148,7 +151,7 @@ def main(argv=None) -> int:
         print(f"wrote {out}")
         return 0
     for method in [m for m in args.methods.split(",") if m]:
-        r = time_steps(method, args.seeds, args.repeats, args.preset)
+        r = time_steps(method, args.seeds, args.repeats, args.preset, args.env)
         record["loops"][method] = r
         record["budget_step_seconds"][method] = r["budget_step_s_mean"]
         print(json.dumps(r), flush=True)

@@ -3,8 +3,9 @@
 ``train_seeds`` is the compiled training (``vmap`` over seeds of ``student.run_updates``), called on
 consecutive chunks of updates for a progress bar and compiled once, ahead of time, so the compile
 time is reported apart from the steps/s. ``train_fixed_level`` is ``python -m shed_jax ppo``: train,
-evaluate, write ``summary.json`` and ``learning_curve.png``. experiments/ppo_sweep.py and
-experiments/bench_ppo.py use these too.
+evaluate, write ``summary.json``, ``learning_curve.png`` and ``policy.msgpack`` (``save_policy``; read
+back with ``load_policy``, e.g. to evaluate the policies in another engine). experiments/ppo_sweep.py
+and experiments/bench_ppo.py use these too.
 """
 from __future__ import annotations
 
@@ -32,6 +33,26 @@ def resolve_level(env, name: str | None):
         raise ValueError(f"{env.name}: unknown level {name!r}; known: {', '.join(levels)}")
     level = levels[name]
     return level() if callable(level) else level
+
+
+def save_policy(path, states) -> None:
+    """Write the policies of vmapped student ``states`` (every seed's network parameters and
+    observation statistics; not the optimiser or env state) to ``path`` as flax msgpack."""
+    from flax import serialization
+
+    pathlib.Path(path).write_bytes(serialization.to_bytes({"params": states.params, "obs_norm": states.obs_norm}))
+
+
+def load_policy(student, path, seeds: int):
+    """The inverse of ``save_policy``: ``seeds`` fresh vmapped states of ``student`` carrying the saved
+    parameters and observation statistics, ready for ``student.act`` / ``student.evaluate``. A file
+    saved by another student config or seed count fails with flax's shape error."""
+    from flax import serialization
+
+    states = jax.vmap(student.init)(jax.random.split(jax.random.PRNGKey(0), seeds))
+    saved = serialization.from_bytes({"params": states.params, "obs_norm": states.obs_norm},
+                                     pathlib.Path(path).read_bytes())
+    return states.replace(params=saved["params"], obs_norm=saved["obs_norm"])
 
 
 def train_seeds(student, keys, hparams, level, num_updates: int, chunks: int, progress: bool = True, on_chunk=None,
@@ -168,7 +189,8 @@ def train_fixed_level(args) -> dict:
                   "mean_return": np.nanmean(curve, axis=0)[:: max(1, len(x) // 200)].tolist()},
     }
     (out / "summary.json").write_text(json.dumps(summary, indent=2, default=float))
+    save_policy(out / "policy.msgpack", states)
     print(f"final return per seed: {np.round(final.mean(axis=1), 1).tolist()}  "
           f"({timing['env_steps_per_seed']:.3g} steps/seed, {timing['env_steps_per_s']:.3g} steps/s, wall {wall:.1f}s)")
-    print(f"wrote {out / 'summary.json'} and {out / 'learning_curve.png'}")
+    print(f"wrote {out / 'summary.json'}, {out / 'learning_curve.png'} and {out / 'policy.msgpack'}")
     return summary
