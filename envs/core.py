@@ -256,6 +256,8 @@ class UEDSpec:
     * ``test_sets``: ``((name, build), ...)``; ``named_levels``: one ``build``; a ``build(base_params)``
       returns (params with a leading level axis, one label per level).
     * ``solved_threshold``: the return above which an episode counts as solved, or None.
+    * ``final_eval``: the level sets ``run``/``sweep`` evaluate the final students on when
+      ``--final-eval`` is not given (comma-separated ``eval --levels`` values, or ``"none"``).
     """
 
     theta_low: tuple[float, ...] | None = None
@@ -269,6 +271,7 @@ class UEDSpec:
     test_sets: tuple[tuple[str, Callable], ...] = ()
     named_levels: Callable | None = None
     solved_threshold: float | None = None
+    final_eval: str = "none"
 
     def __post_init__(self):
         if (self.theta_low is None) != (self.theta_high is None):

@@ -30,8 +30,6 @@ import numpy as np
 from shed_jax.errors import UsageError
 
 CVAR_ALPHA = 0.1
-# --final-eval when not given: the walker's named levels (DCD's six of docs/design.md §9.2 set A first) with solved rates
-DEFAULT_FINAL_EVAL = {"walker": "named", "bipedal": "named"}
 
 
 class LevelFileError(ValueError):
@@ -273,9 +271,10 @@ def find_levels(env) -> dict | None:
     return None
 
 
-def final_eval_specs(arg: str | None, env: str) -> list[str]:
-    """``--final-eval`` -> the level-set specs to evaluate after the run (``eval --levels`` values)."""
-    text = DEFAULT_FINAL_EVAL.get(env, "none") if arg is None else arg
+def final_eval_specs(arg: str | None, default: str = "none") -> list[str]:
+    """``--final-eval`` -> the level-set specs to evaluate after the run (``eval --levels`` values);
+    ``default`` (the env's ``ued.final_eval``) when the flag was not given."""
+    text = default if arg is None else arg
     specs = [t.strip() for t in text.split(",") if t.strip()]
     if "none" in specs:
         if len(specs) > 1:
@@ -289,7 +288,7 @@ def final_eval_specs(arg: str | None, env: str) -> list[str]:
 def final_level_sets(arg: str | None, exp, env, tests) -> list:
     """``--final-eval`` resolved for one experiment (UsageError for a bad set), before anything compiles."""
     try:
-        return [resolve_levels(spec, env, exp, tests) for spec in final_eval_specs(arg, exp.env)]
+        return [resolve_levels(spec, env, exp, tests) for spec in final_eval_specs(arg, env.ued.final_eval)]
     except LevelFileError as err:
         raise UsageError(f"--final-eval: {err}") from err
 

@@ -466,7 +466,7 @@ def prepare_sweep(groups: list[Group], *, out: pathlib.Path, make_experiment: Ca
     for b in built:
         try:
             finals.append([resolve_levels(spec, b.batch.env, b.exp, b.batch.tests)
-                           for spec in final_eval_specs(final_eval, b.exp.env)])
+                           for spec in final_eval_specs(final_eval, b.batch.env.ued.final_eval)])
         except LevelFileError as err:
             raise ValueError(f"--final-eval: {err}") from err
     if any(finals) and jax.process_count() > 1:

@@ -169,3 +169,18 @@ def test_usage_error_is_one_line_and_exit_2():
     err = lib_errors.UsageError("first\nsecond   part")
     assert str(err) == "first second part" and err.code == 2 and isinstance(err, SystemExit)
     assert json.loads(json.dumps(str(err))) == "first second part"
+
+
+def test_ppo_unknown_level_is_one_line_and_the_bipedal_walker_has_dcds_levels(cwd, capsys):
+    from shed_jax.evaluation import find_levels
+    from shed_jax.training import resolve_level
+    import envs
+    from envs.walker.levels import LEVELS
+
+    assert main(["ppo", "--env", "cartpole", "--level", "mars"]) == errors.EXIT_USAGE
+    line = error_line(capsys)
+    assert "--level: cartpole: unknown level 'mars'; known:" in line, line
+    assert list(cwd.iterdir()) == []
+    bipedal = envs.make("bipedal")  # shares the MJX walker's named levels (and builds no physics here)
+    assert find_levels(bipedal) is LEVELS
+    assert resolve_level(bipedal, "Stairs") == LEVELS["Stairs"]()

@@ -138,14 +138,17 @@ def test_run_final_eval_equals_eval_on_the_saved_students(run_dir, tmp_path):
 
 
 def test_final_eval_specs():
-    assert evaluation.final_eval_specs(None, "walker") == ["named"]  # DCD's levels by default
-    assert evaluation.final_eval_specs(None, "lander") == []
-    assert evaluation.final_eval_specs("none", "walker") == []
-    assert evaluation.final_eval_specs("test, named", "lander") == ["test", "named"]
+    import envs
+
+    walker_default = envs.make("bipedal").ued.final_eval  # the walkers' UEDSpec (no MJX needed)
+    assert evaluation.final_eval_specs(None, walker_default) == ["named"]  # DCD's levels by default
+    assert evaluation.final_eval_specs(None, envs.make("lander").ued.final_eval) == []
+    assert evaluation.final_eval_specs("none", walker_default) == []
+    assert evaluation.final_eval_specs("test, named", "none") == ["test", "named"]
     with pytest.raises(SystemExit, match="'none' cannot be combined"):
-        evaluation.final_eval_specs("none,test", "walker")
+        evaluation.final_eval_specs("none,test", "named")
     with pytest.raises(SystemExit, match="twice"):
-        evaluation.final_eval_specs("test,test", "walker")
+        evaluation.final_eval_specs("test,test", "named")
 
 
 def test_bad_final_eval_set_fails_before_training(tmp_path):

@@ -38,14 +38,13 @@ def test_walker_paper_budget_is_1e7_steps():
 def test_bipedal_runs_the_walker_protocol_with_the_walker_student(method):
     """The physics2d walker shares the MJX walker's levels, so its presets, student and default final
     evaluation are the walker's; the method builds on it (construction only)."""
-    from shed_jax.evaluation import DEFAULT_FINAL_EVAL
     from shed_jax.experiment import ENVS
 
     for preset in ("paper", "quick"):
         b, w = build_experiment("bipedal", method, preset), build_experiment("walker", method, preset)
         assert b.env == "bipedal" and (b.ppo, b.method_config, b.loop, b.test_set) == (w.ppo, w.method_config, w.loop, w.test_set)
-    assert b.ppo.normalize_observations and "bipedal" in ENVS and DEFAULT_FINAL_EVAL["bipedal"] == "named"
     env = envs.make("bipedal")
+    assert b.ppo.normalize_observations and "bipedal" in ENVS and env.ued.final_eval == "named"
     make_method(method, env, make_student(env, b.ppo), b.method_config)
 
 

@@ -174,4 +174,5 @@ UED = UEDSpec(
     test_sets=(("walker-test-b", test_set_b), ("walker-test-a", test_set_a)),
     named_levels=named_levels,
     solved_threshold=230.0,  # docs/design.md §9.3 [DCD]
+    final_eval="named",  # DCD's named levels with solved rates after every walker run
 )

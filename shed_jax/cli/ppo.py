@@ -25,10 +25,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def main(args) -> int:
+    import envs
     from shed_jax.errors import UsageError
-    from shed_jax.training import train_fixed_level
+    from shed_jax.training import resolve_level, train_fixed_level
 
     if args.total_steps < 1 or args.seeds < 1:
         raise UsageError(f"--total-steps and --seeds must be >= 1, got {args.total_steps} and {args.seeds}")
+    try:  # a bad --level is the user's: one line, before anything is built or compiled
+        resolve_level(envs.make(args.env), args.level)
+    except ValueError as e:
+        raise UsageError(f"--level: {e}") from None
     train_fixed_level(args)
     return 0

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 from shed_jax.cli import errors
 from shed_jax.errors import EXIT_CHECKPOINT
-from shed_jax.evaluation import DEFAULT_FINAL_EVAL
 from shed_jax.experiment import DEFAULT_ENV, DEFAULT_METHOD, DEFAULT_ROOT_SEED, ENVS
 from shed_jax.rundir import DISCARDED_DIR
 
@@ -54,7 +53,7 @@ def add_arguments(p) -> None:
     p.add_argument("--final-eval", default=None, metavar="LEVELS",
                    help="after the last budget step, evaluate the final students on level sets as `eval --levels` "
                         "does (test | named | FILE.json, comma-separated, or none) and write final_eval_<set>.json; "
-                        f"default: {', '.join(f'{e} {v}' for e, v in DEFAULT_FINAL_EVAL.items())}, other envs none")
+                        "default: the env's own choice (its UEDSpec.final_eval): named on walker and bipedal, none elsewhere")
     p.add_argument("--final-eval-episodes", type=count, default=10, metavar="N",
                    help="episodes per level and seed of --final-eval (default 10); the episode cap is the test set's")
     g = p.add_argument_group("checkpoints and stopping")
