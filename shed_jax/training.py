@@ -43,16 +43,18 @@ def save_policy(path, states) -> None:
     pathlib.Path(path).write_bytes(serialization.to_bytes({"params": states.params, "obs_norm": states.obs_norm}))
 
 
-def load_policy(student, path, seeds: int):
-    """The inverse of ``save_policy``: ``seeds`` fresh vmapped states of ``student`` carrying the saved
-    parameters and observation statistics, ready for ``student.act`` / ``student.evaluate``. A file
-    saved by another student config or seed count fails with flax's shape error."""
+def load_policy(student, path, seeds: int | None = None):
+    """The inverse of ``save_policy``: a vmapped ``Policy`` of ``student`` (``seeds`` of them, default:
+    as many as the file holds), ready for ``student.act`` / ``student.evaluate``; no env is reset. A
+    file saved by another student config or seed count fails with flax's shape error."""
     from flax import serialization
 
-    states = jax.vmap(student.init)(jax.random.split(jax.random.PRNGKey(0), seeds))
-    saved = serialization.from_bytes({"params": states.params, "obs_norm": states.obs_norm},
-                                     pathlib.Path(path).read_bytes())
-    return states.replace(params=saved["params"], obs_norm=saved["obs_norm"])
+    data = pathlib.Path(path).read_bytes()
+    if seeds is None:
+        seeds = int(jax.tree_util.tree_leaves(serialization.msgpack_restore(data))[0].shape[0])
+    fresh = jax.vmap(student.init_policy)(jax.random.split(jax.random.PRNGKey(0), seeds))
+    saved = serialization.from_bytes({"params": fresh.params, "obs_norm": fresh.obs_norm}, data)
+    return fresh.replace(params=saved["params"], obs_norm=saved["obs_norm"])
 
 
 def train_seeds(student, keys, hparams, level, num_updates: int, chunks: int, progress: bool = True, on_chunk=None,

@@ -19,7 +19,7 @@ def test_ppo_command_policy_file_round_trips(tmp_path):
     env = envs.make("cartpole")
     student = make_student(env, PPOConfig.for_env("cartpole"))
     loaded = load_policy(student, path, seeds=2)
-    fresh = jax.vmap(student.init)(jax.random.split(jax.random.PRNGKey(0), 2))
+    fresh = jax.vmap(student.init_policy)(jax.random.split(jax.random.PRNGKey(0), 2))
     # training moved the parameters and the observation statistics away from a fresh init ...
     moved = jax.tree_util.tree_map(lambda a, b: float(jnp.abs(a - b).max()), loaded.params, fresh.params)
     assert max(jax.tree_util.tree_leaves(moved)) > 0

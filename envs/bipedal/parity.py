@@ -1,11 +1,16 @@
-"""Parity harness: Gymnasium's scripted gait (``BipedalWalkerHeuristics``) in our walker (vmapped) and
-in Gymnasium's Box2D BipedalWalker, per setting: return distribution, episode length, fall rate.
+"""Parity harness: one controller in our walker (vmapped) and in Gymnasium's Box2D BipedalWalker, per
+setting: return distribution, episode length, fall rate. The controller is Gymnasium's scripted gait
+(``BipedalWalkerHeuristics``), or with ``--policy`` the PPO students that ``python -m shed_jax ppo
+--env bipedal`` saved (``policy.msgpack``, deterministic actions, ``--episodes`` per seed):
 
     python -m envs.bipedal.parity --episodes 200 --out docs/results/bipedal.json
     python -m envs.bipedal.parity --episodes 50 --settings flat --jax-only
+    python -m envs.bipedal.parity --policy runs/ppo_bipedal/policy.msgpack --episodes 25 \
+        --out docs/results/bipedal.json          # adds the rows "policy_<setting>", keeps the others
 
-Both sides play each episode as Gymnasium's own demo loop does: the first action is zero, every
-later one is the heuristic's answer to the last observation; an episode ends on termination or the
+The gait plays each episode as Gymnasium's own demo loop does: the first action is zero, every later
+one is the heuristic's answer to the last observation; a policy answers every observation, the reset
+one included. An episode ends on termination or the
 level's time limit (1600 steps flat, 2000 Hardcore, as Gymnasium registers them). A fall is a
 termination with reward -100 (hull contact or x < 0). Bar (docs/bipedal.md "Parity"): mean return
 within 15 % of Gymnasium's or within 2 standard errors of the difference, whichever is wider, and
@@ -41,11 +46,38 @@ def summarize(returns, lengths, falls) -> dict:
                 quartiles=[float(q) for q in np.percentile(r, [25, 50, 75])])
 
 
-def jax_episodes(level: str, episodes: int, seed: int = 0, chunk: int = 100, **env_options) -> dict:
-    """First episode of the heuristic on ``episodes`` fresh terrains of the named level (numpy arrays)."""
+def heuristic_controller():
+    """Gymnasium's gait as ``(first(obs) -> (action, carry), next(carry, obs) -> (action, carry))``:
+    the first action is zero, as in Gymnasium's demo loop."""
+    def first(obs):
+        return jnp.zeros(4, jnp.float32), heuristic_init()
+
+    def next_(h, obs):
+        a, h = heuristic(h, obs)
+        return a, h
+
+    return first, next_
+
+
+def policy_controller(student, state):
+    """One saved student's deterministic policy (``state``: one seed of ``load_policy``) in the
+    controller form of ``heuristic_controller``; the carry is unused."""
+    def act(obs):
+        return student.act(state, jax.random.PRNGKey(0), obs, deterministic=True)
+
+    return (lambda obs: (act(obs), jnp.int32(0))), (lambda c, obs: (act(obs), c))
+
+
+def jax_episodes(level: str, episodes: int, seed: int = 0, chunk: int = 100, controller=None,
+                 max_steps: int | None = None, **env_options) -> dict:
+    """First episode of ``controller`` (default: the heuristic) on ``episodes`` fresh terrains of the
+    named level (numpy arrays); ``max_steps`` shortens the level's time limit (tests)."""
     env = BipedalWalker(**env_options)
     params = LEVELS[level]()
+    if max_steps is not None:
+        params = params.replace(max_steps=jnp.asarray(max_steps, jnp.asarray(params.max_steps).dtype))
     max_steps = int(params.max_steps)
+    first, next_ = heuristic_controller() if controller is None else controller
 
     def one(key):
         k0, k1 = jax.random.split(key)
@@ -54,7 +86,7 @@ def jax_episodes(level: str, episodes: int, seed: int = 0, chunk: int = 100, **e
         def body(carry, k):
             obs, state, h, a, done_before, out = carry
             obs, state, reward, done, info = env.step_without_reset(k, state, a, params)
-            a, h = heuristic(h, obs)
+            a, h = next_(h, obs)
             first = done & ~done_before
             fell = info["terminated"] & (reward == -100.0)
             out = jax.tree_util.tree_map(lambda o, n: jnp.where(first, n, o), out, dict(
@@ -62,7 +94,8 @@ def jax_episodes(level: str, episodes: int, seed: int = 0, chunk: int = 100, **e
             return (obs, state, h, a, done_before | done, out), None
 
         out0 = dict(ret=jnp.float32(0), length=jnp.int32(0), fall=jnp.bool_(False))
-        carry = (obs, state, heuristic_init(), jnp.zeros(4, jnp.float32), jnp.bool_(False), out0)
+        a, h = first(obs)
+        carry = (obs, state, h, a, jnp.bool_(False), out0)
         (_, _, _, _, _, out), _ = jax.lax.scan(body, carry, jax.random.split(k1, max_steps))
         return out
 
@@ -98,26 +131,28 @@ def _as_chain(walker_cls):
     return generate
 
 
-def gym_episodes(gym_id: str, episodes: int, seed: int = 0, chain: bool = False) -> dict:
-    """Gymnasium's own env and gait; ``chain``: its grass as one chain shape (see ``_as_chain``)."""
+def gym_episodes(gym_id: str, episodes: int, seed: int = 0, chain: bool = False, policy=None,
+                 max_steps: int | None = None) -> dict:
+    """Gymnasium's own env and gait, or ``policy`` (observation -> action, numpy) instead of the
+    gait; ``chain``: its grass as one chain shape (see ``_as_chain``); ``max_steps``: a shorter limit."""
     import gymnasium as gym
     from gymnasium.envs.box2d.bipedal_walker import BipedalWalker as GymWalker
     from gymnasium.envs.box2d.bipedal_walker import BipedalWalkerHeuristics
 
-    env = gym.make(gym_id)
+    env = gym.make(gym_id, **({} if max_steps is None else {"max_episode_steps": max_steps}))
     if chain:
         env.unwrapped._generate_terrain = _as_chain(GymWalker).__get__(env.unwrapped)
     rets, lens, falls = [], [], []
     for ep in range(episodes):
         s, _ = env.reset(seed=seed + ep)
         h = BipedalWalkerHeuristics()
-        a = np.zeros(4)
+        a = np.zeros(4) if policy is None else policy(s)
         total, n = 0.0, 0
         while True:
             s, r, term, trunc, _ = env.step(a)
             total += r
             n += 1
-            a = h.step_heuristic(s)
+            a = h.step_heuristic(s) if policy is None else policy(s)
             if term or trunc:
                 break
         rets.append(total)
@@ -146,8 +181,16 @@ def main(argv=None) -> int:
     p.add_argument("--gym-chain", action="store_true",
                    help="diagnostic: Gymnasium's grass as one chain shape (no contacts at edge junctions)")
     p.add_argument("--iterations", default=None, metavar="V/P", help="our solver passes (default Box2D's 180/60)")
+    p.add_argument("--policy", default=None, metavar="FILE",
+                   help="a policy.msgpack of 'python -m shed_jax ppo --env bipedal' instead of the gait; "
+                        "--episodes per saved seed; the rows are named policy_<setting> and --out keeps the others")
     p.add_argument("--out", default=None, help="write the JSON record here (e.g. docs/results/bipedal.json)")
     args = p.parse_args(argv)
+    if args.policy is not None:
+        if args.gym_chain or args.iterations:
+            p.error("--policy runs with Gymnasium's edges and Box2D's 180/60 passes; drop --gym-chain/--iterations")
+        if not pathlib.Path(args.policy).is_file():
+            p.error(f"--policy {args.policy}: no such file")
     names = [n.strip() for n in args.settings.split(",")]
     unknown = [n for n in names if n not in SETTINGS]
     if unknown:
@@ -165,6 +208,8 @@ def main(argv=None) -> int:
               "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
               "command": "python -m envs.bipedal.parity " + " ".join(argv if argv is not None else __import__("sys").argv[1:]),
               "seed": args.seed, "gym_terrain": "chain" if args.gym_chain else "edges", "parity": {}}
+    if args.policy is not None:
+        return policy_main(args, names, record)
     for name in names:
         level, gym_id = SETTINGS[name]
         row = {"episodes": args.episodes}
@@ -192,6 +237,56 @@ def main(argv=None) -> int:
     if args.out:
         pathlib.Path(args.out).parent.mkdir(parents=True, exist_ok=True)
         pathlib.Path(args.out).write_text(json.dumps(record, indent=1) + "\n")
+    return 0
+
+
+def policy_main(args, names, record) -> int:
+    """``--policy``: every saved seed's deterministic policy in both engines, pooled per setting."""
+    from shed_jax.student import PPOConfig, make_student
+    from shed_jax.training import load_policy
+
+    # only the networks and observation statistics are read: one env slot keeps the start-up cheap
+    student = make_student(BipedalWalker(), PPOConfig.for_env("bipedal").replace(num_envs=1))
+    states = load_policy(student, args.policy)
+    seeds = int(states.obs_norm.count.shape[0])
+    rows = {}
+    for name in names:
+        level, gym_id = SETTINGS[name]
+        pooled = {side: {"ret": [], "length": [], "fall": []} for side in ("gym", "ours")}
+        per_seed = []
+        for i in range(seeds):
+            state = jax.tree_util.tree_map(lambda x: x[i], states)
+            act = jax.jit(lambda obs: student.act(state, jax.random.PRNGKey(0), obs, deterministic=True))
+            sides = {}
+            if not args.jax_only:
+                sides["gym"] = gym_episodes(gym_id, args.episodes, args.seed + 1000 * i,
+                                            policy=lambda s: np.asarray(act(jnp.asarray(s, jnp.float32)), np.float64))
+            if not args.gym_only:
+                sides["ours"] = jax_episodes(level, args.episodes, args.seed + 1000 * i, min(args.chunk, args.episodes),
+                                             controller=policy_controller(student, state))
+            for side, d in sides.items():
+                for k in pooled[side]:
+                    pooled[side][k].append(d[k])
+            per_seed.append({f"{side}_mean": float(np.mean(d["ret"])) for side, d in sides.items()})
+            print(f"{name} seed {i}: " + "  ".join(f"{k} {v:.1f}" for k, v in per_seed[-1].items()), flush=True)
+        row = {"episodes_per_seed": args.episodes, "seeds": seeds, "policy": args.policy, "deterministic": True,
+               "per_seed": per_seed, **{k: record[k] for k in ("device", "date", "command")}}
+        for side, d in pooled.items():
+            if d["ret"]:
+                o = summarize(*(np.concatenate(d[k]) for k in ("ret", "length", "fall")))
+                row.update({f"{side}_{k}": o[k] for k in ("mean", "se", "std", "fall", "length", "quartiles")})
+        if "gym_mean" in row and "ours_mean" in row:
+            row["pass"] = passes(dict(mean=row["gym_mean"], se=row["gym_se"], fall=row["gym_fall"]),
+                                 dict(mean=row["ours_mean"], se=row["ours_se"], fall=row["ours_fall"]))
+            print(f"policy {name}: gym {row['gym_mean']:.1f} ours {row['ours_mean']:.1f} "
+                  f"parity {'PASS' if row['pass'] else 'FAIL'}", flush=True)
+        rows[f"policy_{name}"] = row
+    if args.out:  # add the policy rows to an existing record, keeping its other rows and header
+        out = pathlib.Path(args.out)
+        old = json.loads(out.read_text()) if out.is_file() else {k: record[k] for k in ("device", "date", "command")}
+        old.setdefault("parity", {}).update(rows)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps(old, indent=1) + "\n")
     return 0
 
 

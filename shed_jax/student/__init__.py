@@ -1,5 +1,5 @@
 """The PPO student (see docs/architecture.md, "Student")."""
 from shed_jax.student.config import PPOConfig, PPOHyperparams
-from shed_jax.student.ppo import PPOStudent, StudentState, Trajectory, make_student
+from shed_jax.student.ppo import Policy, PPOStudent, StudentState, Trajectory, make_student
 
-__all__ = ["PPOConfig", "PPOHyperparams", "PPOStudent", "StudentState", "Trajectory", "make_student"]
+__all__ = ["PPOConfig", "PPOHyperparams", "Policy", "PPOStudent", "StudentState", "Trajectory", "make_student"]

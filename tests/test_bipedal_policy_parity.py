@@ -1,0 +1,64 @@
+"""The parity harness with a saved PPO policy (``envs.bipedal.parity --policy``): the same deterministic
+actions in both engines, short episodes in each, and a record that keeps the gait's rows."""
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from envs.bipedal import BipedalWalker, parity
+from shed_jax.student import PPOConfig, make_student
+from shed_jax.training import load_policy, save_policy
+
+
+def _saved_policy(tmp_path, seeds=2):
+    # the walker student's networks; one env slot (the file holds no env state) keeps init cheap
+    student = make_student(BipedalWalker(), PPOConfig.for_env("bipedal").replace(num_envs=1))
+    states = jax.vmap(student.init_policy)(jax.random.split(jax.random.PRNGKey(7), seeds))
+    # observation statistics away from the identity, so that a harness that skipped them would differ
+    mean = jax.random.normal(jax.random.PRNGKey(8), states.obs_norm.mean.shape) * 0.3
+    states = states.replace(obs_norm=states.obs_norm.replace(mean=mean, var=jnp.full_like(mean, 4.0)))
+    path = tmp_path / "policy.msgpack"
+    save_policy(path, states)
+    return student, states, path
+
+
+def test_policy_controller_is_the_students_deterministic_action(tmp_path):
+    student, states, path = _saved_policy(tmp_path)
+    loaded = load_policy(student, path)  # the seed count comes from the file
+    assert loaded.obs_norm.count.shape == (2,)
+    obs = jax.random.normal(jax.random.PRNGKey(9), (5, 24))
+    for i in range(2):
+        state = jax.tree_util.tree_map(lambda x: x[i], loaded)
+        first, next_ = parity.policy_controller(student, state)
+        want = jax.vmap(lambda o: student.act(jax.tree_util.tree_map(lambda x: x[i], states), None, o, True))(obs)
+        got_first = jax.vmap(lambda o: first(o)[0])(obs)
+        got_next = jax.vmap(lambda o: next_(jnp.int32(0), o)[0])(obs)
+        np.testing.assert_allclose(got_first, want, rtol=1e-6, atol=1e-6)
+        np.testing.assert_allclose(got_next, want, rtol=1e-6, atol=1e-6)
+        assert np.all(np.abs(np.asarray(want)) <= 1.0)  # clipped to the action box
+
+
+def test_policy_episodes_in_both_engines_respect_the_limit(tmp_path):
+    student, states, path = _saved_policy(tmp_path)
+    state = jax.tree_util.tree_map(lambda x: x[0], load_policy(student, path))
+    act = jax.jit(lambda o: student.act(state, None, o, True))
+    gym = parity.gym_episodes("BipedalWalker-v3", 2, seed=3, policy=lambda s: np.asarray(act(jnp.asarray(s, jnp.float32))),
+                              max_steps=30)
+    ours = parity.jax_episodes("BipedalWalker", 2, seed=3, chunk=2, controller=parity.policy_controller(student, state),
+                               max_steps=30)
+    for d in (gym, ours):
+        assert d["ret"].shape == (2,) and np.all(np.isfinite(d["ret"]))
+        assert np.all((d["length"] >= 1) & (d["length"] <= 30))
+
+
+def test_policy_rows_are_added_to_an_existing_record(tmp_path):
+    _, _, path = _saved_policy(tmp_path, seeds=1)
+    out = tmp_path / "bipedal.json"
+    out.write_text(json.dumps({"device": "x", "parity": {"flat": {"pass": True}}}))
+    assert parity.main(["--policy", str(path), "--episodes", "1", "--gym-only", "--out", str(out)]) == 0
+    rec = json.loads(out.read_text())
+    assert rec["device"] == "x" and rec["parity"]["flat"] == {"pass": True}
+    row = rec["parity"]["policy_flat"]
+    assert row["seeds"] == 1 and row["episodes_per_seed"] == 1 and np.isfinite(row["gym_mean"])
+    assert "ours_mean" not in row and row["command"].startswith("python -m envs.bipedal.parity --policy")
