@@ -82,10 +82,10 @@ def main(argv=None) -> int:
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--unroll", type=int, default=1)
-    p.add_argument("--velocity-iterations", type=int, default=None, help="lander solver override")
-    p.add_argument("--position-iterations", type=int, default=None, help="lander solver override")
+    p.add_argument("--velocity-iterations", type=int, default=None, help="physics2d solver override (lander, bipedal)")
+    p.add_argument("--position-iterations", type=int, default=None, help="physics2d solver override (lander, bipedal)")
     p.add_argument("--solver-kernel", default="auto", choices=["auto", "xla", "pallas", "interpret"],
-                   help="lander solver loops: fused Pallas kernel or plain XLA (auto: Pallas on GPU)")
+                   help="physics2d solver loops (lander, bipedal): fused Pallas kernel or plain XLA (auto: Pallas on GPU)")
     p.add_argument("--env", default="lander")
     p.add_argument("--batches", default="40,400,4096")
     p.add_argument("--steps", type=int, default=256)
@@ -96,11 +96,12 @@ def main(argv=None) -> int:
     os.makedirs(args.out, exist_ok=True)  # up front: a bad path fails before the work, not after it
     solver = {k: v for k, v in (("velocity_iterations", args.velocity_iterations),
                                 ("position_iterations", args.position_iterations)) if v is not None}
-    if args.env.startswith("lander"):
+    if args.solver_kernel != "auto":  # an env without the option (the MJX walker) refuses it by name
         solver["solver_kernel"] = args.solver_kernel
     env = envs.make(args.env, unroll=args.unroll, **solver)
     res = dict(device=str(jax.devices()[0]), unroll=args.unroll, env=args.env, tag=args.tag, **solver,
                xla_flags=os.environ.get("XLA_FLAGS", ""), env_rows=[])
+    res["solver_kernel"] = args.solver_kernel
     for b in (int(x) for x in args.batches.split(",")):
         row = env_latency(env, b, args.steps)
         res["env_rows"].append(row)
