@@ -40,7 +40,9 @@ def save_policy(path, states) -> None:
     observation statistics; not the optimiser or env state) to ``path`` as flax msgpack."""
     from flax import serialization
 
-    pathlib.Path(path).write_bytes(serialization.to_bytes({"params": states.params, "obs_norm": states.obs_norm}))
+    from shed_jax.student import Policy
+
+    pathlib.Path(path).write_bytes(serialization.to_bytes(Policy(params=states.params, obs_norm=states.obs_norm)))
 
 
 def load_policy(student, path, seeds: int | None = None):
@@ -53,8 +55,7 @@ def load_policy(student, path, seeds: int | None = None):
     if seeds is None:
         seeds = int(jax.tree_util.tree_leaves(serialization.msgpack_restore(data))[0].shape[0])
     fresh = jax.vmap(student.init_policy)(jax.random.split(jax.random.PRNGKey(0), seeds))
-    saved = serialization.from_bytes({"params": fresh.params, "obs_norm": fresh.obs_norm}, data)
-    return fresh.replace(params=saved["params"], obs_norm=saved["obs_norm"])
+    return serialization.from_bytes(fresh, data)
 
 
 def train_seeds(student, keys, hparams, level, num_updates: int, chunks: int, progress: bool = True, on_chunk=None,

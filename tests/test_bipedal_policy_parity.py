@@ -30,10 +30,10 @@ def test_policy_controller_is_the_students_deterministic_action(tmp_path):
     obs = jax.random.normal(jax.random.PRNGKey(9), (5, 24))
     for i in range(2):
         state = jax.tree_util.tree_map(lambda x: x[i], loaded)
-        first, next_ = parity.policy_controller(student, state)
+        first, next_ = parity.policy_controller(student)
         want = jax.vmap(lambda o: student.act(jax.tree_util.tree_map(lambda x: x[i], states), None, o, True))(obs)
-        got_first = jax.vmap(lambda o: first(o)[0])(obs)
-        got_next = jax.vmap(lambda o: next_(jnp.int32(0), o)[0])(obs)
+        got_first = jax.vmap(lambda o: first(state, o)[0])(obs)
+        got_next = jax.vmap(lambda o: next_(state, jnp.int32(0), o)[0])(obs)
         np.testing.assert_allclose(got_first, want, rtol=1e-6, atol=1e-6)
         np.testing.assert_allclose(got_next, want, rtol=1e-6, atol=1e-6)
         assert np.all(np.abs(np.asarray(want)) <= 1.0)  # clipped to the action box
@@ -45,8 +45,8 @@ def test_policy_episodes_in_both_engines_respect_the_limit(tmp_path):
     act = jax.jit(lambda o: student.act(state, None, o, True))
     gym = parity.gym_episodes("BipedalWalker-v3", 2, seed=3, policy=lambda s: np.asarray(act(jnp.asarray(s, jnp.float32))),
                               max_steps=30)
-    ours = parity.jax_episodes("BipedalWalker", 2, seed=3, chunk=2, controller=parity.policy_controller(student, state),
-                               max_steps=30)
+    ours, = parity.jax_episodes("BipedalWalker", 2, seed=3, chunk=2, controller=parity.policy_controller(student),
+                                thetas=[state], max_steps=30)
     for d in (gym, ours):
         assert d["ret"].shape == (2,) and np.all(np.isfinite(d["ret"]))
         assert np.all((d["length"] >= 1) & (d["length"] <= 30))

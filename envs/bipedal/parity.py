@@ -47,31 +47,27 @@ def summarize(returns, lengths, falls) -> dict:
 
 
 def heuristic_controller():
-    """Gymnasium's gait as ``(first(obs) -> (action, carry), next(carry, obs) -> (action, carry))``:
-    the first action is zero, as in Gymnasium's demo loop."""
-    def first(obs):
-        return jnp.zeros(4, jnp.float32), heuristic_init()
-
-    def next_(h, obs):
-        a, h = heuristic(h, obs)
-        return a, h
-
-    return first, next_
+    """Gymnasium's gait as ``(first(theta, obs) -> (action, carry), next(theta, carry, obs) -> (action,
+    carry))``, ``theta`` unused: the first action is zero, as in Gymnasium's demo loop."""
+    return (lambda theta, obs: (jnp.zeros(4, jnp.float32), heuristic_init())), (lambda theta, h, obs: heuristic(h, obs))
 
 
-def policy_controller(student, state):
-    """One saved student's deterministic policy (``state``: one seed of ``load_policy``) in the
-    controller form of ``heuristic_controller``; the carry is unused."""
-    def act(obs):
-        return student.act(state, jax.random.PRNGKey(0), obs, deterministic=True)
+def policy_controller(student):
+    """A saved student's deterministic policy in the form of ``heuristic_controller``; ``theta`` is
+    one seed of ``load_policy`` (an argument of the compiled program, so one compile serves every
+    seed) and the carry is unused."""
+    def act(theta, obs):
+        return student.act(theta, jax.random.PRNGKey(0), obs, deterministic=True)
 
-    return (lambda obs: (act(obs), jnp.int32(0))), (lambda c, obs: (act(obs), c))
+    return (lambda theta, obs: (act(theta, obs), jnp.int32(0))), (lambda theta, c, obs: (act(theta, obs), c))
 
 
-def jax_episodes(level: str, episodes: int, seed: int = 0, chunk: int = 100, controller=None,
-                 max_steps: int | None = None, **env_options) -> dict:
+def jax_episodes(level: str, episodes: int, seed: int = 0, chunk: int = 100, controller=None, thetas=(None,),
+                 max_steps: int | None = None, **env_options) -> list[dict]:
     """First episode of ``controller`` (default: the heuristic) on ``episodes`` fresh terrains of the
-    named level (numpy arrays); ``max_steps`` shortens the level's time limit (tests)."""
+    named level, once per entry of ``thetas`` (the controller's parameters; entry i uses root seed
+    ``seed + 1000 i``), from one compiled program: a list of dicts of numpy arrays. ``max_steps``
+    shortens the level's time limit (tests)."""
     env = BipedalWalker(**env_options)
     params = LEVELS[level]()
     if max_steps is not None:
@@ -79,14 +75,14 @@ def jax_episodes(level: str, episodes: int, seed: int = 0, chunk: int = 100, con
     max_steps = int(params.max_steps)
     first, next_ = heuristic_controller() if controller is None else controller
 
-    def one(key):
+    def one(key, theta):
         k0, k1 = jax.random.split(key)
         obs, state = env.reset(k0, params)
 
         def body(carry, k):
             obs, state, h, a, done_before, out = carry
             obs, state, reward, done, info = env.step_without_reset(k, state, a, params)
-            a, h = next_(h, obs)
+            a, h = next_(theta, h, obs)
             first = done & ~done_before
             fell = info["terminated"] & (reward == -100.0)
             out = jax.tree_util.tree_map(lambda o, n: jnp.where(first, n, o), out, dict(
@@ -94,21 +90,23 @@ def jax_episodes(level: str, episodes: int, seed: int = 0, chunk: int = 100, con
             return (obs, state, h, a, done_before | done, out), None
 
         out0 = dict(ret=jnp.float32(0), length=jnp.int32(0), fall=jnp.bool_(False))
-        a, h = first(obs)
+        a, h = first(theta, obs)
         carry = (obs, state, h, a, jnp.bool_(False), out0)
         (_, _, _, _, _, out), _ = jax.lax.scan(body, carry, jax.random.split(k1, max_steps))
         return out
 
-    run = jax.jit(jax.vmap(one))
-    keys = jax.random.split(jax.random.PRNGKey(seed), episodes)
-    outs = []
-    for i in range(0, episodes, chunk):
-        part = keys[i:i + chunk]
-        if part.shape[0] < chunk:  # same compiled shape for the last chunk
-            part = jnp.concatenate([part, keys[: chunk - part.shape[0]]])
-        outs.append(jax.tree_util.tree_map(np.asarray, run(part)))
-    out = {k: np.concatenate([o[k] for o in outs])[:episodes] for k in outs[0]}
-    return out
+    run = jax.jit(jax.vmap(one, in_axes=(0, None)))
+    results = []
+    for j, theta in enumerate(thetas):
+        keys = jax.random.split(jax.random.PRNGKey(seed + 1000 * j), episodes)
+        outs = []
+        for i in range(0, episodes, chunk):
+            part = keys[i:i + chunk]
+            if part.shape[0] < chunk:  # same compiled shape for the last chunk
+                part = jnp.concatenate([part, keys[: chunk - part.shape[0]]])
+            outs.append(jax.tree_util.tree_map(np.asarray, run(part, theta)))
+        results.append({k: np.concatenate([o[k] for o in outs])[:episodes] for k in outs[0]})
+    return results
 
 
 def _as_chain(walker_cls):
@@ -223,7 +221,7 @@ def main(argv=None) -> int:
                        gym_quartiles=g["quartiles"])
         if not args.gym_only:
             t = time.time()
-            d = jax_episodes(level, args.episodes, args.seed, min(args.chunk, args.episodes), **opts)
+            d = jax_episodes(level, args.episodes, args.seed, min(args.chunk, args.episodes), **opts)[0]
             o = summarize(d["ret"], d["length"], d["fall"])
             print(f"ours {name}: {time.time() - t:.0f}s mean {o['mean']:.1f} se {o['se']:.1f} fall {o['fall']:.2f} "
                   f"len {o['length']:.0f}", flush=True)
@@ -249,21 +247,23 @@ def policy_main(args, names, record) -> int:
     student = make_student(BipedalWalker(), PPOConfig.for_env("bipedal").replace(num_envs=1))
     states = load_policy(student, args.policy)
     seeds = int(states.obs_norm.count.shape[0])
+    thetas = [jax.tree_util.tree_map(lambda x: x[i], states) for i in range(seeds)]
+    controller = policy_controller(student)
+    act = jax.jit(controller[0])  # (theta, obs) -> (action, carry): one compile for every seed
     rows = {}
     for name in names:
         level, gym_id = SETTINGS[name]
         pooled = {side: {"ret": [], "length": [], "fall": []} for side in ("gym", "ours")}
         per_seed = []
-        for i in range(seeds):
-            state = jax.tree_util.tree_map(lambda x: x[i], states)
-            act = jax.jit(lambda obs: student.act(state, jax.random.PRNGKey(0), obs, deterministic=True))
+        ours = ([None] * seeds if args.gym_only else
+                jax_episodes(level, args.episodes, args.seed, min(args.chunk, args.episodes), controller, thetas))
+        for i, theta in enumerate(thetas):
             sides = {}
             if not args.jax_only:
                 sides["gym"] = gym_episodes(gym_id, args.episodes, args.seed + 1000 * i,
-                                            policy=lambda s: np.asarray(act(jnp.asarray(s, jnp.float32)), np.float64))
+                                            policy=lambda s: np.asarray(act(theta, jnp.asarray(s, jnp.float32))[0], np.float64))
             if not args.gym_only:
-                sides["ours"] = jax_episodes(level, args.episodes, args.seed + 1000 * i, min(args.chunk, args.episodes),
-                                             controller=policy_controller(student, state))
+                sides["ours"] = ours[i]
             for side, d in sides.items():
                 for k in pooled[side]:
                     pooled[side][k].append(d[k])

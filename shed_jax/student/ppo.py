@@ -160,7 +160,7 @@ class PPOStudent:
             raise TypeError(f"hparams must be a PPOHyperparams, got {type(hp).__name__}")
         hp = jax.tree_util.tree_map(lambda x: jnp.asarray(x, jnp.float32), hp.validate())
         k_actor, k_critic, k_env = jax.random.split(key, 3)
-        params = self.init_policy(jnp.stack([k_actor, k_critic])).params
+        params = self._init_params(k_actor, k_critic)
         opt_state = self.tx.init(params)
         opt_state = opt_state._replace(
             hyperparams={**opt_state.hyperparams, "learning_rate": hp.lr, "max_grad_norm": hp.max_grad_norm}
@@ -179,16 +179,16 @@ class PPOStudent:
         )
         return self.assign_levels(state, k_env, levels)
 
-    def init_policy(self, key) -> Policy:
-        """Fresh networks and observation statistics, without env state (``key``: the actor's and
-        the critic's keys stacked, or one key split into them)."""
-        k_actor, k_critic = key if key.ndim == 2 else jax.random.split(key)
+    def _init_params(self, k_actor, k_critic):
         dummy = jnp.zeros(self.obs_shape, jnp.float32)
-        params = {
+        return {
             "actor": self.actor.init(k_actor, dummy)["params"],
             "critic": self.critic.init(k_critic, dummy)["params"],
         }
-        return Policy(params=params, obs_norm=RunningMeanStd.create(self.obs_shape))
+
+    def init_policy(self, key) -> Policy:
+        """Fresh networks and observation statistics, without env state (no env is reset)."""
+        return Policy(params=self._init_params(*jax.random.split(key)), obs_norm=RunningMeanStd.create(self.obs_shape))
 
     def assign_levels(self, state: StudentState, key, levels) -> StudentState:
         """Slot j runs level j % n (n = leading axis of `levels`); every slot is reset."""
