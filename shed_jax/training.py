@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import math
 import pathlib
+import sys
 import time
 import warnings
 
@@ -187,7 +188,9 @@ def train_fixed_level(args) -> dict:
         "compile_s": timing["compile_s"],
         "train_s": timing["train_s"],
         "steps_per_s": timing["env_steps_per_s"],
-        "device": str(jax.devices()[0]),
+        "device": f"{jax.devices()[0].platform}: {jax.devices()[0].device_kind}",
+        "command": "python -m shed_jax " + " ".join(sys.argv[1:]),
+        "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
         "curve": {"env_steps": x[:: max(1, len(x) // 200)].tolist(),
                   "mean_return": np.nanmean(curve, axis=0)[:: max(1, len(x) // 200)].tolist()},
     }

@@ -62,3 +62,16 @@ def test_policy_rows_are_added_to_an_existing_record(tmp_path):
     row = rec["parity"]["policy_flat"]
     assert row["seeds"] == 1 and row["episodes_per_seed"] == 1 and np.isfinite(row["gym_mean"])
     assert "ours_mean" not in row and row["command"].startswith("python -m envs.bipedal.parity --policy")
+
+
+def test_gait_rows_replace_the_header_and_keep_the_rest(tmp_path):
+    out = tmp_path / "bipedal.json"
+    out.write_text(json.dumps({"device": "x", "steps_per_second_best": 5.0,
+                               "parity": {"policy_flat": {"pass": True}, "flat": {"old": 1}}}))
+    assert parity.main(["--episodes", "1", "--settings", "flat", "--gym-only", "--out", str(out)]) == 0
+    rec = json.loads(out.read_text())
+    assert rec["steps_per_second_best"] == 5.0 and rec["parity"]["policy_flat"] == {"pass": True}
+    assert rec["device"] == "cpu" and rec["command"].startswith("python -m envs.bipedal.parity --episodes 1")
+    row = rec["parity"]["flat"]
+    assert "old" not in row and row["episodes"] == 1 and np.isfinite(row["gym_mean"])
+    assert row["command"] == rec["command"] and row["date"] == rec["date"]

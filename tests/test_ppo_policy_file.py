@@ -14,6 +14,9 @@ def test_ppo_command_policy_file_round_trips(tmp_path):
     args = argparse.Namespace(env="cartpole", level=None, total_steps=2_000, seeds=2, seed=3, chunks=2,
                               eval_episodes=2, lr=None, num_envs=None, out=str(tmp_path))
     summary = train_fixed_level(args)
+    # the summary is a record: where, how and when it was measured
+    assert summary["command"].startswith("python -m shed_jax ") and summary["date"].endswith(" UTC")
+    assert summary["device"].startswith("cpu: ")
     path = tmp_path / "policy.msgpack"
     assert path.is_file()
     env = envs.make("cartpole")

@@ -231,11 +231,27 @@ def main(argv=None) -> int:
             row["pass"] = passes(dict(mean=row["gym_mean"], se=row["gym_se"], fall=row["gym_fall"]),
                                  dict(mean=row["ours_mean"], se=row["ours_se"], fall=row["ours_fall"]))
             print(f"{name}: parity {'PASS' if row['pass'] else 'FAIL'}", flush=True)
+        row.update({k: record[k] for k in PROVENANCE})
         record["parity"][name] = row
-    if args.out:
-        pathlib.Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        pathlib.Path(args.out).write_text(json.dumps(record, indent=1) + "\n")
+    if args.out:  # the gait's run is the record's header; other rows and keys (policy, speed) stay
+        write_record(args.out, {k: v for k, v in record.items() if k != "parity"}, record["parity"], header=True)
     return 0
+
+
+#: the fields that say where, how and when a row was measured
+PROVENANCE = ("device", "date", "command")
+
+
+def write_record(path, head: dict, rows: dict, header: bool) -> None:
+    """Add ``rows`` to the record at ``path`` (``parity``), keeping its other rows and keys; ``head``
+    becomes its header when ``header`` is set or the file is new."""
+    out = pathlib.Path(path)
+    rec = json.loads(out.read_text()) if out.is_file() else {}
+    if header or not rec:
+        rec.update(head)
+    rec.setdefault("parity", {}).update(rows)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(rec, indent=1) + "\n")
 
 
 def policy_main(args, names, record) -> int:
@@ -270,7 +286,7 @@ def policy_main(args, names, record) -> int:
             per_seed.append({f"{side}_mean": float(np.mean(d["ret"])) for side, d in sides.items()})
             print(f"{name} seed {i}: " + "  ".join(f"{k} {v:.1f}" for k, v in per_seed[-1].items()), flush=True)
         row = {"episodes_per_seed": args.episodes, "seeds": seeds, "policy": args.policy, "deterministic": True,
-               "per_seed": per_seed, **{k: record[k] for k in ("device", "date", "command")}}
+               "per_seed": per_seed, **{k: record[k] for k in PROVENANCE}}
         for side, d in pooled.items():
             if d["ret"]:
                 o = summarize(*(np.concatenate(d[k]) for k in ("ret", "length", "fall")))
@@ -282,11 +298,7 @@ def policy_main(args, names, record) -> int:
                   f"parity {'PASS' if row['pass'] else 'FAIL'}", flush=True)
         rows[f"policy_{name}"] = row
     if args.out:  # add the policy rows to an existing record, keeping its other rows and header
-        out = pathlib.Path(args.out)
-        old = json.loads(out.read_text()) if out.is_file() else {k: record[k] for k in ("device", "date", "command")}
-        old.setdefault("parity", {}).update(rows)
-        out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text(json.dumps(old, indent=1) + "\n")
+        write_record(args.out, {k: record[k] for k in PROVENANCE}, rows, header=False)
     return 0
 
 

@@ -1,0 +1,59 @@
+"""Put the bipedal walker's measured speed into its record (``docs/results/bipedal.json``).
+
+Reads ``experiments.bench_latency --env bipedal`` records and writes, keeping the record's other keys:
+``speed.rows`` (one per batch and record: ms per sequential step, env steps per second, where and
+when), ``ms_per_step_batch200`` (the best at a batch of 200) and ``steps_per_second_best`` (the best
+batch). Usage: ``python -m experiments.bipedal_speed LATENCY.json [...] --out docs/results/bipedal.json``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import pathlib
+
+
+def speed_rows(records: list[dict]) -> list[dict]:
+    """One row per (record, batch): ``ms_per_step`` and ``steps_per_second`` = batch / seconds per step."""
+    rows = []
+    for rec in records:
+        for r in rec["env_rows"]:
+            rows.append({"batch": r["batch"], "ms_per_step": 1e3 * r["s_per_step"],
+                         "steps_per_second": r["batch"] / r["s_per_step"], "compile_s": r["compile_s"],
+                         "solver_kernel": rec.get("solver_kernel", "auto"),
+                         **{k: rec.get(k) for k in ("device", "date", "command", "note")}})
+    return rows
+
+
+def summary(rows: list[dict]) -> dict:
+    at200 = [r["ms_per_step"] for r in rows if r["batch"] == 200]
+    return {"ms_per_step_batch200": min(at200) if at200 else None,
+            "steps_per_second_best": max(r["steps_per_second"] for r in rows)}
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("latency", nargs="+", help="bench_latency records (latency_*.json) of the bipedal env")
+    p.add_argument("--out", required=True, help="the bipedal record to update")
+    args = p.parse_args(argv)
+    records = []
+    for f in args.latency:
+        path = pathlib.Path(f)
+        if not path.is_file():
+            p.error(f"{f}: no such file")
+        rec = json.loads(path.read_text())
+        if rec.get("env") != "bipedal":
+            p.error(f"{f}: a record of env {rec.get('env')!r}, not 'bipedal'")
+        records.append(rec)
+    rows = speed_rows(records)
+    out = pathlib.Path(args.out)
+    rec = json.loads(out.read_text()) if out.is_file() else {}
+    rec.update(summary(rows), speed={"rows": rows, "sources": list(args.latency)})
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(rec, indent=1) + "\n")
+    s = summary(rows)
+    print(f"ms per step at batch 200: {s['ms_per_step_batch200']}; best steps/s: {s['steps_per_second_best']:.3g}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
