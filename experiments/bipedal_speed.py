@@ -40,17 +40,21 @@ def main(argv=None) -> int:
         path = pathlib.Path(f)
         if not path.is_file():
             p.error(f"{f}: no such file")
-        rec = json.loads(path.read_text())
-        if rec.get("env") != "bipedal":
-            p.error(f"{f}: a record of env {rec.get('env')!r}, not 'bipedal'")
+        try:
+            rec = json.loads(path.read_text())
+        except json.JSONDecodeError as e:
+            p.error(f"{f}: not JSON ({e})")
+        if rec.get("env") != "bipedal" or not rec.get("env_rows"):
+            p.error(f"{f}: not a bench_latency record of the bipedal env (env {rec.get('env')!r}, "
+                    f"{len(rec.get('env_rows') or [])} batch rows)")
         records.append(rec)
     rows = speed_rows(records)
     out = pathlib.Path(args.out)
     rec = json.loads(out.read_text()) if out.is_file() else {}
-    rec.update(summary(rows), speed={"rows": rows, "sources": list(args.latency)})
+    s = summary(rows)
+    rec.update(s, speed={"rows": rows, "sources": list(args.latency)})
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(rec, indent=1) + "\n")
-    s = summary(rows)
     print(f"ms per step at batch 200: {s['ms_per_step_batch200']}; best steps/s: {s['steps_per_second_best']:.3g}")
     return 0
 
