@@ -20,11 +20,12 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import sys
 import time
 
 import jax
 import jax.numpy as jnp
+
+from shed_jax.runtime import provenance
 
 
 def _timed(fn, *args, repeats=3):
@@ -99,15 +100,10 @@ def main(argv=None) -> int:
                                 ("position_iterations", args.position_iterations)) if v is not None}
     if args.solver_kernel != "auto":  # an env without the option (the MJX walker) refuses it by name
         solver["solver_kernel"] = args.solver_kernel
-    if args.unroll != 1:  # likewise: the MJX walker takes no unroll
-        solver["unroll"] = args.unroll
-    env = envs.make(args.env, **solver)
-    dev = jax.devices()[0]
-    res = dict(device=f"{dev.platform}: {dev.device_kind}", command="python -m experiments.bench_latency "
-               + " ".join(sys.argv[1:] if argv is None else argv),
-               date=time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), unroll=args.unroll, env=args.env,
-               tag=args.tag, **{k: v for k, v in solver.items() if k != "unroll"},
-               xla_flags=os.environ.get("XLA_FLAGS", ""), env_rows=[])
+    unroll = {"unroll": args.unroll} if args.unroll != 1 else {}  # likewise: the MJX walker takes none
+    env = envs.make(args.env, **unroll, **solver)
+    res = dict(**provenance("experiments.bench_latency", argv), unroll=args.unroll, env=args.env, tag=args.tag,
+               **solver, xla_flags=os.environ.get("XLA_FLAGS", ""), env_rows=[])
     res["solver_kernel"] = args.solver_kernel
     for b in (int(x) for x in args.batches.split(",")):
         row = env_latency(env, b, args.steps)

@@ -58,6 +58,19 @@ def describe_devices(devices) -> str:
     return ", ".join(f"{n} x {kind}" for kind, n in kinds.items())
 
 
+def provenance(module: str, argv=None) -> dict:
+    """Where, how and when a record was measured: ``device`` (backend and devices), ``command``
+    (``python -m module`` and its arguments, ``argv`` or the process's) and ``date`` (UTC, minutes)."""
+    import time
+
+    import jax
+
+    args = sys.argv[1:] if argv is None else list(argv)
+    return {"device": f"{jax.default_backend()}: {describe_devices(jax.devices())}",
+            "command": f"python -m {module} " + " ".join(args),
+            "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())}
+
+
 def gpu_unused_warning(backend: str, platforms: str, probe=None) -> str | None:
     """The one-line warning when ``nvidia-smi`` sees a usable GPU but JAX runs on ``backend`` 'cpu'.
 

@@ -12,7 +12,6 @@ from __future__ import annotations
 import json
 import math
 import pathlib
-import sys
 import time
 import warnings
 
@@ -139,7 +138,7 @@ def train_fixed_level(args) -> dict:
     """``python -m shed_jax ppo``: ``args`` has its flags as attributes; writes ``args.out`` (default
     runs/ppo_<env>) and returns the summary."""
     import envs
-    from shed_jax import reporting
+    from shed_jax import reporting, runtime
     from shed_jax.student import PPOConfig, PPOHyperparams, make_student
 
     env = envs.make(args.env)
@@ -188,9 +187,7 @@ def train_fixed_level(args) -> dict:
         "compile_s": timing["compile_s"],
         "train_s": timing["train_s"],
         "steps_per_s": timing["env_steps_per_s"],
-        "device": f"{jax.devices()[0].platform}: {jax.devices()[0].device_kind}",
-        "command": "python -m shed_jax " + " ".join(sys.argv[1:]),
-        "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+        **runtime.provenance("shed_jax"),
         "curve": {"env_steps": x[:: max(1, len(x) // 200)].tolist(),
                   "mean_return": np.nanmean(curve, axis=0)[:: max(1, len(x) // 200)].tolist()},
     }

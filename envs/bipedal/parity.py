@@ -19,7 +19,6 @@ fall rate within 0.1.
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
 import pathlib
 import time
@@ -31,6 +30,7 @@ import numpy as np
 from envs.bipedal.env import BipedalWalker
 from envs.bipedal.heuristic import heuristic, heuristic_init
 from envs.walker.levels import LEVELS
+from shed_jax.runtime import provenance
 
 # setting -> (named level, Gymnasium id)
 SETTINGS = {
@@ -202,9 +202,8 @@ def main(argv=None) -> int:
         except ValueError:
             p.error(f"--iterations must be V/P, e.g. 180/60; got {args.iterations!r}")
         opts = dict(velocity_iterations=v, position_iterations=q)
-    record = {"device": jax.devices()[0].device_kind if not args.gym_only else "cpu",
-              "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
-              "command": "python -m envs.bipedal.parity " + " ".join(argv if argv is not None else __import__("sys").argv[1:]),
+    record = {**provenance("envs.bipedal.parity", argv),
+              "device": jax.devices()[0].device_kind if not args.gym_only else "cpu",
               "seed": args.seed, "gym_terrain": "chain" if args.gym_chain else "edges", "parity": {}}
     if args.policy is not None:
         return policy_main(args, names, record)
