@@ -73,3 +73,16 @@ def test_walker_import_drops_only_the_warp_missing_lines():
     assert drop("Failed to import warp: No module named 'warp'")
     assert drop("Failed to import mujoco_warp: No module named 'warp'")
     assert not drop("Failed to import warp: CUDA driver version is insufficient")  # a broken Warp still shows
+
+
+def test_provenance_names_device_command_and_date():
+    import re
+
+    import jax
+
+    from shed_jax.runtime import provenance
+
+    p = provenance("experiments.x", ["--a", "1"])
+    assert p["command"] == "python -m experiments.x --a 1"
+    assert p["device"].startswith(f"{jax.default_backend()}: ") and " x " in p["device"]
+    assert re.fullmatch(r"\d{4}-\d\d-\d\d \d\d:\d\d UTC", p["date"])
