@@ -4,7 +4,17 @@
     python -m experiments.teacher_runs summarise SWEEP_DIR [SWEEP_DIR ...] --out compact.json
     # here: merge compact files (seeds of one method/point from several runs pool) into the record
     python -m experiments.teacher_runs record compact.json [...] --out docs/results/teacher.json \
-        --device "one NVIDIA H200" --command "python -m shed_jax sweep ..."
+        --device "one NVIDIA H200" --command "python -m shed_jax sweep ..." \
+        [--paper-csv docs/results/lander_shed_hmdp_10seeds_2026-11-23.csv] [--dr docs/results/baselines.json]
+
+``--paper-csv`` adds the paper teachers (SHED, h-MDP) from the long-form CSV their 10-seed runs were
+exported to (a row per seed, teacher episode and budget step, tested episodes only): each becomes a
+compact run as ``summarise`` would make it (its at-bound fraction was not logged then: null).
+``--dr`` adds domain randomisation's final test return from the baselines record (DR has no
+teacher episodes: its episode-0 and gain fields are null).
+
+    # a figure: test return (mean ± SE over seeds) and diagnostics by teacher episode, one line per run
+    python -m experiments.teacher_runs plot compact.json [...] --only NAME [--only NAME] --out fig.png
 
 Per run it keeps, for each seed, the test return of every tested teacher episode (the test set runs
 at the episode's last budget step) and, per teacher episode, the means over steps of the diagnostics
@@ -76,6 +86,43 @@ def summarise(dirs, out):
     print(f"{len(runs)} runs -> {out}")
 
 
+PAPER_NAMES = {"SHED": "shed", "h-MDP": "hmdp"}  # the CSV's method column -> the record's name
+
+
+def paper_runs(csv_path) -> list[dict]:
+    """The paper teachers' CSV -> compact runs: per seed and tested episode, the test return at the episode's
+    last budget step; the teacher reward's mean per episode. Rows of other methods (e.g. 'SHED eta=10') are
+    left out."""
+    import csv
+    tests: dict[str, dict[int, dict[int, tuple[int, float]]]] = {}
+    reward: dict[str, dict[int, list[float]]] = {}
+    with open(csv_path, newline="") as f:
+        for row in csv.DictReader(f):
+            name = PAPER_NAMES.get(row["method"])
+            if name is None or row["test_return"] == "":
+                continue
+            seed, ep, t = int(row["seed"]), int(row["episode"]), int(row["step_in_episode"])
+            by_ep = tests.setdefault(name, {}).setdefault(seed, {})
+            if ep not in by_ep or t > by_ep[ep][0]:
+                by_ep[ep] = (t, float(row["test_return"]))
+            reward.setdefault(name, {}).setdefault(ep, []).append(float(row["teacher_reward"]))
+    return [{"sweep": str(csv_path), "method": name, "group": name, "point": "default", "values": {},
+             "seeds": len(by_seed), "wall_time_s": None,
+             "test_by_seed_episode": {str(s): {str(e): v for e, (_, v) in sorted(d.items())}
+                                      for s, d in sorted(by_seed.items())},
+             "diagnostics_by_episode": {"teacher_reward": {str(e): float(np.mean(v))
+                                                           for e, v in sorted(reward[name].items())}}}
+            for name, by_seed in tests.items()]
+
+
+def dr_entry(baselines_path) -> dict:
+    """DR's lander entry from the baselines record: its final test return; no teacher, so no episode 0."""
+    dr = json.loads(pathlib.Path(baselines_path).read_text())["lander"]["dr"]
+    return {"seeds": dr["seeds"], "final_mean": dr["final_mean"], "final_se": dr["final_se"],
+            "episode0_mean": None, "episode0_se": None, "paired_gain_mean": None, "paired_gain_se": None,
+            "at_bound_fraction": None, "source": str(baselines_path)}
+
+
 def _mean_se(x):
     x = np.asarray(x, np.float64)
     return float(x.mean()), (float(x.std(ddof=1) / math.sqrt(len(x))) if len(x) > 1 else math.nan)
@@ -127,15 +174,54 @@ def _finite(o):
     return None if isinstance(o, float) and not math.isfinite(o) else o
 
 
-def record(files, out, device, command, date, notes=()):
+def record(files, out, device, command, date, notes=(), paper_csv=None, dr=None):
     runs = [r for f in files for r in json.loads(pathlib.Path(f).read_text())]
+    runs += paper_runs(paper_csv) if paper_csv else []
+    lander = ({"dr": dr_entry(dr)} if dr else {}) | aggregate(runs)
     rec = {"device": device, "date": date or datetime.date.today().isoformat(), "command": command,
-           "notes": list(notes), "lander": aggregate(runs)}
+           "notes": list(notes), "lander": lander}
     pathlib.Path(out).write_text(json.dumps(_finite(rec), indent=1, allow_nan=False) + "\n")
-    for name, e in rec["lander"].items():
-        print(f"{name}: {e['seeds']} seeds, final {e['final_mean']:.1f} ± {e['final_se']:.1f}, episode 0 "
-              f"{e['episode0_mean']:.1f} ± {e['episode0_se']:.1f}, paired gain {e['paired_gain_mean']:.1f} ± "
-              f"{e['paired_gain_se']:.1f}, at a bound {e['at_bound_fraction']}, final episodes {e['final_episode']}")
+    f1 = lambda x: "-" if x is None else f"{x:.1f}"  # noqa: E731
+    for name, e in lander.items():
+        print(f"{name}: {e['seeds']} seeds, final {f1(e['final_mean'])} ± {f1(e['final_se'])}, episode 0 "
+              f"{f1(e['episode0_mean'])} ± {f1(e['episode0_se'])}, paired gain {f1(e['paired_gain_mean'])} ± "
+              f"{f1(e['paired_gain_se'])}, at a bound {e['at_bound_fraction']}, final episodes {e.get('final_episode')}")
+
+
+PLOT_PANELS = (("test return", None), ("critic TD error, held-out", "td_error_heldout"),
+               ("mean |u| of the actor", "action_abs_mean"), ("box width", "box_width"))
+
+
+def plot(files, out, only=()):
+    """Test return (mean ± SE over seeds) and per-episode diagnostics of compact runs, one line per run."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    runs = [r for f in files for r in json.loads(pathlib.Path(f).read_text())]
+    runs = [r for r in runs if not only or r.get("group", r["method"]) in only]
+    if not runs:
+        raise SystemExit(f"plot: no run named {', '.join(only)} in {', '.join(map(str, files))}")
+    fig, axes = plt.subplots(1, len(PLOT_PANELS), figsize=(4.2 * len(PLOT_PANELS), 3.4))
+    for r in runs:
+        label = r.get("group", r["method"])
+        eps = sorted({int(e) for d in r["test_by_seed_episode"].values() for e in d})
+        stats = [_mean_se([d[str(e)] for d in r["test_by_seed_episode"].values() if str(e) in d]) for e in eps]
+        m, se = np.array([x[0] for x in stats]), np.nan_to_num(np.array([x[1] for x in stats]))
+        (line,) = axes[0].plot(eps, m, marker="o", label=label)
+        axes[0].fill_between(eps, m - se, m + se, color=line.get_color(), alpha=0.2)
+        for ax, (_, key) in zip(axes[1:], PLOT_PANELS[1:]):
+            d = r["diagnostics_by_episode"].get(key, {})
+            xs = sorted(int(e) for e, v in d.items() if v is not None)
+            ax.plot(xs, [d[str(e)] for e in xs], color=line.get_color())
+    for ax, (title, key) in zip(axes, PLOT_PANELS):
+        ax.set_title(title)
+        ax.set_xlabel("teacher episode")
+        if key == "td_error_heldout":
+            ax.set_yscale("log")
+    fig.legend(*axes[0].get_legend_handles_labels(), loc="lower center", ncol=min(len(runs), 3), fontsize=8)
+    fig.tight_layout(rect=(0, 0.06 * ((len(runs) + 2) // 3) + 0.04, 1, 1))
+    fig.savefig(out, dpi=110)
+    print(f"{len(runs)} runs -> {out}")
 
 
 def main(argv=None):
@@ -151,11 +237,19 @@ def main(argv=None):
     r.add_argument("--command", required=True)
     r.add_argument("--date", default=None)
     r.add_argument("--note", action="append", default=[], help="a line for the record's notes (repeatable)")
+    r.add_argument("--paper-csv", default=None, help="the paper teachers' (SHED, h-MDP) long-form CSV")
+    r.add_argument("--dr", default=None, help="the baselines record whose lander DR entry to add")
+    q = sub.add_parser("plot")
+    q.add_argument("files", nargs="+")
+    q.add_argument("--out", required=True)
+    q.add_argument("--only", action="append", default=[], help="a run's group name to include (repeatable)")
     a = p.parse_args(argv)
     if a.cmd == "summarise":
         summarise(a.dirs, a.out)
+    elif a.cmd == "plot":
+        plot(a.files, a.out, a.only)
     else:
-        record(a.files, a.out, a.device, a.command, a.date, a.note)
+        record(a.files, a.out, a.device, a.command, a.date, a.note, a.paper_csv, a.dr)
 
 
 if __name__ == "__main__":

@@ -62,3 +62,43 @@ def test_a_sweeps_set_values_keep_its_runs_apart(tmp_path):
     assert sorted(entries) == ["hmdp-x[actor_lr=1e-05]", "hmdp-x[twin_critics=true][actor_lr=1e-05]"]
     assert entries["hmdp-x[twin_critics=true][actor_lr=1e-05]"]["final_mean"] == 30.0
     assert entries["hmdp-x[actor_lr=1e-05]"]["seeds"] == 1
+
+
+def test_paper_csv_and_dr_reference_join_the_record(tmp_path):
+    """The paper teachers' CSV: the test at each tested episode's last step; other methods' rows left out.
+    DR comes from the baselines record with null teacher fields."""
+    from experiments.teacher_runs import paper_runs
+    head = "method,env,seed,episode,step_in_episode,student_env_steps_in_episode,teacher_reward,test_return\n"
+    rows = []
+    for method, off in (("SHED", 0.0), ("h-MDP", 100.0), ("SHED eta=10", 500.0)):
+        for seed in (0, 1):
+            for ep in (0, 10):
+                for t in (0, 1):
+                    rows.append(f"{method},lander,{seed},{ep},{t},0,{2.0 + t},{off + 10 * seed + ep + 0.5 * t}")
+    csv_path = tmp_path / "p.csv"
+    csv_path.write_text(head + "\n".join(rows) + "\n")
+    runs = {r["method"]: r for r in paper_runs(csv_path)}
+    assert sorted(runs) == ["hmdp", "shed"]
+    assert runs["shed"]["test_by_seed_episode"] == {"0": {"0": 0.5, "10": 10.5}, "1": {"0": 10.5, "10": 20.5}}
+    assert runs["hmdp"]["diagnostics_by_episode"]["teacher_reward"] == {"0": 2.5, "10": 2.5}
+    (tmp_path / "b.json").write_text(json.dumps({"lander": {"dr": {"seeds": 10, "final_mean": 111.8, "final_se": 4.4}}}))
+    (tmp_path / "none.json").write_text("[]")
+    record([tmp_path / "none.json"], tmp_path / "r.json", "cpu", "cmd", "2026-01-01", (), csv_path, tmp_path / "b.json")
+    lander = json.loads((tmp_path / "r.json").read_text())["lander"]
+    assert list(lander) == ["dr", "shed", "hmdp"] or list(lander) == ["dr", "hmdp", "shed"]
+    assert lander["dr"]["final_mean"] == 111.8 and lander["dr"]["episode0_mean"] is None
+    shed = lander["shed"]
+    assert shed["final_mean"] == pytest.approx(15.5) and shed["episode0_mean"] == pytest.approx(5.5)
+    assert shed["paired_gain_mean"] == pytest.approx(10.0) and shed["paired_gain_se"] == pytest.approx(0.0)
+    assert shed["at_bound_fraction"] is None and shed["final_episode"] == [10]
+
+
+def test_plot_writes_a_figure_and_names_what_is_missing(tmp_path):
+    from experiments.teacher_runs import plot
+    a = tmp_path / "s" / "hmdp-x" / "default"
+    _write_point(a, "hmdp-x", "default", _rows(0, [10.0, 14.0], [[0.0, 0.2], [0.1, 0.3]]), [14.0])
+    (tmp_path / "c.json").write_text(json.dumps([summarise_point(a)]))
+    plot([tmp_path / "c.json"], tmp_path / "f.png", ["hmdp-x"])
+    assert (tmp_path / "f.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    with pytest.raises(SystemExit, match=r"^plot: no run named shed-x in "):
+        plot([tmp_path / "c.json"], tmp_path / "g.png", ["shed-x"])

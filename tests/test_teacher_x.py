@@ -99,7 +99,13 @@ def test_config_errors_and_registry():
     td3 = _build("hmdp-x", twin_critics=True, actor_delay=2).teacher.ddpg.config  # the switches reach the DDPG
     assert (td3.twin_critics, td3.actor_delay) == (True, 2)
     assert config_class("hmdp-x") is HMDPXConfig and config_class("shed-x") is SHEDXConfig
-    assert SHEDXConfig().real_capacity == 2048 and SHEDXConfig().actor_lr == 1e-4 and HMDPXConfig().real_capacity == 10000
+    assert SHEDXConfig().real_capacity == 2048 and HMDPXConfig().real_capacity == 10000
+    # the chosen teacher's defaults (the lander runs of docs/results.md); SHED's own stay the paper's
+    for cfg in (HMDPXConfig(), SHEDXConfig()):
+        assert (cfg.actor_lr, cfg.twin_critics, cfg.actor_delay) == (1e-5, True, 2)
+    assert (SHEDXConfig().syn_action, SHEDXConfig().syn_threshold) == ("policy", 32)
+    from shed_jax.methods.shed import SHEDConfig
+    assert (SHEDConfig().syn_action, SHEDConfig().syn_threshold, SHEDConfig().actor_lr) == ("uniform", 500, 1e-3)
     import envs
     from shed_jax.student import make_student
     from shed_jax.student.config import PPOConfig

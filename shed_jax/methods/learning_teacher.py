@@ -17,15 +17,18 @@ changes, each behind a switch of :class:`HMDPXConfig` whose default is the chose
   s' - s measures the student's change, not the evaluation's noise.
 * the reward: R = sum_i (s'_i - s_i) / ``reward_scale`` (``signed_sum`` with eta = 0), a signed
   improvement with a fixed scale, not z-scored per batch (``reward_norm='none'``); t/T in the state.
-* DDPG against saturation: ``actor_lr`` 1e-4, ``tau`` 0.01, ``preact_penalty`` on the pre-tanh
-  actor outputs.
+* DDPG against saturation: ``actor_lr`` 1e-5, ``tau`` 0.01, ``preact_penalty`` on the pre-tanh
+  actor outputs, and TD3's ``twin_critics`` with ``actor_delay`` 2 (the best of the lander runs in
+  docs/results.md; until 2026-11-27 the defaults were actor_lr 1e-4, one critic, no delay).
 * ``students``: K students trained side by side under the one teacher, K transitions per budget
   step (``shed_jax.methods.parallel_students``); 1 (the default) is this teacher alone.
-* ``shed-x``'s synthesiser, where it could help (defaults: SHED's): ``syn_action='policy'``
-  draws synthetic actions from the current policy plus N(0, ``syn_sigma``²) noise instead of
-  uniformly, so B_syn covers the actions the critic is asked about; ``syn_loss_bar`` allows mixed
-  updates only while the diffusion model's loss on the step's new, unseen transitions is below the
-  bar (the ``diffusion_heldout_loss`` diagnostic); ``syn_threshold`` (e.g. 32) mixes from the start.
+* ``shed-x``'s synthesiser, where it could help: ``syn_action='policy'`` (the default) draws
+  synthetic actions from the current policy plus N(0, ``syn_sigma``²) noise instead of uniformly
+  (SHED's ``'uniform'``), so B_syn covers the actions the critic is asked about; with uniform
+  actions mixed from the start the lander's critic diverged (docs/results.md). ``syn_threshold``
+  32 (the default; SHED's is 500) mixes from the start; ``syn_loss_bar`` allows mixed updates only
+  while the diffusion model's loss on the step's new, unseen transitions is below the bar (the
+  ``diffusion_heldout_loss`` diagnostic).
 
 Diagnostics as the paper teacher's (``at_bound_fraction`` over the levels played, ``td_error_heldout``,
 ``state_noise_sd``). The hyperparameter pytrees are the paper teacher's (``TeacherHyperparams``,
@@ -47,6 +50,7 @@ from shed_jax.methods.parallel_students import ParallelStudents
 from shed_jax.methods.shed import SHEDConfig, SHEDHyperparams, diffusion_synthesiser
 from shed_jax.teacher.ddpg import DDPGConfig, make_ddpg
 from shed_jax.teacher.ddpg_teacher import DDPGTeacher
+from shed_jax.teacher.diffusion import SynAction
 from shed_jax.teacher.reward import RewardConfig
 
 @dataclasses.dataclass(frozen=True)
@@ -57,7 +61,7 @@ class HMDPXConfig(TeacherConfig):
     reward_norm: Literal["batch", "none"] = "none"
     reward: RewardConfig = RewardConfig(form="signed_sum", eta=0.0)
     reward_scale: float = 100.0  # R is divided by this fixed scale
-    actor_lr: float = 1e-4
+    actor_lr: float = 1e-5
     action: Literal["box", "levels"] = "box"
     level_switch: Literal["episode", "block"] = "episode"
     crn: bool = True
@@ -65,8 +69,8 @@ class HMDPXConfig(TeacherConfig):
     preact_penalty: float = 0.01
     actor_out_init: Literal["lecun", "zeros"] = "zeros"
     ddpg_updates: int = 2  # DDPG updates per budget step once |B_real| > ddpg_threshold (without a synthesiser)
-    twin_critics: bool = False  # TD3's clipped double Q (DDPGConfig.twin_critics)
-    actor_delay: int = 1  # the actor and targets update every k-th DDPG update (DDPGConfig.actor_delay)
+    twin_critics: bool = True  # TD3's clipped double Q (DDPGConfig.twin_critics)
+    actor_delay: int = 2  # the actor and targets update every k-th DDPG update (DDPGConfig.actor_delay)
     students: int = 1  # K students under the one teacher, K transitions per budget step (methods.parallel_students)
 
     POSITIVE: ClassVar[tuple] = TeacherConfig.POSITIVE + ("ddpg_updates", "actor_delay", "students")
@@ -91,6 +95,8 @@ class SHEDXConfig(HMDPXConfig, SHEDConfig):
     """``shed-x``: ``hmdp-x``'s settings plus SHED's synthesiser (B_real of 2,048, psi, B_syn, thresholds)."""
 
     real_capacity: int = 2048  # SHED's (HMDPXConfig's fields, TeacherConfig's default included, come later in the MRO)
+    syn_action: SynAction = "policy"  # synthetic actions around the current policy, not uniform (module doc)
+    syn_threshold: int = 32  # mixed updates as soon as B_syn can fill a batch
     syn_sigma: float = 0.1  # syn_action='policy': noise SD around the policy's synthetic actions
     syn_loss_bar: float = math.inf  # mixed updates only while D's held-out loss is below this (inf: SHED's rule)
 
