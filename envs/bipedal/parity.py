@@ -7,6 +7,8 @@ setting: return distribution, episode length, fall rate. The controller is Gymna
     python -m envs.bipedal.parity --episodes 50 --settings flat --jax-only
     python -m envs.bipedal.parity --policy runs/ppo_bipedal/policy.msgpack --episodes 25 \
         --out docs/results/bipedal.json          # adds the rows "policy_<setting>", keeps the others
+    # the reverse check: a policy trained in Box2D (experiments/bipedal_box2d_ppo.py), rows "box2d_policy_<setting>"
+    python -m envs.bipedal.parity --policy runs/box2d_ppo/policy.msgpack --tag box2d_policy --settings flat ...
 
 The gait plays each episode as Gymnasium's own demo loop does: the first action is zero, every later
 one is the heuristic's answer to the last observation; a policy answers every observation, the reset
@@ -21,6 +23,7 @@ from __future__ import annotations
 import argparse
 import json
 import pathlib
+import re
 import time
 
 import jax
@@ -181,7 +184,9 @@ def main(argv=None) -> int:
     p.add_argument("--iterations", default=None, metavar="V/P", help="our solver passes (default Box2D's 180/60)")
     p.add_argument("--policy", default=None, metavar="FILE",
                    help="a policy.msgpack of 'python -m shed_jax ppo --env bipedal' instead of the gait; "
-                        "--episodes per saved seed; the rows are named policy_<setting> and --out keeps the others")
+                        "--episodes per saved seed; the rows are named <tag>_<setting> and --out keeps the others")
+    p.add_argument("--tag", default="policy", help="with --policy: the rows' name prefix (default policy), e.g. "
+                                                    "box2d_policy for a policy trained in Box2D")
     p.add_argument("--out", default=None, help="write the JSON record here (e.g. docs/results/bipedal.json)")
     args = p.parse_args(argv)
     if args.policy is not None:
@@ -189,6 +194,8 @@ def main(argv=None) -> int:
             p.error("--policy runs with Gymnasium's edges and Box2D's 180/60 passes; drop --gym-chain/--iterations")
         if not pathlib.Path(args.policy).is_file():
             p.error(f"--policy {args.policy}: no such file")
+    if not re.fullmatch(r"[a-z0-9_]+", args.tag):
+        p.error(f"--tag must be lower-case letters, digits and _, got {args.tag!r}")
     names = [n.strip() for n in args.settings.split(",")]
     unknown = [n for n in names if n not in SETTINGS]
     if unknown:
@@ -295,7 +302,7 @@ def policy_main(args, names, record) -> int:
                                  dict(mean=row["ours_mean"], se=row["ours_se"], fall=row["ours_fall"]))
             print(f"policy {name}: gym {row['gym_mean']:.1f} ours {row['ours_mean']:.1f} "
                   f"parity {'PASS' if row['pass'] else 'FAIL'}", flush=True)
-        rows[f"policy_{name}"] = row
+        rows[f"{args.tag}_{name}"] = row
     if args.out:  # add the policy rows to an existing record, keeping its other rows and header
         write_record(args.out, {k: record[k] for k in PROVENANCE}, rows, header=False)
     return 0

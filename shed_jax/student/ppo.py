@@ -201,6 +201,47 @@ class PPOStudent:
             env_state=env_state, obs=obs.astype(jnp.float32), levels=slot_levels, ret_norm=state.ret_norm.reset()
         )
 
+    def act_step(self, params, obs_norm: RunningMeanStd, key, obs):
+        """The acting half of one rollout step, for [num_envs] raw observations: the observation
+        statistics updated with them (if normalised), then (normalised obs, sampled action, its log-prob,
+        V(obs)). ``rollout`` and the host-env rollouts (experiments/bipedal_box2d_ppo.py) share it."""
+        if self.config.normalize_observations:
+            obs_norm = obs_norm.update(obs)
+        obs_n = self._norm_obs(obs_norm, obs)
+        out = self.policy_output(params, obs_n)
+        value = self.value(params, obs_n)
+        action = dist_sample(key, out, self.discrete)
+        return obs_norm, (obs_n, action, dist_log_prob(out, action, self.discrete), value)
+
+    def record_step(self, params, hp: PPOHyperparams, obs_norm: RunningMeanStd, ret_norm, acted, reward, done, info):
+        """The learning half of one rollout step: the step's ``Trajectory`` row from ``act_step``'s output and
+        the env's answer (``info``: ``final_obs``, the pre-reset observation, ``terminated``, ``truncated``,
+        ``episode_return``, ``episode_length``), with the bootstrap value V(final_obs) (0 on termination)
+        and the learning reward (scaled if return normalisation is on) -> (ret_norm, row)."""
+        cfg = self.config
+        obs_n, action, log_prob, value = acted
+        next_obs = self._norm_obs(obs_norm, info["final_obs"].astype(jnp.float32))
+        next_value = losses.bootstrap_values(self.value(params, next_obs), info["terminated"])
+        if cfg.normalize_returns:
+            ret_norm, learn_reward = ret_norm.step(reward, done, hp.gamma, cfg.reward_clip)
+        else:
+            learn_reward = reward
+        return ret_norm, Trajectory(
+            obs=obs_n,
+            actions=action,
+            log_probs=log_prob,
+            values=value,
+            rewards=learn_reward,
+            raw_rewards=reward,
+            dones=done,
+            terminated=info["terminated"],
+            truncated=info["truncated"],
+            next_obs=next_obs,
+            next_values=next_value,
+            episode_returns=info["episode_return"],
+            episode_lengths=info["episode_length"],
+        )
+
     def rollout(self, state: StudentState, key, next_levels=None):
         """config.num_steps steps of all slots with the current policy -> (state, Trajectory).
 
@@ -226,36 +267,10 @@ class PPOStudent:
             if switching:
                 k, k_swap = jax.random.split(k)
             k_act, k_env = jax.random.split(k)
-            if cfg.normalize_observations:
-                obs_norm = obs_norm.update(obs)
-            obs_n = self._norm_obs(obs_norm, obs)
-            out = self.policy_output(params, obs_n)
-            value = self.value(params, obs_n)
-            action = dist_sample(k_act, out, self.discrete)
-            log_prob = dist_log_prob(out, action, self.discrete)
+            obs_norm, acted = self.act_step(params, obs_norm, k_act, obs)
             keys = jax.random.split(k_env, cfg.num_envs)
-            obs2, env_state2, reward, done, info = jax.vmap(self.env.step)(keys, env_state, self._env_action(action), levels)
-            next_obs = self._norm_obs(obs_norm, info["final_obs"].astype(jnp.float32))
-            next_value = losses.bootstrap_values(self.value(params, next_obs), info["terminated"])
-            if cfg.normalize_returns:
-                ret_norm, learn_reward = ret_norm.step(reward, done, hp.gamma, cfg.reward_clip)
-            else:
-                learn_reward = reward
-            tr = Trajectory(
-                obs=obs_n,
-                actions=action,
-                log_probs=log_prob,
-                values=value,
-                rewards=learn_reward,
-                raw_rewards=reward,
-                dones=done,
-                terminated=info["terminated"],
-                truncated=info["truncated"],
-                next_obs=next_obs,
-                next_values=next_value,
-                episode_returns=info["episode_return"],
-                episode_lengths=info["episode_length"],
-            )
+            obs2, env_state2, reward, done, info = jax.vmap(self.env.step)(keys, env_state, self._env_action(acted[1]), levels)
+            ret_norm, tr = self.record_step(params, hp, obs_norm, ret_norm, acted, reward, done, info)
             if switching:  # an episode ended: the slot's next episode starts on its next level
                 moved = done & pending
                 levels, env_state2, obs2 = jax.vmap(swap)(moved, jax.random.split(k_swap, cfg.num_envs), next_levels,
