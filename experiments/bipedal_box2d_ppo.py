@@ -94,8 +94,13 @@ def train_one(student, envs: HostEnvs, key, num_updates: int, progress=print):
     import jax.numpy as jnp
 
     cfg = student.config
-    act = jax.jit(lambda params, obs_norm, k, obs: (lambda n, a: (n, a, student._env_action(a[1])))(
-        *student.act_step(params, obs_norm, k, obs)))
+
+    @jax.jit
+    def act(params, obs_norm, k, obs):
+        """act_step plus the action the env receives (clipped to the action box)."""
+        obs_norm, acted = student.act_step(params, obs_norm, k, obs)
+        return obs_norm, acted, student._env_action(acted[1])
+
     record = jax.jit(student.record_step)
     update = jax.jit(student.update)
     k_init, key = jax.random.split(key)
@@ -135,6 +140,7 @@ def main(argv=None) -> int:
     for name in ("total_steps", "seeds", "workers"):
         if getattr(a, name) < 1:
             p.error(f"--{name.replace('_', '-')} must be >= 1, got {getattr(a, name)}")
+    from shed_jax import configs
     from shed_jax.student.config import PPOConfig, parse_overrides
 
     try:
@@ -165,7 +171,7 @@ def main(argv=None) -> int:
     save_policy(out / "policy.msgpack", jax.tree_util.tree_map(lambda *x: np.stack(x), *states))
     summary = {**provenance("experiments.bipedal_box2d_ppo", sys.argv[1:] if argv is None else argv),
                "env": GYM_ID, "seeds": a.seeds, "env_steps_per_seed": curves[0][-1][0], "workers": a.workers,
-               "ppo": {k: v for k, v in vars(cfg).items() if isinstance(v, (int, float, bool, str))},
+               "ppo": configs.to_dict(cfg),
                "final_episode_return_per_seed": [c[-1][1] for c in curves],
                "curve": [[int(s), r] for s, r in curves[0]]}
     (out / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
