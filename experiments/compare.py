@@ -310,7 +310,7 @@ def write_plots(runs: list[Run], out: pathlib.Path, paper: str | None = None) ->
         group = [r for r in runs if r.env == env]
         curves = {}
         for r in group:
-            label = f"{r.label} (last teacher episode)" if r.num_episodes > 1 else r.label
+            label = reporting.episode_label(r.label, r.hist, r.num_episodes)
             curves[label] = curve(r)
         refs = {}
         if paper is not None and paper_env(env) == paper:

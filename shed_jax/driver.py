@@ -663,14 +663,11 @@ def make_plots(exp, env, hist: dict, out: pathlib.Path) -> None:
     """test_return.png, test_return_per_level.png and generated_levels.png of one run."""
     from shed_jax import reporting
 
-    episode = hist["episode"][0]
-    last = episode == episode[-1]
-    x = np.cumsum(hist["info/env_steps_train"][0, last].astype(np.float64))
-    y = hist["test_return"][:, last]
-    label = f"{exp.method} (last teacher episode)" if exp.loop.num_episodes > 1 else exp.method
+    x, y = reporting.last_episode_curve(hist, "test_return")
+    label = reporting.episode_label(exp.method, hist, exp.loop.num_episodes)
     reporting.plot_curves({label: (x, y)}, out / "test_return.png", xlabel="student env steps", ylabel="mean test return",
                           title=f"{exp.method} on {exp.env}: test return (mean ± SE over seeds)")
-    per_level = hist["test_return_per_level"][:, last]  # [S, steps, L]
+    x, per_level = reporting.last_episode_curve(hist, "test_return_per_level")  # [S, steps, L]
     # one small panel per level, shared axes (ten overlaid bands could not be told apart)
     reporting.plot_per_level(x, per_level, out / "test_return_per_level.png", xlabel="student env steps",
                              ylabel="test return", title=f"{exp.method} on {exp.env}: per test level (mean ± SE over seeds)")

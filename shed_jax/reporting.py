@@ -150,19 +150,36 @@ def records_to_arrays(records: list[dict]) -> dict[str, np.ndarray]:
 # --------------------------------------------------------------------------------------------
 
 
+def last_tested_episode(hist: dict[str, np.ndarray], key: str = "test_return") -> int:
+    """The last teacher episode in which any seed has a finite ``hist[key]``; the last episode when
+    none has. A finished run tests its last episode; a partial one (stopped by ``--time-limit``, or
+    resumed mid-way) may not have yet, and then reports the last episode that was tested."""
+    episode = np.asarray(hist["episode"])[0]
+    y = np.asarray(hist[key], np.float64)
+    tested = np.any(np.isfinite(y.reshape(y.shape[0], y.shape[1], -1)), axis=(0, 2))
+    return int(episode[tested][-1]) if tested.any() else int(episode[-1])
+
+
 def last_episode_curve(hist: dict[str, np.ndarray], key: str = "test_return") -> tuple[np.ndarray, np.ndarray]:
-    """(x, y) of the last teacher episode: x = cumulative student env steps of seed 0 within it
-    ``[n]``, y = ``hist[key]`` over those steps ``[seeds, n, ...]``.
+    """(x, y) of the last tested teacher episode (``last_tested_episode``): x = cumulative student
+    env steps of seed 0 within it ``[n]``, y = ``hist[key]`` over those steps ``[seeds, n, ...]``.
 
     For methods with one episode this is the whole run. Steps where every seed has NaN (no
     test-set evaluation at that step, ``LoopSpec.test_every > 1``) are dropped.
     """
     episode = np.asarray(hist["episode"])[0]
-    last = episode == episode[-1]
+    last = episode == last_tested_episode(hist, key)
     x = np.cumsum(np.asarray(hist["info/env_steps_train"])[0, last].astype(np.float64))
     y = np.asarray(hist[key])[:, last].astype(np.float64)
     keep = ~np.all(np.isnan(y.reshape(y.shape[0], y.shape[1], -1)), axis=(0, 2))
     return x[keep], y[:, keep]
+
+
+def episode_label(name: str, hist: dict[str, np.ndarray], num_episodes: int) -> str:
+    """``name``, with the teacher episode (counted from 1) its curve shows when the run has several."""
+    if num_episodes <= 1:
+        return name
+    return f"{name} (teacher episode {last_tested_episode(hist) + 1})"
 
 
 def final_value(y: np.ndarray) -> tuple[float, float, int]:

@@ -38,6 +38,26 @@ def test_final_value_uses_last_evaluated_step():
     assert math.isnan(reporting.final_value(np.full((2, 3), np.nan))[0])
 
 
+def test_curve_of_the_last_tested_teacher_episode():
+    nan = np.nan
+    # 2 seeds, 3 teacher episodes of 2 steps; episode 2 (the last) not tested yet, as in a run
+    # stopped by --time-limit: the curve is episode 1's, x counted within it
+    hist = {"episode": np.array([[0, 0, 1, 1, 2, 2]] * 2),
+            "info/env_steps_train": np.full((2, 6), 100),
+            "test_return": np.array([[1.0, 2.0, nan, 4.0, nan, nan], [3.0, 4.0, nan, 6.0, nan, nan]])}
+    assert reporting.last_tested_episode(hist) == 1
+    x, y = reporting.last_episode_curve(hist)
+    np.testing.assert_array_equal(x, [200.0])  # episode 1's untested first step dropped
+    np.testing.assert_array_equal(y, [[4.0], [6.0]])
+    assert reporting.episode_label("shed", hist, 3) == "shed (teacher episode 2)"
+    assert reporting.episode_label("dr", hist, 1) == "dr"
+    hist["test_return"][:, 5] = [7.0, nan]  # one seed tested in the last episode: that episode
+    assert reporting.last_tested_episode(hist) == 2
+    np.testing.assert_array_equal(reporting.last_episode_curve(hist)[0], [200.0])
+    hist["test_return"][:] = nan  # nothing tested: the last episode, no points
+    assert reporting.last_tested_episode(hist) == 2 and reporting.last_episode_curve(hist)[0].size == 0
+
+
 def test_records_round_trip_with_nan_and_nested_arrays():
     metrics = {
         "step": np.array([[0, 1], [0, 1]], np.int32),
