@@ -56,7 +56,7 @@ class LoopSpec:
     test_episode_every: int = 1
     # At most this many of a budget step's levels go into the metrics record (evenly spaced rows,
     # methods.base.thin_levels); None records all of them, as runs saved before this field did.
-    max_recorded_levels: int | None = 256
+    max_recorded_levels: int | None = 64
 
     def __post_init__(self):
         for name in ("steps_per_episode", "num_episodes", "test_episodes", "test_every", "test_episode_every"):

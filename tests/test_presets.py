@@ -111,7 +111,7 @@ def test_saved_configs_round_trip_and_older_ones_record_every_level():
 
     e = build_experiment("walker", "dr", "paper")
     d = e.to_dict()
-    assert d["loop"]["max_recorded_levels"] == 256 and xp.experiment_from_dict(d) == e
+    assert d["loop"]["max_recorded_levels"] == 64 and xp.experiment_from_dict(d) == e
     # a config.json written before LoopSpec.max_recorded_levels existed keeps its old behaviour on
     # --resume: every level recorded, so the metrics arrays of its steps keep one shape
     del d["loop"]["max_recorded_levels"]

@@ -5,6 +5,7 @@ import json
 import math
 import pathlib
 
+import jax.numpy as jnp
 import numpy as np
 import pytest
 from PIL import Image
@@ -68,10 +69,13 @@ def test_records_round_trip_with_nan_and_nested_arrays():
     records = [json.loads(line) for line in lines]
     assert records[1] == {"seed": 1, "step": 0, "test_return": 2.5, "info/levels": [[12.0, 13.0], [14.0, 15.0], [16.0, 17.0]]}
     assert records[2]["test_return"] is None  # NaN -> null in JSON
-    # each float as Python writes float(value): the stored value exactly, as the json module would
+    # each float with the shortest digits that read back to it in its own precision
     x = np.float32(0.1)
-    line = reporting.jsonl_bytes(reporting.step_records({"v": np.array([[x]]), "w": np.array([[np.inf]])}, [0]))
-    assert line == (json.dumps({"seed": 0, "v": float(x), "w": None}, separators=(",", ":")) + "\n").encode()
+    line = reporting.jsonl_bytes(reporting.step_records(
+        {"v": np.array([[x]]), "d": np.array([[float(x)]]), "h": np.array([[0.1]], jnp.bfloat16),
+         "w": np.array([[np.inf]], np.float32)}, [0]))
+    assert line == b'{"seed":0,"v":0.1,"d":0.10000000149011612,"h":0.100097656,"w":null}\n'
+    assert np.float32(json.loads(line)["v"]) == x  # lossless for float32
     back = reporting.records_to_arrays(records)
     np.testing.assert_array_equal(back["step"], metrics["step"])
     np.testing.assert_array_equal(back["test_return"], metrics["test_return"])  # NaN compares equal here
