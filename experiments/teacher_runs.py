@@ -16,6 +16,10 @@ teacher episodes: its episode-0 and gain fields are null).
     # a figure: test return (mean ± SE over seeds) and diagnostics by teacher episode, one line per run
     python -m experiments.teacher_runs plot compact.json [...] --only NAME [--only NAME] --out fig.png
 
+Runs with ``--set reward_noise_check=true`` also get ``reward_noise``: the noise SD of the teacher
+reward with common random numbers (one key for s and s') and with two keys, beside the reward's own
+SD, by budget step of the episode (:func:`reward_noise`).
+
 Per run it keeps, for each seed, the test return of every tested teacher episode (the test set runs
 at the episode's last budget step) and, per teacher episode, the means over steps of the diagnostics
 ``at_bound_fraction``, ``td_error_heldout``, ``state_noise_sd``, ``box_width``, ``action_abs_mean``
@@ -43,11 +47,40 @@ def _num(v):
     return float(np.nanmean(a)) if a.size else math.nan
 
 
+CHECKS = ("reward_again", "reward_crossed", "reward_crossed_back")
+#: budget-step buckets of a teacher episode for the reward noise: the first step (the fresh student's
+#: big change), the next four, and the rest (the student near its plateau)
+NOISE_BUCKETS = (("t0", 0, 1), ("t1-4", 1, 5), ("t5+", 5, None))
+
+
+def reward_noise(rows: list[tuple[int, float, float, float, float]]) -> dict:
+    """The teacher reward's noise from ``reward_noise_check`` rows (step in episode, r, again, crossed,
+    crossed back), per bucket of ``NOISE_BUCKETS`` and over all steps.
+
+    r and ``again`` reward the same two students with one key each for s and s' (common random
+    numbers), ``crossed`` and ``crossed_back`` with different keys for s and s'. Two independent draws
+    x, y of one quantity give its SD as sqrt(mean((x - y)^2) / 2): ``paired_noise_sd`` from (r, again),
+    ``crossed_noise_sd`` from (crossed, crossed_back). ``reward_sd`` is the SD of r over the rows
+    (signal and noise), ``reward_mean`` its mean, ``n`` the rows."""
+    a = np.asarray(rows, np.float64).reshape(-1, 5)
+    a = a[np.all(np.isfinite(a[:, 1:]), axis=1)]
+    out = {}
+    for name, lo, hi in NOISE_BUCKETS + (("all", 0, None),):
+        b = a[(a[:, 0] >= lo) & ((a[:, 0] < hi) if hi is not None else True)]
+        if len(b) < 2:
+            continue
+        out[name] = {"n": int(len(b)), "reward_mean": float(b[:, 1].mean()), "reward_sd": float(b[:, 1].std(ddof=1)),
+                     "paired_noise_sd": float(np.sqrt(np.mean((b[:, 1] - b[:, 2]) ** 2) / 2)),
+                     "crossed_noise_sd": float(np.sqrt(np.mean((b[:, 3] - b[:, 4]) ** 2) / 2))}
+    return out
+
+
 def summarise_point(point_dir: pathlib.Path) -> dict:
     """One ``<method>/<point>/`` directory -> per-seed test returns by episode and per-episode diagnostics."""
     summary = json.loads((point_dir / "summary.json").read_text())
     tests: dict[int, dict[int, float]] = {}
     diag: dict[str, dict[int, list]] = {k: {} for k in DIAGNOSTICS + ("teacher_reward",)}
+    checks = []
     with open(point_dir / "metrics.jsonl") as f:
         for line in f:
             row = json.loads(line)
@@ -60,6 +93,9 @@ def summarise_point(point_dir: pathlib.Path) -> dict:
                 if key in row:
                     diag[k].setdefault(ep, []).append(_num(row[key]))
             diag["teacher_reward"].setdefault(ep, []).append(_num(row.get("info/teacher_reward")))
+            if row.get(f"info/extras/{CHECKS[0]}") is not None:
+                checks.append((row["step_in_episode"], _num(row.get("info/teacher_reward")),
+                               *(_num(row.get(f"info/extras/{k}")) for k in CHECKS)))
     per_episode = {k: {str(ep): float(np.nanmean(v)) if np.isfinite(v).any() else None for ep, v in sorted(d.items())}
                    for k, d in diag.items() if d}
     return {
@@ -68,6 +104,7 @@ def summarise_point(point_dir: pathlib.Path) -> dict:
         "final_per_seed": summary["final_test_return_per_seed"],
         "test_by_seed_episode": {str(s): {str(e): v for e, v in sorted(d.items())} for s, d in sorted(tests.items())},
         "diagnostics_by_episode": per_episode,
+        **({"reward_noise": reward_noise(checks)} if checks else {}),
     }
 
 
@@ -157,6 +194,7 @@ def aggregate(runs: list[dict]) -> dict:
             "episode0_mean": e0m, "episode0_se": e0s, "paired_gain_mean": gm, "paired_gain_se": gs,
             "at_bound_fraction": float(np.mean(bounds)) if bounds else None,
             "runs": [{k: r.get(k) for k in ("sweep", "point", "seeds", "wall_time_s")} for r in rs],
+            **({"reward_noise": [r["reward_noise"] for r in rs]} if any("reward_noise" in r for r in rs) else {}),
             "diagnostics_by_episode": rs[0]["diagnostics_by_episode"] if len(rs) == 1 else
             {k: {ep: float(np.nanmean([r["diagnostics_by_episode"][k][ep] for r in rs
                                        if r["diagnostics_by_episode"].get(k, {}).get(ep) is not None] or [math.nan]))

@@ -4,7 +4,7 @@ import math
 
 import pytest
 
-from experiments.teacher_runs import aggregate, record, summarise_point
+from experiments.teacher_runs import aggregate, record, reward_noise, summarise_point
 
 
 def _write_point(d, method, point, rows, finals):
@@ -44,6 +44,28 @@ def test_summarise_and_pool_two_runs(tmp_path):
     record([tmp_path / "c.json"], tmp_path / "r.json", "cpu", "cmd", "2026-01-01", ["a note"])
     rec = json.loads((tmp_path / "r.json").read_text())
     assert rec["device"] == "cpu" and rec["notes"] == ["a note"] and rec["lander"]["hmdp-x"]["seeds"] == 2
+
+
+def test_reward_noise_hand_computed_and_summarised(tmp_path):
+    # (step in episode, r, again, crossed, crossed back)
+    rows = [(0, 10.0, 8.0, 12.0, 6.0), (0, 20.0, 20.0, 14.0, 26.0), (3, 1.0, 3.0, 0.0, 4.0), (7, 2.0, 2.0, 2.0, 2.0),
+            (8, 4.0, 2.0, float("nan"), 1.0)]  # a row with a NaN check is left out
+    out = reward_noise(rows)
+    assert out["t0"] == {"n": 2, "reward_mean": 15.0, "reward_sd": pytest.approx(50 ** 0.5),
+                         "paired_noise_sd": pytest.approx((4 / 2 / 2) ** 0.5),  # diffs 2, 0
+                         "crossed_noise_sd": pytest.approx(((36 + 144) / 2 / 2) ** 0.5)}  # diffs 6, -12
+    assert "t1-4" not in out and "t5+" not in out  # one row each: no SD
+    assert out["all"]["n"] == 4 and out["all"]["paired_noise_sd"] == pytest.approx(((4 + 0 + 4 + 0) / 4 / 2) ** 0.5)
+    d = tmp_path / "s" / "hmdp-x" / "default"
+    base = _rows(0, [10.0, 14.0], [[0.0, 0.2], [0.1, 0.3]])
+    for i, r in enumerate(base):  # teacher reward 1 + t; the checks 1 + t + 1, + 2, - 2
+        t = i % 2
+        r.update({"step_in_episode": t, "info/extras/reward_again": 2.0 + t, "info/extras/reward_crossed": 3.0 + t,
+                  "info/extras/reward_crossed_back": -1.0 + t})
+    _write_point(d, "hmdp-x", "default", base, [14.0])
+    noise = summarise_point(d)["reward_noise"]
+    assert noise["all"]["paired_noise_sd"] == pytest.approx(0.5 ** 0.5) and noise["all"]["crossed_noise_sd"] == pytest.approx(8 ** 0.5)
+    assert aggregate([summarise_point(d)])["hmdp-x"]["reward_noise"] == [noise]
 
 
 def test_a_sweeps_set_values_keep_its_runs_apart(tmp_path):

@@ -167,6 +167,28 @@ def test_step_episode_levels_crn_and_signed_fixed_scale_reward(name):
     np.testing.assert_allclose(method.performance(m.eval_key, last)[0], states[-1], rtol=1e-5)
     if name == "shed-x":
         assert method.synthesiser.model.config.state_dim == 11 and int(ext["syn_size"][-1]) > 0
+    assert all(np.all(np.isnan(ext[k])) for k in ("reward_again", "reward_crossed", "reward_crossed_back"))  # check off
+
+
+def test_reward_noise_check_rewards_the_same_students_again_with_a_second_key():
+    method = _build("hmdp-x", reward_noise_check=True, eval_max_steps=64)  # CartPole's returns vary by then
+    m, s0, info, students = _run(method)
+    ext = info.extras
+    states = np.concatenate([np.asarray(s0)[None], np.asarray(ext["teacher_state"])])
+    k2 = jax.random.fold_in(m.eval_key, 2)  # CRN: the step's key is the episode's; the check folds in 2
+    for t in range(1, 4):  # the student before step t's training is the one step t - 1 returned
+        before, after = (jax.tree_util.tree_map(lambda x, i=i: x[i], students) for i in (t - 1, t))
+        s2, s_next2 = method.performance(k2, before)[0], method.performance(k2, after)[0]
+        np.testing.assert_allclose(ext["reward_again"][t], (s_next2 - s2).sum() / 100.0, rtol=1e-4, atol=1e-5)
+        np.testing.assert_allclose(ext["reward_crossed"][t], (s_next2 - states[t]).sum() / 100.0, rtol=1e-4, atol=1e-5)
+        np.testing.assert_allclose(ext["reward_crossed_back"][t], (states[t + 1] - s2).sum() / 100.0, rtol=1e-4, atol=1e-5)
+    # the signed sum is linear: the two paired and the two crossed rewards have the same total
+    np.testing.assert_allclose(info.teacher_reward + ext["reward_again"], ext["reward_crossed"] + ext["reward_crossed_back"],
+                               rtol=1e-4, atol=1e-5)
+    assert not np.allclose(info.teacher_reward, ext["reward_again"])  # another key, other episodes
+    # three evaluations per step (s' and the two checks), and step 0 pays begin_episode's s_0
+    per_eval = 10 * 1 * 64  # m levels x 1 episode x 64 steps
+    np.testing.assert_array_equal(info.env_steps_eval, [4 * per_eval] + [3 * per_eval] * 3)
 
 
 def test_crn_off_and_block_levels_are_h_mdp_like():

@@ -30,7 +30,10 @@ batch (``reward_norm='batch'``; 'none' keeps them raw). With ``time_in_state`` t
 Diagnostics in every step's ``extras``: ``at_bound_fraction`` (generated parameters within 1 % of the
 range of a bound of Θ), ``td_error_heldout`` (the critic's |TD error| on the new transition before
 any update has used it) and, with ``state_noise_check``, ``state_noise_sd`` (the SD of one evaluation
-of the teacher state, from a second evaluation of the same student with another key; NaN when off). The teacher's networks, the synthesiser and both buffers persist across teacher episodes;
+of the teacher state, from a second evaluation of the same student with another key; NaN when off)
+and, with ``reward_noise_check``, ``reward_again``, ``reward_crossed`` and ``reward_crossed_back``
+(the step's reward from a second evaluation of the students before and after its training; NaN when
+off). The teacher's networks, the synthesiser and both buffers persist across teacher episodes;
 ``begin_episode`` only evaluates the fresh student to get s_0 and resets the step counter.
 
 Static settings live in a frozen config (:class:`HMDPConfig` here, ``SHEDConfig`` for SHED); the
@@ -94,6 +97,12 @@ class TeacherConfig:
     # Diagnostic: evaluate the stepped student a second time with another key and log the noise SD of
     # the teacher state (``state_noise_sd``); costs one evaluation per budget step, charged as eval steps.
     state_noise_check: bool = False
+    # Diagnostic: evaluate the student before and after the step's training again with a second key,
+    # and log the reward computed three more ways (``reward_again``: both with the second key;
+    # ``reward_crossed`` / ``reward_crossed_back``: s and s' with different keys). With the
+    # step's own reward they give the noise SD of a reward from one key for s and s' (common random
+    # numbers) and from two keys (``experiments.teacher_runs``). Costs two evaluations per budget step.
+    reward_noise_check: bool = False
 
     #: fields that must be positive ints
     POSITIVE: ClassVar[tuple] = ("updates_per_step", "num_levels", "budget_steps", "num_eval_episodes", "num_eval_levels",
@@ -106,7 +115,7 @@ class TeacherConfig:
             if not isinstance(v, int) or v < 1:
                 raise ValueError(f"{name}.{field} must be a positive int, got {v!r}")
         check_modes(self)
-        for field in ("time_in_state", "state_noise_check"):
+        for field in ("time_in_state", "state_noise_check", "reward_noise_check"):
             if not isinstance(getattr(self, field), bool):
                 raise ValueError(f"{name}.{field} must be True or False, got {getattr(self, field)!r}")
         for field in ("actor_lr", "critic_lr"):
@@ -207,6 +216,7 @@ class Experience:
     ppo: Any  # the PPO metrics, mean over the step's updates
     env_steps_eval: jax.Array  # int32 evaluation env steps (with begin_episode's, pending)
     state_noise: jax.Array  # the noise SD of s' (NaN without ``state_noise_check``)
+    reward_checks: jax.Array  # [3] the reward again, crossed, crossed back (NaN without ``reward_noise_check``)
     extras: dict  # a variant's ``extra_info``
 
 
@@ -484,6 +494,7 @@ class HierarchicalTeacher:
         k_act, k_seed, k_train, k_eval = keys
         ts = self.teacher_state(mstate.s, mstate.t)
         u = self.teacher.act(mstate.ddpg, ts, k_act, hp.explore_sigma)
+        before = sstate
         sstate, vecs, played, ppo = self.train_on_action((k_seed, k_train), sstate, u)
         k_eval = self.evaluation_key(mstate, k_eval)
         if test is None:
@@ -499,9 +510,18 @@ class HierarchicalTeacher:
             state_noise, eval_steps = noise_sd(s_next, s_again), eval_steps + again_steps
         else:
             state_noise = jnp.float32(jnp.nan)
+        if cfg.reward_noise_check:  # s (the student before training) and s' again, with a second key
+            k2 = jax.random.fold_in(k_eval, 2)
+            (s2, n_before), (s_next2, n_after) = self.performance(k2, before), self.performance(k2, sstate)
+            ts2, ts_next2 = self.teacher_state(s2, mstate.t), self.teacher_state(s_next2, mstate.t + 1)
+            reward = self.reward_fn_for(hp.eta)
+            checks = jnp.stack([reward(ts2, u, ts_next2), reward(ts, u, ts_next2), reward(ts2, u, ts_next)])
+            eval_steps = eval_steps + n_before + n_after
+        else:
+            checks = jnp.full((3,), jnp.nan, jnp.float32)
         exp = Experience(transition=Transition(s=ts, u=u, r=r, s_next=ts_next, done=done), s_next=s_next, levels=vecs,
                          played=played, ppo=mean_metrics(ppo), env_steps_eval=eval_steps + mstate.pending_eval_steps,
-                         state_noise=state_noise, extras=self.extra_info(u, vecs, played))
+                         state_noise=state_noise, reward_checks=checks, extras=self.extra_info(u, vecs, played))
         return sstate, exp, test_rets
 
     def learn(self, keys, mstate: HierarchicalState, transition: Transition) -> tuple[HierarchicalState, Learned]:
@@ -548,6 +568,9 @@ class HierarchicalTeacher:
                 "at_bound_fraction": at_bound_fraction(self.codec.space, exp.levels, exp.played),
                 "td_error_heldout": learned.td_heldout,
                 "state_noise_sd": exp.state_noise,
+                "reward_again": exp.reward_checks[..., 0],
+                "reward_crossed": exp.reward_checks[..., 1],
+                "reward_crossed_back": exp.reward_checks[..., 2],
                 **exp.extras,
             },
         )
