@@ -71,7 +71,7 @@ def _serialisable(x: np.ndarray) -> np.ndarray:
     (bfloat16 and float16, which orjson lacks, become float32). Each value is written with the
     shortest digits that read back to it in its own precision: ``0.1`` for float32 0.1, not
     ``0.10000000149011612``. This is lossless for the float32 metrics and halves ``metrics.jsonl``
-    (a walker step records 256 levels x 8 parameters per seed). Small exponents are spelt out:
+    (a walker step records up to 64 levels x 8 parameters per seed). Small exponents are spelt out:
     ``0.00001``, not ``1e-05``."""
     x = np.asarray(x)
     if x.dtype.kind not in "iub" and x.dtype not in (np.float32, np.float64):
