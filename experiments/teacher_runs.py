@@ -50,7 +50,7 @@ def _num(v):
 CHECKS = ("reward_again", "reward_crossed", "reward_crossed_back")
 #: budget-step buckets of a teacher episode for the reward noise: the first step (the fresh student's
 #: big change), the next four, and the rest (the student near its plateau)
-NOISE_BUCKETS = (("t0", 0, 1), ("t1-4", 1, 5), ("t5+", 5, None))
+NOISE_BUCKETS = (("t0", 0, 1), ("t1-4", 1, 5), ("t5+", 5, math.inf))
 
 
 def reward_noise(rows: list[tuple[int, float, float, float, float]]) -> dict:
@@ -65,8 +65,8 @@ def reward_noise(rows: list[tuple[int, float, float, float, float]]) -> dict:
     a = np.asarray(rows, np.float64).reshape(-1, 5)
     a = a[np.all(np.isfinite(a[:, 1:]), axis=1)]
     out = {}
-    for name, lo, hi in NOISE_BUCKETS + (("all", 0, None),):
-        b = a[(a[:, 0] >= lo) & ((a[:, 0] < hi) if hi is not None else True)]
+    for name, lo, hi in NOISE_BUCKETS + (("all", 0, math.inf),):
+        b = a[(a[:, 0] >= lo) & (a[:, 0] < hi)]
         if len(b) < 2:
             continue
         out[name] = {"n": int(len(b)), "reward_mean": float(b[:, 1].mean()), "reward_sd": float(b[:, 1].std(ddof=1)),

@@ -512,11 +512,13 @@ class HierarchicalTeacher:
             state_noise = jnp.float32(jnp.nan)
         if cfg.reward_noise_check:  # s (the student before training) and s' again, with a second key
             k2 = jax.random.fold_in(k_eval, 2)
-            (s2, n_before), (s_next2, n_after) = self.performance(k2, before), self.performance(k2, sstate)
+            # the two students side by side: one rollout's sequential steps, not two
+            pair = jax.tree_util.tree_map(lambda a, b: jnp.stack([a, b]), before, sstate)
+            (s2, s_next2), n_pair = jax.vmap(lambda st: self.performance(k2, st))(pair)
             ts2, ts_next2 = self.teacher_state(s2, mstate.t), self.teacher_state(s_next2, mstate.t + 1)
             reward = self.reward_fn_for(hp.eta)
             checks = jnp.stack([reward(ts2, u, ts_next2), reward(ts, u, ts_next2), reward(ts2, u, ts_next)])
-            eval_steps = eval_steps + n_before + n_after
+            eval_steps = eval_steps + n_pair.sum()
         else:
             checks = jnp.full((3,), jnp.nan, jnp.float32)
         exp = Experience(transition=Transition(s=ts, u=u, r=r, s_next=ts_next, done=done), s_next=s_next, levels=vecs,
