@@ -500,6 +500,23 @@ def _chunks(batch, compiled, progress, out, stop, reporter, ckpt, w) -> tuple[in
         raise
 
 
+def extend_history(history: dict, chunk: dict) -> dict:
+    """The run's per-step records ``{key: [S, steps, ...]}`` with a chunk's ``[S, n, ...]`` appended on the step
+    axis. A key the history lacks (a run resumed from a checkpoint of a version that did not record it) is
+    NaN for the earlier steps (0 for an integer key); a key the chunk lacks is dropped."""
+    if not history:
+        return dict(chunk)
+    done = next(iter(history.values())).shape[1]
+    out = {}
+    for k, v in chunk.items():
+        old = history.get(k)
+        if old is None:
+            fill = np.nan if np.issubdtype(v.dtype, np.inexact) else 0
+            old = np.full(v.shape[:1] + (done,) + v.shape[2:], fill, v.dtype)
+        out[k] = np.concatenate([old, v], axis=1)
+    return out
+
+
 def _chunk_loop(batch, compiled, progress, out, stop, reporter, ckpt, w, writes) -> tuple[int, str] | None:
     from shed_jax import reporting, sharding
     from shed_jax.checkpoint import find_nonfinite
@@ -544,8 +561,7 @@ def _chunk_loop(batch, compiled, progress, out, stop, reporter, ckpt, w, writes)
             stop.stopped = (EXIT_NONFINITE, "non-finite values")
             return stop.stopped
         progress.state = new_state
-        progress.history = flat if not progress.history else {
-            k: np.concatenate([progress.history[k], v], axis=1) for k, v in flat.items()}
+        progress.history = extend_history(progress.history, flat)
         progress.done += n
         final = progress.done >= total
         stopping = not final and stop.check(progress.done) is not None

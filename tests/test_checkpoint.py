@@ -349,6 +349,19 @@ def test_nonfinite_guard_stops_and_keeps_last_good_checkpoint(runs, patched, tmp
     assert len((d / "nonfinite_chunk.jsonl").read_text().splitlines()) == SEEDS
 
 
+def test_history_of_a_resumed_run_takes_keys_added_since_its_checkpoint():
+    # a checkpoint of an older version lacks a key the new chunk records: NaN (0 for integers) before it
+    old = {"a": np.arange(6.0).reshape(2, 3), "gone": np.ones((2, 3))}
+    chunk = {"a": np.full((2, 2), 9.0), "new": np.full((2, 2, 4), 7.0, np.float32), "n": np.ones((2, 2), np.int32)}
+    h = driver.extend_history(old, chunk)
+    assert set(h) == {"a", "new", "n"}
+    np.testing.assert_array_equal(h["a"], [[0, 1, 2, 9, 9], [3, 4, 5, 9, 9]])
+    assert h["new"].shape == (2, 5, 4) and h["new"].dtype == np.float32
+    assert np.isnan(h["new"][:, :3]).all() and (h["new"][:, 3:] == 7).all()
+    np.testing.assert_array_equal(h["n"], [[0, 0, 0, 1, 1]] * 2)
+    assert driver.extend_history({}, chunk) == chunk
+
+
 def test_find_nonfinite_names_components():
     """Unit checks of the guard on hand-made pytrees: which leaves count as parameters, NaN vs Inf in
     metrics, test returns only on test steps."""
