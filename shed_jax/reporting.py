@@ -126,25 +126,28 @@ def records_to_arrays(records: list[dict]) -> dict[str, np.ndarray]:
     """The inverse of ``step_records``: records -> ``{key: [seeds, steps, ...]}``, seeds sorted by id.
 
     Records of one seed are taken in file order (that is, step order). Every seed must have the
-    same number of records and every record the same keys.
+    same number of records. A key only some records hold (a run resumed by a version that logs a
+    metric its checkpoint's version did not) is NaN in the others, with the shape it has where held.
     """
     if not records:
         raise ValueError("records_to_arrays: no records")
-    keys = [k for k in records[0] if k != "seed"]
+    keys: dict[str, Any] = {}  # key -> its first value (the shape of a missing one), in first-seen order
     by_seed: dict[Any, list[dict]] = {}
     for n, r in enumerate(records):
         if "seed" not in r:
             raise ValueError(f"record {n} has no 'seed' field")
-        if set(r) - {"seed"} != set(keys):
-            raise ValueError(f"record {n} has keys {sorted(r)}, expected {sorted(keys + ['seed'])}")
+        for k, v in r.items():
+            if k != "seed" and k not in keys:
+                keys[k] = v
         by_seed.setdefault(r["seed"], []).append(r)
     lengths = {s: len(v) for s, v in by_seed.items()}
     if len(set(lengths.values())) != 1:
         raise ValueError(f"seeds have different numbers of records (a partial write?): {lengths}")
     seeds = sorted(by_seed)
     out = {"seed": np.asarray([[s] * lengths[s] for s in seeds])}
-    for k in keys:
-        out[k] = _to_array([[r[k] for r in by_seed[s]] for s in seeds])
+    for k, first in keys.items():
+        missing = np.full(np.shape(_to_array(first)), np.nan).tolist()
+        out[k] = _to_array([[r.get(k, missing) for r in by_seed[s]] for s in seeds])
     return out
 
 

@@ -83,6 +83,11 @@ def test_records_round_trip_with_nan_and_nested_arrays():
     np.testing.assert_array_equal(back["seed"], [[0, 0], [1, 1]])
     with pytest.raises(ValueError, match="different numbers of records"):
         reporting.records_to_arrays(records[:-1])
+    # a metric logged only from a resume on (a newer version): NaN before, with its shape
+    later = [dict(r, extra=[7.0, 8.0]) if r["step"] == 1 else r for r in records]
+    back = reporting.records_to_arrays(later)
+    assert back["extra"].shape == (2, 2, 2)
+    assert np.isnan(back["extra"][:, 0]).all() and (back["extra"][:, 1] == [7.0, 8.0]).all()
 
 
 def test_text_formatting():
