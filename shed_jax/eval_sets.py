@@ -34,6 +34,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from envs.walker import constants as C
+from envs.walker.params import FULL_HIGH, FULL_LOW
+from envs.walker.params import PARAM_NAMES as WALKER_PARAM_NAMES
+
 
 @dataclasses.dataclass(frozen=True)
 class LevelSet:
@@ -211,21 +215,12 @@ def lander_paper_eval_set(m: int, seed: int = 92) -> LevelSet:
 # Walker
 # --------------------------------------------------------------------------------------------
 
-# DCD FULL ranges of the 8-d level vector (docs/design.md §13.2)
-WALKER_NAMES = (
-    "roughness",
-    "pit_gap_low",
-    "pit_gap_high",
-    "stump_height_low",
-    "stump_height_high",
-    "stair_height_low",
-    "stair_height_high",
-    "stair_steps",
-)
-WALKER_LOW = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)
-WALKER_HIGH = (10.0, 10.0, 10.0, 5.0, 5.0, 5.0, 5.0, 9.0)
+# DCD FULL ranges of the 8-d level vector and the obstacle thresholds: the walker's own (envs/walker)
+WALKER_NAMES = WALKER_PARAM_NAMES
+WALKER_LOW = tuple(float(x) for x in FULL_LOW)
+WALKER_HIGH = tuple(float(x) for x in FULL_HIGH)
 # obstacle present only if its pair's high value reaches the threshold (docs/design.md §13.2)
-WALKER_THRESHOLDS = {"pit_gap": 0.8, "stump_height": 0.2, "stair_height": 0.2}
+WALKER_THRESHOLDS = {"pit_gap": C.PIT_THRESHOLD, "stump_height": C.STUMP_THRESHOLD, "stair_height": C.STAIR_THRESHOLD}
 DCD_TEST_LEVELS = ("BipedalWalker", "Hardcore", "Stairs", "PitGap", "Stump", "Roughness")
 
 
@@ -283,7 +278,7 @@ def walker_test_set_a(names: Sequence[str] = DCD_TEST_LEVELS, terrain_seeds: Seq
     Each level gets a fixed terrain (``fixed_terrain=True``) from a fixed seed list (default
     1000 + i; DCD seeds test terrains from the wall clock, docs/design.md §9.2 fixes them).
     """
-    from envs.walker.levels import LEVELS  # lazy: keeps this module free of env imports
+    from envs.walker.levels import LEVELS  # lazy: envs.walker.levels imports this module
 
     missing = [n for n in names if n not in LEVELS]
     if missing:

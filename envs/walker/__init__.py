@@ -1,9 +1,19 @@
-"""Parametric bipedal walker on MuJoCo MJX with DCD's 8-parameter level space (see docs/walker.md)."""
-from envs.walker.mjx_import import import_mjx
+"""Parametric bipedal walker on MuJoCo MJX with DCD's 8-parameter level space (see docs/walker.md).
 
-import_mjx()  # before env.py's `from mujoco import mjx`: drops MJX's "Failed to import warp" lines
-from envs.walker.env import BipedalWalker, WalkerState  # noqa: E402
-from envs.walker.options import WalkerOptions  # noqa: E402
-from envs.walker.params import PARAM_NAMES, WalkerParams, make_params  # noqa: E402
+The level (``params``, ``levels``, ``constants``, ``terrain``) needs only JAX; ``BipedalWalker``,
+``WalkerState`` and ``WalkerOptions`` load the MJX engine on first use, so the bipedal env and the
+walker's evaluation sets do not import MuJoCo.
+"""
+import importlib
+
+from envs.walker.params import PARAM_NAMES, WalkerParams, make_params
+
+_ENGINE = {"BipedalWalker": "envs.walker.env", "WalkerState": "envs.walker.env", "WalkerOptions": "envs.walker.options"}
 
 __all__ = ["BipedalWalker", "WalkerOptions", "WalkerParams", "WalkerState", "PARAM_NAMES", "make_params"]
+
+
+def __getattr__(name: str):
+    if name in _ENGINE:
+        return getattr(importlib.import_module(_ENGINE[name]), name)
+    raise AttributeError(f"module 'envs.walker' has no attribute {name!r}")

@@ -16,7 +16,6 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 from flax import struct
-from mujoco import mjx
 
 from envs.core import EnvState, Environment
 from envs.walker import constants as C
@@ -26,7 +25,10 @@ from envs.walker import model as M
 from envs.walker import params as P
 from envs.walker import terrain as T
 from envs.walker.interface import WalkerInterface
+from envs.walker.mjx_import import import_mjx
 from envs.walker.options import WalkerOptions
+
+mjx = import_mjx()  # MJX without its "Failed to import warp" lines
 
 _SPEEDS = np.array([C.SPEED_HIP, C.SPEED_KNEE, C.SPEED_HIP, C.SPEED_KNEE], np.float32)
 
