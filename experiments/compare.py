@@ -203,20 +203,22 @@ def pool_runs(runs: list[Run], labels: list[str]) -> list[Run]:
             pooled.append(group[0])
             continue
         first = group[0]
+        # metrics a newer version logs (a run resumed by it) are left out unless every run has them
+        shared = [k for k in first.hist if all(k in r.hist for r in group)]
         for r in group[1:]:
             differ = sorted(k for k in set(r.experiment) | set(first.experiment)
                             if r.experiment.get(k) != first.experiment.get(k))
             if differ:
                 raise ValueError(f"cannot pool {r.path} with {first.path} as {label!r}: their experiments "
                                  f"differ in {differ}")
-            if set(r.hist) != set(first.hist) or any(r.hist[k].shape[1:] != v.shape[1:] for k, v in first.hist.items()):
+            if any(r.hist[k].shape[1:] != first.hist[k].shape[1:] for k in shared):
                 raise ValueError(f"cannot pool {r.path} with {first.path} as {label!r}: their metrics.jsonl "
-                                 "differ in keys or budget steps (did one stop early?)")
+                                 "differ in budget steps (did one stop early?)")
         roots = [r.config.get("root_seed") for r in group]
         if None in roots or len(set(roots)) != len(roots):
             raise ValueError(f"cannot pool the runs labelled {label!r}: their root seeds {roots} must be known "
                              "and distinct (the same root seed gives the same seeds)")
-        hist = {k: np.concatenate([r.hist[k] for r in group], axis=0) for k in first.hist}
+        hist = {k: np.concatenate([r.hist[k] for r in group], axis=0) for k in shared}
         summary = None
         if all(r.summary is not None for r in group):
             m, se = reporting.mean_se(np.asarray(hist["test_return"], np.float64)[:, -1])

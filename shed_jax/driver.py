@@ -503,7 +503,10 @@ def _chunks(batch, compiled, progress, out, stop, reporter, ckpt, w) -> tuple[in
 def extend_history(history: dict, chunk: dict) -> dict:
     """The run's per-step records ``{key: [S, steps, ...]}`` with a chunk's ``[S, n, ...]`` appended on the step
     axis. A key the history lacks (a run resumed from a checkpoint of a version that did not record it) is
-    NaN for the earlier steps (0 for an integer key); a key the chunk lacks is dropped."""
+    NaN for the earlier steps; an integer or boolean one is 0 / False there, which reads as a value, so
+    such keys should be diagnostics, not counts. A key the chunk lacks is dropped."""
+    import jax.numpy as jnp  # JAX is running by now; the module itself imports it late
+
     if not history:
         return dict(chunk)
     done = next(iter(history.values())).shape[1]
@@ -511,7 +514,7 @@ def extend_history(history: dict, chunk: dict) -> dict:
     for k, v in chunk.items():
         old = history.get(k)
         if old is None:
-            fill = np.nan if np.issubdtype(v.dtype, np.inexact) else 0
+            fill = np.nan if jnp.issubdtype(v.dtype, jnp.inexact) else 0  # jnp's: bfloat16 counts as inexact
             old = np.full(v.shape[:1] + (done,) + v.shape[2:], fill, v.dtype)
         out[k] = np.concatenate([old, v], axis=1)
     return out

@@ -319,6 +319,11 @@ def test_compare_pools_runs_that_share_a_label(runs):
     assert last == pytest.approx({0: -100.0, 1: -110.0, 2: -120.0, 3: -50.0, 4: -70.0})
     # what cannot be pooled: the same root seed, another experiment, a named evaluation on one side only
     sd = compare.load_run
+    # a metric only one run logs (a newer version resumed it) is left out; the shared ones pool
+    m = runs / "shed-r1" / "metrics.jsonl"
+    m.write_text("".join(json.dumps(dict(json.loads(x), new=1.0)) + "\n" for x in m.read_text().splitlines()))
+    (p,) = compare.pool_runs([sd(runs / "shed"), sd(runs / "shed-r1")], ["x", "x"])
+    assert "new" not in p.hist and p.hist["test_return"].shape == (5, 6)
     with pytest.raises(ValueError, match=r"root seeds \[0, 0\] must be known and distinct"):
         compare.pool_runs([sd(runs / "shed"), sd(runs / "shed")], ["x", "x"])
     _write_run(runs / "shed-t4", "shed", [-50.0, -70.0], episodes=2, T=4, wall=30.0, root_seed=2)
