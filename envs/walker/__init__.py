@@ -5,8 +5,13 @@ The level (``params``, ``levels``, ``constants``, ``terrain``) needs only JAX; `
 walker's evaluation sets do not import MuJoCo.
 """
 import importlib
+from typing import TYPE_CHECKING
 
 from envs.walker.params import PARAM_NAMES, WalkerParams, make_params
+
+if TYPE_CHECKING:  # what __getattr__ loads, for type checkers and editors
+    from envs.walker.env import BipedalWalker, WalkerState
+    from envs.walker.options import WalkerOptions
 
 _ENGINE = {"BipedalWalker": "envs.walker.env", "WalkerState": "envs.walker.env", "WalkerOptions": "envs.walker.options"}
 
@@ -17,3 +22,7 @@ def __getattr__(name: str):
     if name in _ENGINE:
         return getattr(importlib.import_module(_ENGINE[name]), name)
     raise AttributeError(f"module 'envs.walker' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_ENGINE))
