@@ -203,8 +203,6 @@ def test_reward_noise_check_rewards_the_same_students_again_with_a_second_key():
     np.testing.assert_array_equal(info.env_steps_eval, [4 * per_eval] + [3 * per_eval] * 3)
 
 
-
-
 def test_crn_off_and_block_levels_are_h_mdp_like():
     method = _build("hmdp-x", crn=False, level_switch="block", action="levels", actor_out_init="lecun")
     m, s0, info, students = _run(method)
