@@ -76,8 +76,18 @@ def reward_noise(rows: list[tuple[int, float, float, float, float]]) -> dict:
 
 
 def summarise_point(point_dir: pathlib.Path) -> dict:
-    """One ``<method>/<point>/`` directory -> per-seed test returns by episode and per-episode diagnostics."""
-    summary = json.loads((point_dir / "summary.json").read_text())
+    """One ``<method>/<point>/`` directory -> per-seed test returns by episode and per-episode diagnostics.
+
+    A run stopped by ``--time-limit`` has no summary.json: it is summarised from config.json and its
+    metrics so far, with ``"stopped": true`` and no final returns; its last tested episode stands as final.
+    """
+    if (point_dir / "summary.json").exists():
+        summary = json.loads((point_dir / "summary.json").read_text())
+    else:
+        point = json.loads((point_dir / "config.json").read_text())["sweep_point"]
+        summary = {"method": point_dir.parent.name, "point": point["name"], "values": point["values"],
+                   "seeds": json.loads((point_dir / "config.json").read_text())["seeds"],
+                   "final_test_return_per_seed": None, "stopped": True}
     tests: dict[int, dict[int, float]] = {}
     diag: dict[str, dict[int, list]] = {k: {} for k in DIAGNOSTICS + ("teacher_reward",)}
     checks = []
@@ -105,7 +115,17 @@ def summarise_point(point_dir: pathlib.Path) -> dict:
         "test_by_seed_episode": {str(s): {str(e): v for e, v in sorted(d.items())} for s, d in sorted(tests.items())},
         "diagnostics_by_episode": per_episode,
         **({"reward_noise": reward_noise(checks)} if checks else {}),
+        **({"stopped": True} if summary.get("stopped") else {}),
     }
+
+
+def _with_episodes(group: str, episodes) -> str:
+    """A sweep's group label, with ``episodes=N`` added when its --episodes overrode the preset, so runs of
+    other lengths are never pooled with full ones: 'shed-x' -> 'shed-x[episodes=20]',
+    'shed-x[a=1]' -> 'shed-x[a=1,episodes=20]'."""
+    if episodes is None:
+        return group
+    return f"{group[:-1]},episodes={episodes}]" if group.endswith("]") else f"{group}[episodes={episodes}]"
 
 
 def summarise(dirs, out):
@@ -115,9 +135,18 @@ def summarise(dirs, out):
         sweep = d / "sweep.json"  # a sweep's group names its --set values, e.g. hmdp-x[twin_critics=true]
         groups = {row["dir"]: row.get("group", row["method"])
                   for row in json.loads(sweep.read_text())["rows"]} if sweep.exists() else {}
-        for summ in sorted(d.glob("*/*/summary.json")):
-            run = summarise_point(summ.parent)
-            run["group"] = groups.get(str(summ.parent.relative_to(d)), run["method"])
+        args = d / "sweep_args.json"
+        episodes = json.loads(args.read_text()).get("episodes") if args.exists() else None
+        for metrics in sorted(d.glob("*/*/metrics.jsonl")):
+            run = summarise_point(metrics.parent)
+            rel = str(metrics.parent.relative_to(d))
+            if rel in groups:
+                group = groups[rel]
+            elif run.get("stopped"):  # a stopped sweep wrote no sweep.json row for it
+                group = json.loads((metrics.parent / "config.json").read_text())["sweep_point"].get("group", run["method"])
+            else:
+                group = run["method"]
+            run["group"] = _with_episodes(group, episodes)
             runs.append({"sweep": str(d), **run})
     pathlib.Path(out).write_text(json.dumps(runs, indent=1))
     print(f"{len(runs)} runs -> {out}")
@@ -193,7 +222,8 @@ def aggregate(runs: list[dict]) -> dict:
             "seeds": len(finals), "final_episode": sorted(last_eps), "final_mean": fm, "final_se": fs,
             "episode0_mean": e0m, "episode0_se": e0s, "paired_gain_mean": gm, "paired_gain_se": gs,
             "at_bound_fraction": float(np.mean(bounds)) if bounds else None,
-            "runs": [{k: r.get(k) for k in ("sweep", "point", "seeds", "wall_time_s")} for r in rs],
+            "runs": [{k: r.get(k) for k in ("sweep", "point", "seeds", "wall_time_s")}
+                     | ({"stopped": True} if r.get("stopped") else {}) for r in rs],
             **({"reward_noise": [r["reward_noise"] for r in rs]} if any("reward_noise" in r for r in rs) else {}),
             "diagnostics_by_episode": rs[0]["diagnostics_by_episode"] if len(rs) == 1 else
             {k: {ep: float(np.nanmean([r["diagnostics_by_episode"][k][ep] for r in rs

@@ -86,6 +86,34 @@ def test_a_sweeps_set_values_keep_its_runs_apart(tmp_path):
     assert entries["hmdp-x[actor_lr=1e-05]"]["seeds"] == 1
 
 
+def test_shorter_sweeps_get_their_own_entry_and_a_stopped_run_is_kept(tmp_path):
+    """A sweep run with --episodes 2 is labelled episodes=2, so it never pools with full-length runs; a run
+    stopped by --time-limit (no summary.json, no sweep.json row) is summarised from its metrics so far, its
+    group taken from config.json, its last tested episode as final and marked stopped."""
+    from experiments.teacher_runs import summarise
+
+    full = tmp_path / "full" / "hmdp-x" / "default"
+    _write_point(full, "hmdp-x", "default", _rows(0, [10.0, 14.0], [[0.0, 0.0], [0.0, 0.0]]), [14.0])
+    short = tmp_path / "short"
+    _write_point(short / "hmdp-x" / "default", "hmdp-x", "default", _rows(0, [10.0, 20.0], [[0.0, 0.0], [0.0, 0.0]]), [20.0])
+    (short / "sweep_args.json").write_text(json.dumps({"episodes": 2}))
+    stopped = tmp_path / "stopped" / "hmdp-x" / "default"
+    stopped.mkdir(parents=True)
+    (stopped / "config.json").write_text(json.dumps({"seeds": 1, "sweep_point": {
+        "name": "default", "values": {}, "group": "hmdp-x[num_eval_episodes=32]"}}))
+    (stopped / "metrics.jsonl").write_text("\n".join(json.dumps(r) for r in _rows(0, [10.0, 7.0], [[0.0, 0.0], [0.0, 0.0]])[:3]))
+    (tmp_path / "stopped" / "sweep_args.json").write_text(json.dumps({"episodes": 2}))
+    summarise([tmp_path / "full", short, tmp_path / "stopped"], tmp_path / "c.json")
+    runs = json.loads((tmp_path / "c.json").read_text())
+    assert [r["group"] for r in runs] == ["hmdp-x", "hmdp-x[episodes=2]", "hmdp-x[num_eval_episodes=32,episodes=2]"]
+    assert runs[2]["stopped"] is True and runs[2]["final_per_seed"] is None
+    assert runs[2]["test_by_seed_episode"] == {"0": {"0": 10.0}}  # episode 1 never reached its test
+    entries = aggregate(runs)
+    assert entries["hmdp-x"]["final_mean"] == 14.0 and entries["hmdp-x[episodes=2]"]["final_mean"] == 20.0
+    e = entries["hmdp-x[num_eval_episodes=32,episodes=2]"]
+    assert e["final_episode"] == [0] and e["runs"][0]["stopped"] is True
+
+
 def test_paper_csv_and_dr_reference_join_the_record(tmp_path):
     """The paper teachers' CSV: the test at each tested episode's last step; other methods' rows left out.
     DR comes from the baselines record with null teacher fields."""
