@@ -84,10 +84,10 @@ def summarise_point(point_dir: pathlib.Path) -> dict:
     if (point_dir / "summary.json").exists():
         summary = json.loads((point_dir / "summary.json").read_text())
     else:
-        point = json.loads((point_dir / "config.json").read_text())["sweep_point"]
+        config = json.loads((point_dir / "config.json").read_text())
+        point = config["sweep_point"]
         summary = {"method": point_dir.parent.name, "point": point["name"], "values": point["values"],
-                   "seeds": json.loads((point_dir / "config.json").read_text())["seeds"],
-                   "final_test_return_per_seed": None, "stopped": True}
+                   "seeds": config["seeds"], "final_test_return_per_seed": None, "stopped": True}
     tests: dict[int, dict[int, float]] = {}
     diag: dict[str, dict[int, list]] = {k: {} for k in DIAGNOSTICS + ("teacher_reward",)}
     checks = []
