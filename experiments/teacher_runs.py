@@ -87,7 +87,8 @@ def summarise_point(point_dir: pathlib.Path) -> dict:
         config = json.loads((point_dir / "config.json").read_text())
         point = config["sweep_point"]
         summary = {"method": point_dir.parent.name, "point": point["name"], "values": point["values"],
-                   "seeds": config["seeds"], "final_test_return_per_seed": None, "stopped": True}
+                   "seeds": config["seeds"], "final_test_return_per_seed": None, "stopped": True,
+                   "group": point.get("group", point_dir.parent.name)}  # no sweep.json row names it
     tests: dict[int, dict[int, float]] = {}
     diag: dict[str, dict[int, list]] = {k: {} for k in DIAGNOSTICS + ("teacher_reward",)}
     checks = []
@@ -115,12 +116,12 @@ def summarise_point(point_dir: pathlib.Path) -> dict:
         "test_by_seed_episode": {str(s): {str(e): v for e, v in sorted(d.items())} for s, d in sorted(tests.items())},
         "diagnostics_by_episode": per_episode,
         **({"reward_noise": reward_noise(checks)} if checks else {}),
-        **({"stopped": True} if summary.get("stopped") else {}),
+        **({"stopped": True, "group": summary["group"]} if summary.get("stopped") else {}),
     }
 
 
 def _with_episodes(group: str, episodes) -> str:
-    """A sweep's group label, with ``episodes=N`` added when its --episodes overrode the preset, so runs of
+    """A sweep's group label, with ``episodes=N`` added when the sweep was given --episodes, so runs of
     other lengths are never pooled with full ones: 'shed-x' -> 'shed-x[episodes=20]',
     'shed-x[a=1]' -> 'shed-x[a=1,episodes=20]'."""
     if episodes is None:
@@ -139,13 +140,7 @@ def summarise(dirs, out):
         episodes = json.loads(args.read_text()).get("episodes") if args.exists() else None
         for metrics in sorted(d.glob("*/*/metrics.jsonl")):
             run = summarise_point(metrics.parent)
-            rel = str(metrics.parent.relative_to(d))
-            if rel in groups:
-                group = groups[rel]
-            elif run.get("stopped"):  # a stopped sweep wrote no sweep.json row for it
-                group = json.loads((metrics.parent / "config.json").read_text())["sweep_point"].get("group", run["method"])
-            else:
-                group = run["method"]
+            group = groups.get(str(metrics.parent.relative_to(d)), run.get("group", run["method"]))
             run["group"] = _with_episodes(group, episodes)
             runs.append({"sweep": str(d), **run})
     pathlib.Path(out).write_text(json.dumps(runs, indent=1))
