@@ -255,6 +255,12 @@ PLOT_PANELS = (("test return", None), ("critic TD error, held-out", "td_error_he
                ("mean |u| of the actor", "action_abs_mean"), ("box width", "box_width"))
 
 
+def plot_labels(runs: list[dict]) -> list[str]:
+    """Each run's group; runs that share one (the same group pooled from several sweeps) add their sweep's folder."""
+    groups = [r.get("group", r["method"]) for r in runs]
+    return [f"{g} ({pathlib.Path(r['sweep']).name})" if groups.count(g) > 1 else g for g, r in zip(groups, runs)]
+
+
 def plot(files, out, only=()):
     """Test return (mean ± SE over seeds) and per-episode diagnostics of compact runs, one line per run."""
     import matplotlib
@@ -265,8 +271,7 @@ def plot(files, out, only=()):
     if not runs:
         raise SystemExit(f"plot: no run named {', '.join(only)} in {', '.join(map(str, files))}")
     fig, axes = plt.subplots(1, len(PLOT_PANELS), figsize=(4.2 * len(PLOT_PANELS), 3.4))
-    for r in runs:
-        label = r.get("group", r["method"])
+    for r, label in zip(runs, plot_labels(runs)):
         eps = sorted({int(e) for d in r["test_by_seed_episode"].values() for e in d})
         stats = [_mean_se([d[str(e)] for d in r["test_by_seed_episode"].values() if str(e) in d]) for e in eps]
         m, se = np.array([x[0] for x in stats]), np.nan_to_num(np.array([x[1] for x in stats]))

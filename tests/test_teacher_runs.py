@@ -143,6 +143,13 @@ def test_paper_csv_and_dr_reference_join_the_record(tmp_path):
     assert shed["at_bound_fraction"] is None and shed["final_episode"] == [10]
 
 
+def test_plot_labels_tell_apart_runs_of_one_pooled_group():
+    from experiments.teacher_runs import plot_labels
+    runs = [{"method": "hmdp-x", "group": "g", "sweep": "runs/a"}, {"method": "hmdp-x", "group": "g", "sweep": "runs/b"},
+            {"method": "shed-x", "sweep": "runs/a"}]
+    assert plot_labels(runs) == ["g (a)", "g (b)", "shed-x"]
+
+
 def test_plot_writes_a_figure_and_names_what_is_missing(tmp_path):
     from experiments.teacher_runs import plot
     a = tmp_path / "s" / "hmdp-x" / "default"
