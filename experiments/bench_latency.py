@@ -6,7 +6,9 @@ evaluation episodes), so what matters there is the time of one step at a small b
 a huge batch. This script measures, for one solver-loop unroll factor (the knob that trades compile
 time for fewer device-loop iterations):
 
-* ``env``: seconds per sequential step of ``jit(vmap(step))`` in a ``lax.scan``, at a few batches;
+* ``env``: seconds per sequential step of ``jit(vmap(step))`` in a ``lax.scan``, at a few batches
+  (``--step without-reset``: ``step_without_reset``, the same step without the auto-reset's
+  ``reset_env``, which every env computes at every step under ``vmap``: the difference is its cost);
 * ``ppo``: seconds per PPO update (40 x 128 rollout + 4 epochs) with the paper lander config;
 * ``eval``: seconds for ``student.evaluate`` on 10 levels x 8 episodes x 500 steps.
 
@@ -88,6 +90,8 @@ def main(argv=None) -> int:
     p.add_argument("--position-iterations", type=int, default=None, help="physics2d solver override (lander, bipedal)")
     p.add_argument("--solver-kernel", default="auto", choices=["auto", "xla", "pallas", "interpret"],
                    help="physics2d solver loops (lander, bipedal): fused Pallas kernel or plain XLA (auto: Pallas on GPU)")
+    p.add_argument("--step", default="step", choices=["step", "without-reset"],
+                   help="time env.step (with its auto-reset) or env.step_without_reset")
     p.add_argument("--env", default="lander")
     p.add_argument("--batches", default="40,400,4096")
     p.add_argument("--steps", type=int, default=256)
@@ -105,8 +109,10 @@ def main(argv=None) -> int:
     res = dict(**provenance("experiments.bench_latency", argv), unroll=args.unroll, env=args.env, tag=args.tag,
                **solver, xla_flags=os.environ.get("XLA_FLAGS", ""), env_rows=[])
     res["solver_kernel"] = args.solver_kernel
+    res["step"] = args.step
+    step_fn = env.step if args.step == "step" else env.step_without_reset
     for b in (int(x) for x in args.batches.split(",")):
-        row = env_latency(env, b, args.steps)
+        row = env_latency(env, b, args.steps, step_fn)
         res["env_rows"].append(row)
         print(json.dumps(row), flush=True)
     if not args.skip_student:

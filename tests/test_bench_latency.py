@@ -12,27 +12,45 @@ def test_bench_latency_record(tmp_path):
     assert rec["command"] == "python -m experiments.bench_latency " + " ".join(argv)
     assert [r["batch"] for r in rec["env_rows"]] == [4, 8]
     assert all(r["steps"] == 3 and r["s_per_step"] > 0 and r["compile_s"] > 0 for r in rec["env_rows"])
+    assert rec["step"] == "step"
+
+
+def test_bench_latency_without_reset_names_its_step(tmp_path, monkeypatch):
+    import envs
+    env = envs.make("cartpole")
+    used = []
+    monkeypatch.setattr(envs, "make", lambda *a, **k: env)
+    monkeypatch.setattr(bench_latency, "env_latency", lambda e, b, n, fn: used.append(fn) or dict(batch=b, steps=n))
+    bench_latency.main(["--env", "cartpole", "--batches", "4", "--skip-student", "--step", "without-reset", "--out", str(tmp_path)])
+    assert used == [env.step_without_reset]
+    assert json.loads((tmp_path / "latency_u1.json").read_text())["step"] == "without-reset"
 
 
 def test_bipedal_speed_fields_from_latency_records(tmp_path):
     from experiments import bipedal_speed
 
-    def latency(name, rows, env="bipedal"):
+    def latency(name, rows, env="bipedal", **solver):
         path = tmp_path / name
-        path.write_text(json.dumps({"env": env, "device": "gpu: X", "date": "d", "command": "c",
+        path.write_text(json.dumps({"env": env, "device": "gpu: X", "date": "d", "command": "c", **solver,
                                     "env_rows": [dict(batch=b, steps=10, compile_s=1.0, s_per_step=s) for b, s in rows]}))
         return str(path)
 
     a = latency("a.json", [(200, 0.0084)])
     b = latency("b.json", [(200, 0.0080), (65536, 0.05)])
+    # fewer solver passes than Box2D's: a row of the record, never a headline figure
+    c = latency("c.json", [(200, 0.006), (65536, 0.01)], velocity_iterations=1, position_iterations=1)
+    d = latency("d.json", [(200, 0.004)], step="without-reset")
     out = tmp_path / "bipedal.json"
     out.write_text(json.dumps({"parity": {"flat": {"pass": True}}}))
-    assert bipedal_speed.main([a, b, "--out", str(out)]) == 0
+    assert bipedal_speed.main([a, b, c, d, "--out", str(out)]) == 0
     rec = json.loads(out.read_text())
     assert rec["parity"] == {"flat": {"pass": True}}  # the other keys stay
-    assert abs(rec["ms_per_step_batch200"] - 8.0) < 1e-9  # the better of the two batch-200 rows
+    assert abs(rec["ms_per_step_batch200"] - 8.0) < 1e-9  # the better of the two batch-200 rows at Box2D's passes
     assert abs(rec["steps_per_second_best"] - 65536 / 0.05) < 1e-6
-    assert len(rec["speed"]["rows"]) == 3 and rec["speed"]["rows"][0]["device"] == "gpu: X"
+    rows = rec["speed"]["rows"]
+    assert len(rows) == 6 and rows[0]["device"] == "gpu: X"
+    assert [(r["velocity_iterations"], r["position_iterations"]) for r in rows] == [(180, 60)] * 3 + [(1, 1)] * 2 + [(180, 60)]
+    assert [r["step"] for r in rows] == ["step"] * 5 + ["without-reset"]
     # a record of another env is refused with one line
     import pytest
     with pytest.raises(SystemExit):
