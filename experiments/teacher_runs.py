@@ -25,7 +25,10 @@ at the episode's last budget step) and, per teacher episode, the means over step
 ``at_bound_fraction``, ``td_error_heldout``, ``state_noise_sd``, ``box_width``, ``action_abs_mean``
 and the teacher reward. The record's ``final_*`` is the last tested episode, ``episode0_*`` episode 0
 (the untrained teacher), ``paired_gain_*`` their difference per seed, and ``at_bound_fraction`` the
-mean over the last teacher episode's steps and seeds. Needs only numpy.
+mean over the last teacher episode's steps and seeds. ``late_*`` and ``paired_late_gain_*`` use, per
+seed, the mean of the last ``LATE`` tested episodes instead of the last one alone: one seed's test
+return moves by 10-20 between tested episodes, so a single endpoint swings (null where a seed was
+tested fewer than ``LATE`` + 1 times). Needs only numpy.
 """
 from __future__ import annotations
 
@@ -37,6 +40,7 @@ import pathlib
 
 import numpy as np
 
+LATE = 3  # the late endpoint: the mean of a seed's last LATE tested episodes (module doc)
 DIAGNOSTICS = ("at_bound_fraction", "td_error_heldout", "state_noise_sd", "box_width", "action_abs_mean")
 
 
@@ -189,6 +193,13 @@ def _mean_se(x):
     return float(x.mean()), (float(x.std(ddof=1) / math.sqrt(len(x))) if len(x) > 1 else math.nan)
 
 
+def _nanmean(xs) -> float:
+    """Mean of the finite values; NaN (no warning) when there are none."""
+    x = np.asarray(xs, np.float64)
+    x = x[np.isfinite(x)]
+    return float(x.mean()) if x.size else math.nan
+
+
 def aggregate(runs: list[dict]) -> dict:
     """Pool the seeds of runs with the same (method, point) -> the record's entry per name."""
     groups: dict[str, list[dict]] = {}
@@ -198,14 +209,19 @@ def aggregate(runs: list[dict]) -> dict:
         groups.setdefault(name, []).append(r)
     out = {}
     for name, rs in groups.items():
-        finals, ep0s, gains, bounds = [], [], [], []
+        finals, ep0s, gains, lates, late_gains, bounds = [], [], [], [], [], []
         for r in rs:
             for seed, by_ep in r["test_by_seed_episode"].items():
                 eps = sorted(by_ep, key=int)
                 finals.append(by_ep[eps[-1]])
+                late = float(np.mean([by_ep[e] for e in eps[-LATE:]])) if len(eps) > LATE else None
+                if late is not None:
+                    lates.append(late)
                 if "0" in by_ep:
                     ep0s.append(by_ep["0"])
                     gains.append(by_ep[eps[-1]] - by_ep["0"])
+                    if late is not None:
+                        late_gains.append(late - by_ep["0"])
             ab = r["diagnostics_by_episode"].get("at_bound_fraction", {})
             if ab:
                 bounds.append(ab[max(ab, key=int)])
@@ -213,16 +229,19 @@ def aggregate(runs: list[dict]) -> dict:
         fm, fs = _mean_se(finals)
         e0m, e0s = _mean_se(ep0s)
         gm, gs = _mean_se(gains)
+        lm, ls = _mean_se(lates) if lates else (None, None)
+        lgm, lgs = _mean_se(late_gains) if late_gains else (None, None)
         out[name] = {
             "seeds": len(finals), "final_episode": sorted(last_eps), "final_mean": fm, "final_se": fs,
             "episode0_mean": e0m, "episode0_se": e0s, "paired_gain_mean": gm, "paired_gain_se": gs,
+            "late_episodes": LATE, "late_mean": lm, "late_se": ls, "paired_late_gain_mean": lgm, "paired_late_gain_se": lgs,
             "at_bound_fraction": float(np.mean(bounds)) if bounds else None,
             "runs": [{k: r.get(k) for k in ("sweep", "point", "seeds", "wall_time_s")}
                      | ({"stopped": True} if r.get("stopped") else {}) for r in rs],
             **({"reward_noise": [r["reward_noise"] for r in rs]} if any("reward_noise" in r for r in rs) else {}),
             "diagnostics_by_episode": rs[0]["diagnostics_by_episode"] if len(rs) == 1 else
-            {k: {ep: float(np.nanmean([r["diagnostics_by_episode"][k][ep] for r in rs
-                                       if r["diagnostics_by_episode"].get(k, {}).get(ep) is not None] or [math.nan]))
+            {k: {ep: _nanmean([r["diagnostics_by_episode"][k][ep] for r in rs
+                               if r["diagnostics_by_episode"].get(k, {}).get(ep) is not None])
                  for ep in rs[0]["diagnostics_by_episode"][k]} for k in rs[0]["diagnostics_by_episode"]},
         }
     return out
@@ -248,7 +267,7 @@ def record(files, out, device, command, date, notes=(), paper_csv=None, dr=None)
     for name, e in lander.items():
         print(f"{name}: {e['seeds']} seeds, final {f1(e['final_mean'])} ± {f1(e['final_se'])}, episode 0 "
               f"{f1(e['episode0_mean'])} ± {f1(e['episode0_se'])}, paired gain {f1(e['paired_gain_mean'])} ± "
-              f"{f1(e['paired_gain_se'])}, at a bound {e['at_bound_fraction']}, final episodes {e.get('final_episode')}")
+              f"{f1(e['paired_gain_se'])}, late gain {f1(e.get('paired_late_gain_mean'))} ± {f1(e.get('paired_late_gain_se'))}, at a bound {e['at_bound_fraction']}, final episodes {e.get('final_episode')}")
 
 
 PLOT_PANELS = (("test return", None), ("critic TD error, held-out", "td_error_heldout"),

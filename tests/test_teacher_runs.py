@@ -40,6 +40,7 @@ def test_summarise_and_pool_two_runs(tmp_path):
     assert e["episode0_mean"] == pytest.approx(15.0) and e["episode0_se"] == pytest.approx(5.0)
     assert e["paired_gain_mean"] == pytest.approx(1.0) and e["paired_gain_se"] == pytest.approx(3.0)  # gains 4, -2
     assert e["at_bound_fraction"] == pytest.approx((0.2 + 0.5) / 2)  # last episode, mean over runs
+    assert e["late_mean"] is None and e["paired_late_gain_mean"] is None  # two tested episodes: no late endpoint
     (tmp_path / "c.json").write_text(json.dumps(runs))
     record([tmp_path / "c.json"], tmp_path / "r.json", "cpu", "cmd", "2026-01-01", ["a note"])
     rec = json.loads((tmp_path / "r.json").read_text())
@@ -141,6 +142,18 @@ def test_paper_csv_and_dr_reference_join_the_record(tmp_path):
     assert shed["final_mean"] == pytest.approx(15.5) and shed["episode0_mean"] == pytest.approx(5.5)
     assert shed["paired_gain_mean"] == pytest.approx(10.0) and shed["paired_gain_se"] == pytest.approx(0.0)
     assert shed["at_bound_fraction"] is None and shed["final_episode"] == [10]
+
+
+def test_late_endpoint_is_the_mean_of_the_last_three_tested_episodes():
+    from experiments.teacher_runs import aggregate
+    run = {"method": "m", "point": "default", "diagnostics_by_episode": {},
+           "test_by_seed_episode": {"0": {"0": 10.0, "10": 30.0, "20": 14.0, "30": 16.0, "49": 18.0},
+                                    "1": {"0": 20.0, "10": 0.0, "20": 26.0, "30": 20.0, "49": 20.0}}}
+    e = aggregate([run])["m"]
+    assert e["late_episodes"] == 3
+    assert e["late_mean"] == pytest.approx(19.0) and e["late_se"] == pytest.approx(3.0)  # late 16 and 22
+    assert e["paired_late_gain_mean"] == pytest.approx(4.0) and e["paired_late_gain_se"] == pytest.approx(2.0)  # 6 and 2
+    assert e["paired_gain_mean"] == pytest.approx(4.0)  # last episode alone: 8 and 0
 
 
 def test_plot_labels_tell_apart_runs_of_one_pooled_group():
