@@ -88,6 +88,8 @@ def main(argv=None) -> int:
     p.add_argument("--unroll", type=int, default=1)
     p.add_argument("--velocity-iterations", type=int, default=None, help="physics2d solver override (lander, bipedal)")
     p.add_argument("--position-iterations", type=int, default=None, help="physics2d solver override (lander, bipedal)")
+    p.add_argument("--terrain-unroll", type=int, default=None,
+                   help="walkers: columns per iteration of the terrain generator's loop (an auto-reset's terrain)")
     p.add_argument("--solver-kernel", default="auto", choices=["auto", "xla", "pallas", "interpret"],
                    help="physics2d solver loops (lander, bipedal): fused Pallas kernel or plain XLA (auto: Pallas on GPU)")
     p.add_argument("--step", default="step", choices=["step", "without-reset"],
@@ -104,6 +106,8 @@ def main(argv=None) -> int:
                                 ("position_iterations", args.position_iterations)) if v is not None}
     if args.solver_kernel != "auto":  # an env without the option (the MJX walker) refuses it by name
         solver["solver_kernel"] = args.solver_kernel
+    if args.terrain_unroll is not None:  # an env without a terrain (the lander) refuses it by name
+        solver["terrain_unroll"] = args.terrain_unroll
     unroll = {"unroll": args.unroll} if args.unroll != 1 else {}  # likewise: the MJX walker takes none
     env = envs.make(args.env, **unroll, **solver)
     res = dict(**provenance("experiments.bench_latency", argv), unroll=args.unroll, env=args.env, tag=args.tag,

@@ -24,7 +24,7 @@ def speed_rows(records: list[dict]) -> list[dict]:
             rows.append({"batch": r["batch"], "ms_per_step": 1e3 * r["s_per_step"],
                          "steps_per_second": r["batch"] / r["s_per_step"], "compile_s": r["compile_s"],
                          "solver_kernel": rec.get("solver_kernel", "auto"),
-                         "step": rec.get("step", "step"),
+                         "step": rec.get("step", "step"), "terrain_unroll": rec.get("terrain_unroll", 1),
                          "velocity_iterations": rec.get("velocity_iterations", VELOCITY_ITERATIONS),
                          "position_iterations": rec.get("position_iterations", POSITION_ITERATIONS),
                          **{k: rec.get(k) for k in ("device", "date", "command", "note")}})

@@ -19,11 +19,15 @@ def test_bench_latency_without_reset_names_its_step(tmp_path, monkeypatch):
     import envs
     env = envs.make("cartpole")
     used = []
-    monkeypatch.setattr(envs, "make", lambda *a, **k: env)
+    made = []
+    monkeypatch.setattr(envs, "make", lambda *a, **k: made.append((a, k)) or env)
     monkeypatch.setattr(bench_latency, "env_latency", lambda e, b, n, fn: used.append(fn) or dict(batch=b, steps=n))
-    bench_latency.main(["--env", "cartpole", "--batches", "4", "--skip-student", "--step", "without-reset", "--out", str(tmp_path)])
+    bench_latency.main(["--env", "cartpole", "--batches", "4", "--skip-student", "--step", "without-reset",
+                        "--terrain-unroll", "8", "--out", str(tmp_path)])
     assert used == [env.step_without_reset]
-    assert json.loads((tmp_path / "latency_u1.json").read_text())["step"] == "without-reset"
+    assert made == [(("cartpole",), {"terrain_unroll": 8})]  # the env refuses an option it lacks (not checked here)
+    rec = json.loads((tmp_path / "latency_u1.json").read_text())
+    assert rec["step"] == "without-reset" and rec["terrain_unroll"] == 8
 
 
 def test_bipedal_speed_fields_from_latency_records(tmp_path):

@@ -1,4 +1,6 @@
 """Walker terrain generator: DCD semantics (types, units, thresholds), statistics, rasterisation."""
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -120,6 +122,46 @@ def test_all_types_present_when_all_on(gen):
     for k in (C.STUMP, C.STAIRS, C.PIT):
         assert np.mean(np.any(t.kinds == k, axis=1)) > 0.9
     assert np.all(t.n_boxes <= 64)
+
+
+@pytest.mark.parametrize("unroll", [8])
+def test_unrolled_generator_gives_the_same_terrain(gen, unroll):
+    """``unroll`` (the walkers' ``terrain_unroll`` option) changes the loop, not the terrain: the same
+    column kinds, counts and box slots exactly, coordinates up to float32 rounding (XLA contracts the
+    unrolled arithmetic differently: about 1 ulp), for a level with every obstacle type and one with
+    fixed terrain."""
+    f = jax.jit(jax.vmap(lambda k, lv: T.level_terrain(k, lv, 64, unroll), in_axes=(0, None)))
+    keys = jax.random.split(jax.random.PRNGKey(7), N_SEEDS)
+    for level in (make_params(roughness=2.0, pit_gap_high=2.0, stump_height_high=1.0, stair_height_high=1.0, stair_steps=4.0),
+                  make_params(roughness=1.0, stump_height_high=0.5, terrain_seed=3, fixed_terrain=True)):
+        want = jax.tree_util.tree_map(np.asarray, jax.jit(jax.vmap(lambda k, lv: T.level_terrain(k, lv, 64), in_axes=(0, None)))(keys, level))
+        got = jax.tree_util.tree_map(np.asarray, f(keys, level))
+        for field in dataclasses.fields(got):
+            name = field.name
+            a, b = getattr(got, name), getattr(want, name)
+            if np.issubdtype(a.dtype, np.floating):
+                np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-5, err_msg=name)
+            else:
+                np.testing.assert_array_equal(a, b, err_msg=name)
+    assert np.any(want.kinds == C.STUMP)  # the fixed-terrain level has obstacles, so boxes are compared too
+
+
+def test_walker_terrain_passes_its_unroll_option_to_the_generator():
+    import envs
+    from envs.walker.params import make_params as mp
+    env = envs.make("bipedal", terrain_unroll=8)
+    jaxpr = jax.make_jaxpr(lambda k: env.terrain(k, mp(roughness=1.0)))(jax.random.PRNGKey(0))
+    scans = [e for e in jaxpr.jaxpr.eqns if e.primitive.name == "scan"]
+    assert [(e.params["length"], e.params["unroll"]) for e in scans] == [(C.TERRAIN_LENGTH, 8)]
+
+
+def test_terrain_unroll_option_is_validated():
+    from envs.bipedal.env import BipedalOptions
+    from envs.walker.options import WalkerOptions
+    for cls in (BipedalOptions, WalkerOptions):
+        assert cls(terrain_unroll=25).terrain_unroll == 25
+        with pytest.raises(ValueError, match=rf"^{cls.__name__}.terrain_unroll must be an int in \[1, 200\], got 0$"):
+            cls(terrain_unroll=0)
 
 
 def test_rasterise_hand_made_terrain():

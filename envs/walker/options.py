@@ -19,6 +19,9 @@ class WalkerOptions:
                          two extra heightfield pairs cost 39 % of the step at 32k envs on an H200
                          (docs/log/benchmarks.md "Knob sweep and the new default") and a thigh reaches the ground only in a deep kneel.
     max_boxes:           obstacle box slots per level (extra boxes are dropped; 64 covers FULL).
+    terrain_unroll:      columns per iteration of the terrain generator's 200-column loop (speed
+                         only: the same terrain). Every auto-reset generates a terrain, so on a GPU
+                         the loop's 200 dependent iterations are part of every training step.
     z_span:              vertical extent of the heightfield above its per-level base (m).
     contact_threshold:   a lower leg touches the ground if a contact's distance is <= this (m).
     unroll_substeps:     unroll the substep loop in Python (faster on GPU) instead of lax.scan.
@@ -37,13 +40,15 @@ class WalkerOptions:
     kv: float = 20.0
     collide_upper_legs: bool = False
     max_boxes: int = 64
+    terrain_unroll: int = 1
     z_span: float = 100.0
     contact_threshold: float = 0.01
     unroll_substeps: bool = False
     matmul_precision: str = "highest"
 
     def __post_init__(self):
-        ints = dict(substeps=(1, 50), solver_iterations=(1, 100), ls_iterations=(0, 100), terrain_resolution=(1, 32), max_boxes=(8, 512))
+        ints = dict(substeps=(1, 50), solver_iterations=(1, 100), ls_iterations=(0, 100), terrain_resolution=(1, 32), max_boxes=(8, 512),
+                    terrain_unroll=(1, 200))
         for name, (lo, hi) in ints.items():
             v = getattr(self, name)
             if not isinstance(v, int) or isinstance(v, bool) or not lo <= v <= hi:

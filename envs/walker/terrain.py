@@ -102,14 +102,15 @@ def generate(key: jax.Array, level: Any, max_boxes: int = 64, unroll: int = 1) -
     return generate_from_uniforms(column_uniforms(key), level, max_boxes, unroll)
 
 
-def level_terrain(key: jax.Array, level: Any, max_boxes: int = 64) -> Terrain:
+def level_terrain(key: jax.Array, level: Any, max_boxes: int = 64, unroll: int = 1) -> Terrain:
     """The level's terrain: from its ``terrain_seed`` if ``fixed_terrain`` (exact replay), else from
-    ``key`` (a new terrain of the same parameters). Shared by every walker environment."""
+    ``key`` (a new terrain of the same parameters). Shared by every walker environment. ``unroll``:
+    columns per iteration of the generator's loop (speed only: the same terrain)."""
     seed = jnp.asarray(level.terrain_seed, jnp.int32)
     typed = jnp.issubdtype(jnp.asarray(key).dtype, jax.dtypes.prng_key)
     seeded = jax.random.key(seed) if typed else jax.random.PRNGKey(seed)
     k = jnp.where(jnp.asarray(level.fixed_terrain), seeded, key)
-    return generate(k, level, max_boxes)
+    return generate(k, level, max_boxes, unroll)
 
 
 def column_uniforms(key: jax.Array) -> jax.Array:
