@@ -4,8 +4,9 @@ Reads ``experiments.bench_latency --env bipedal`` records and writes, keeping th
 ``speed.rows`` (one per batch and record: ms per sequential step, env steps per second, where and
 when; the solver passes where a record overrode them), ``ms_per_step_batch200`` (the best at a batch
 of 200) and ``steps_per_second_best`` (the best batch). Both headline figures use only rows at
-Box2D's solver passes and the full ``env.step``: fewer passes, or a step without its auto-reset, are a split of the step's cost, not a faster walker (they break
-parity, docs/bipedal.md). Usage: ``python -m experiments.bipedal_speed LATENCY.json [...] --out docs/results/bipedal.json``.
+Box2D's solver passes and of the full ``env.step``: fewer passes (which break parity,
+docs/bipedal.md) or a step without its auto-reset split the step's cost, they are not a faster
+walker. Usage: ``python -m experiments.bipedal_speed LATENCY.json [...] --out docs/results/bipedal.json``.
 """
 from __future__ import annotations
 

@@ -44,7 +44,7 @@ class BipedalOptions:
                         columns behind the hull); 16 columns = 7.5 m covers every leg pose.
     max_boxes:          obstacle box slots per level (the generator's; 64 covers DCD's FULL box).
     terrain_unroll:     columns per iteration of the terrain generator's 200-column loop (speed
-                        only: the same terrain). Every auto-reset generates a terrain: on an H100 the
+                        only: the same terrain up to float32 rounding). Every auto-reset generates a terrain: on an H100 the
                         reset is about 5.3 of a step's 8.2 ms at a batch of 200 (docs/bipedal.md).
     unroll, solver_kernel: physics2d's loop unroll (speed only) and ``SolverConfig.kernel``.
     contacts:           "edge": the legs collide with the terrain as Box2D does with Gymnasium's

@@ -20,7 +20,7 @@ class WalkerOptions:
                          (docs/log/benchmarks.md "Knob sweep and the new default") and a thigh reaches the ground only in a deep kneel.
     max_boxes:           obstacle box slots per level (extra boxes are dropped; 64 covers FULL).
     terrain_unroll:      columns per iteration of the terrain generator's 200-column loop (speed
-                         only: the same terrain). Every auto-reset generates a terrain, so on a GPU
+                         only: the same terrain up to float32 rounding). Every auto-reset generates a terrain, so on a GPU
                          the loop's 200 dependent iterations are part of every training step.
     z_span:              vertical extent of the heightfield above its per-level base (m).
     contact_threshold:   a lower leg touches the ground if a contact's distance is <= this (m).

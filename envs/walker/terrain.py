@@ -105,7 +105,7 @@ def generate(key: jax.Array, level: Any, max_boxes: int = 64, unroll: int = 1) -
 def level_terrain(key: jax.Array, level: Any, max_boxes: int = 64, unroll: int = 1) -> Terrain:
     """The level's terrain: from its ``terrain_seed`` if ``fixed_terrain`` (exact replay), else from
     ``key`` (a new terrain of the same parameters). Shared by every walker environment. ``unroll``:
-    columns per iteration of the generator's loop (speed only: the same terrain)."""
+    columns per iteration of the generator's loop (speed only: the same terrain up to float32 rounding)."""
     seed = jnp.asarray(level.terrain_seed, jnp.int32)
     typed = jnp.issubdtype(jnp.asarray(key).dtype, jax.dtypes.prng_key)
     seeded = jax.random.key(seed) if typed else jax.random.PRNGKey(seed)
