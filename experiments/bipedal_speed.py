@@ -2,7 +2,7 @@
 
 Reads ``experiments.bench_latency --env bipedal`` records and writes, keeping the record's other keys:
 ``speed.rows`` (one per batch and record: ms per sequential step, env steps per second, where and
-when; the solver passes where a record overrode them), ``ms_per_step_batch200`` (the best at a batch
+when; the solver passes, the step timed and the terrain unroll), ``ms_per_step_batch200`` (the best at a batch
 of 200) and ``steps_per_second_best`` (the best batch). Both headline figures use only rows at
 Box2D's solver passes and of the full ``env.step``: fewer passes (which break parity,
 docs/bipedal.md) or a step without its auto-reset split the step's cost, they are not a faster
