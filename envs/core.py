@@ -295,6 +295,13 @@ class UEDSpec:
         return sets[name]
 
 
+def restart_where(done, reset, stepped):
+    """The auto-reset's select for one env: the ``(obs, state)`` pair ``reset`` where ``done``, else
+    ``stepped``. `Environment.step` passes a reset computed at the same step; a rollout may pass one
+    drawn before it (a reset per step under ``vmap`` costs a whole ``reset_env`` for every env)."""
+    return jax.tree_util.tree_map(lambda r, s: jnp.where(done, r, s), reset, stepped)
+
+
 # --------------------------------------------------------------------------------------------
 # Environment base class
 # --------------------------------------------------------------------------------------------
@@ -355,9 +362,7 @@ class Environment:
         params = self.default_params if params is None else params
         key_step, key_reset = jax.random.split(key)
         obs_st, state_st, reward, done, info = self._step(key_step, state, action, params)
-        obs_re, state_re = self.reset_env(key_reset, params)
-        state_out = jax.tree_util.tree_map(lambda r, s: jnp.where(done, r, s), state_re, state_st)
-        obs_out = jnp.where(done, obs_re, obs_st)
+        obs_out, state_out = restart_where(done, self.reset_env(key_reset, params), (obs_st, state_st))
         return obs_out, state_out, reward, done, info
 
     def step_without_reset(self, key: jax.Array, state, action, params=None):

@@ -196,6 +196,45 @@ def test_rollout_moves_a_slot_to_its_next_level_when_its_episode_ends(cart):
     np.testing.assert_array_equal(s3.levels.max_steps, [5, 5, 1000, 1000])
 
 
+def test_per_rollout_resets_restart_from_one_drawn_state_and_leave_earlier_steps_unchanged():
+    """reset_draw="per_rollout": every episode end of a slot in a rollout restarts from one reset drawn
+    before the rollout (on the slot's level, or on its next level once it moves), and each slot's steps
+    up to its first episode end are those of "per_step"."""
+    env = envs.make("cartpole")
+    fresh, ahead = make_student(env, SMALL), make_student(env, SMALL.replace(reset_draw="per_rollout"))
+    s = fresh.init(jax.random.PRNGKey(0))
+    s = fresh.assign_levels(s, jax.random.PRNGKey(1), _levels(env, max_steps=[5, 7, 6, 8]))  # short: no failure
+    key = jax.random.PRNGKey(2)
+    _, t_fresh = jax.jit(fresh.rollout)(s, key)
+    _, t_ahead = jax.jit(ahead.rollout)(s, key)
+    done = np.asarray(t_ahead.dones)
+    drawn_obs, _ = jax.vmap(env.reset)(jax.random.split(jax.random.fold_in(key, 1), 4), s.levels)
+    for j in range(4):
+        ends = np.nonzero(done[:, j])[0]
+        assert len(ends) >= 3, j
+        first = ends[0]
+        for f in ("obs", "actions", "rewards", "dones", "values"):
+            np.testing.assert_array_equal(np.asarray(getattr(t_ahead, f))[: first + 1, j],
+                                          np.asarray(getattr(t_fresh, f))[: first + 1, j], err_msg=f)
+        restarts = np.asarray(t_ahead.obs)[ends[ends < SMALL.num_steps - 1] + 1, j]
+        np.testing.assert_array_equal(restarts, np.broadcast_to(np.asarray(drawn_obs)[j], restarts.shape))
+        # the env's own resets are fresh draws: its restarts differ from one another
+        fresh_ends = np.nonzero(np.asarray(t_fresh.dones)[:, j])[0]
+        fresh_restarts = np.asarray(t_fresh.obs)[fresh_ends[fresh_ends < SMALL.num_steps - 1] + 1, j]
+        assert len(np.unique(fresh_restarts, axis=0)) == len(fresh_restarts)
+    np.testing.assert_array_equal(np.nonzero(done[:, 0])[0], np.arange(4, 32, 5))  # time reset with the state
+    # switching: a slot that moves starts its next episode from the reset drawn on its next level
+    nxt = _levels(env, max_steps=[9, 9, 9, 9], gravity=[5.0, 6.0, 7.0, 8.0])
+    s1, t1 = jax.jit(ahead.rollout)(s, key, nxt)
+    drawn_next, _ = jax.vmap(env.reset)(jax.random.split(jax.random.fold_in(key, 2), 4), nxt)
+    first = np.argmax(np.asarray(t1.dones), axis=0)
+    np.testing.assert_array_equal(np.asarray(t1.obs)[first + 1, np.arange(4)], np.asarray(drawn_next))
+    np.testing.assert_allclose(s1.levels.gravity, [5.0, 6.0, 7.0, 8.0])
+    assert np.nonzero(np.asarray(t1.dones)[:, 0])[0][1] == 4 + 9  # the next level's time limit
+    with pytest.raises(ValueError, match="PPOConfig.reset_draw must be one of 'per_step', 'per_rollout'"):
+        SMALL.replace(reset_draw="once")
+
+
 def test_level_scores_pvl_and_maxmc(cart):
     env, student, init, rollout = cart
     s = init(jax.random.PRNGKey(0))

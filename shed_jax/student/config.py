@@ -20,6 +20,11 @@ from shed_jax.configs import check_modes
 
 Activation = Literal["tanh", "relu", "elu", "gelu", "silu"]
 ACTIVATIONS = get_args(Activation)
+# Where a training rollout's auto-resets come from: "per_step", the env's own `step` (every env
+# computes a fresh reset at every step under vmap and keeps it where its episode ended);
+# "per_rollout", one reset per slot drawn at the start of each rollout (and one per pending level
+# switch), which every episode of that slot ending in the rollout restarts from.
+ResetDraw = Literal["per_step", "per_rollout"]
 
 _HPARAM_RANGES = {
     # name: (low, high, low_inclusive, high_inclusive)
@@ -91,6 +96,7 @@ class PPOConfig:
     init_log_std: float = 0.0  # continuous actions: initial state-independent log-std
     anneal_lr: bool = False
     anneal_updates: int = 0  # updates over which lr decays linearly to 0 (required if anneal_lr)
+    reset_draw: ResetDraw = "per_step"  # see ResetDraw; "per_rollout" for envs with a costly reset
     hparams: PPOHyperparams = PPOHyperparams()
 
     def __post_init__(self):

@@ -26,7 +26,7 @@ import numpy as np
 import optax
 from flax import struct
 
-from envs.core import Discrete, Environment
+from envs.core import Discrete, Environment, restart_where
 from shed_jax.student import losses
 from shed_jax.student.config import PPOConfig, PPOHyperparams
 from shed_jax.student.networks import Actor, Critic, dist_entropy, dist_log_prob, dist_mode, dist_sample
@@ -251,16 +251,36 @@ class PPOStudent:
         slot's level at the end. The slots that moved are those with an episode end in the rollout,
         ``traj.dones.any(axis=0)``. Without ``next_levels`` every slot keeps its level (the env's
         own auto-reset).
+
+        ``config.reset_draw``: with "per_step" the resets are the env's own, drawn at the step that
+        needs them; with "per_rollout" each slot's reset (on its level, and on its next level when
+        switching) is drawn once before the scan, so the scan never computes ``reset_env``, and a
+        slot whose episode ends twice in one rollout restarts from the same drawn state twice.
+        The steps before a slot's first episode end are identical under both.
         """
         cfg = self.config
         params, hp = state.params, state.hparams
         switching = next_levels is not None
+        ahead = cfg.reset_draw == "per_rollout"
+        n = cfg.num_envs
+        drawn = drawn_next = None
+        if ahead:  # keys folded from `key`, so the scan's own keys are those of "per_step"
+            drawn = jax.vmap(self.env.reset)(jax.random.split(jax.random.fold_in(key, 1), n), state.levels)
+            if switching:
+                drawn_next = jax.vmap(self.env.reset)(jax.random.split(jax.random.fold_in(key, 2), n), next_levels)
 
-        def swap(moved, key, next_level, level, env_state, obs):
+        def swap(moved, key, next_level, level, env_state, obs, drawn_next):
             """One slot: if ``moved``, a new episode on ``next_level`` replaces the auto-reset one."""
-            obs_new, state_new = self.env.reset(key, next_level)
+            obs_new, state_new = self.env.reset(key, next_level) if drawn_next is None else drawn_next
             pick = lambda new, old: jnp.where(moved, new, old)  # noqa: E731
             return jax.tree_util.tree_map(pick, (next_level, state_new, obs_new), (level, env_state, obs))
+
+        def env_step(keys, env_state, action, levels):
+            if not ahead:
+                return jax.vmap(self.env.step)(keys, env_state, action, levels)
+            obs2, env_state2, reward, done, info = jax.vmap(self.env.step_without_reset)(keys, env_state, action, levels)
+            obs2, env_state2 = jax.vmap(restart_where)(done, drawn, (obs2, env_state2))
+            return obs2, env_state2, reward, done, info
 
         def step(carry, k):
             (env_state, obs, obs_norm, ret_norm), (levels, pending) = carry
@@ -268,18 +288,18 @@ class PPOStudent:
                 k, k_swap = jax.random.split(k)
             k_act, k_env = jax.random.split(k)
             obs_norm, acted = self.act_step(params, obs_norm, k_act, obs)
-            keys = jax.random.split(k_env, cfg.num_envs)
-            obs2, env_state2, reward, done, info = jax.vmap(self.env.step)(keys, env_state, self._env_action(acted[1]), levels)
+            keys = jax.random.split(k_env, n)
+            obs2, env_state2, reward, done, info = env_step(keys, env_state, self._env_action(acted[1]), levels)
             ret_norm, tr = self.record_step(params, hp, obs_norm, ret_norm, acted, reward, done, info)
             if switching:  # an episode ended: the slot's next episode starts on its next level
                 moved = done & pending
-                levels, env_state2, obs2 = jax.vmap(swap)(moved, jax.random.split(k_swap, cfg.num_envs), next_levels,
-                                                           levels, env_state2, obs2)
+                levels, env_state2, obs2 = jax.vmap(swap)(moved, jax.random.split(k_swap, n), next_levels,
+                                                           levels, env_state2, obs2, drawn_next)
                 pending = pending & ~moved
             return ((env_state2, obs2.astype(jnp.float32), obs_norm, ret_norm), (levels, pending)), tr
 
         carry0 = ((state.env_state, state.obs, state.obs_norm, state.ret_norm),
-                  (state.levels, jnp.ones((cfg.num_envs,), bool)))
+                  (state.levels, jnp.ones((n,), bool)))
         ((env_state, obs, obs_norm, ret_norm), (levels, pending)), traj = jax.lax.scan(
             step, carry0, jax.random.split(key, cfg.num_steps))
         state = state.replace(env_state=env_state, obs=obs, obs_norm=obs_norm, ret_norm=ret_norm)
