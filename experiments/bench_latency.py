@@ -9,7 +9,8 @@ time for fewer device-loop iterations):
 * ``env``: seconds per sequential step of ``jit(vmap(step))`` in a ``lax.scan``, at a few batches
   (``--step without-reset``: ``step_without_reset``, the same step without the auto-reset's
   ``reset_env``, which every env computes at every step under ``vmap``: the difference is its cost);
-* ``ppo``: seconds per PPO update (40 x 128 rollout + 4 epochs) with the paper lander config;
+* ``ppo``: seconds per PPO update (one rollout and its epochs) with the env's student preset
+  (``--ppo KEY=VALUE``: overrides, e.g. ``reset_draw=per_rollout``);
 * ``eval``: seconds for ``student.evaluate`` on 10 levels x 8 episodes x 500 steps.
 
     python -m experiments.bench_latency --unroll 1 --out $OUT
@@ -67,10 +68,10 @@ def env_latency(env, batch: int, steps: int, step_fn=None) -> dict:
     return dict(batch=batch, steps=steps, compile_s=compile_s, s_per_step=best / steps)
 
 
-def student_latency(env, env_name: str) -> dict:
+def student_latency(env, env_name: str, ppo_overrides: dict | None = None) -> dict:
     from shed_jax.student import PPOConfig, make_student
 
-    student = make_student(env, PPOConfig.for_env(env_name))
+    student = make_student(env, PPOConfig.for_env(env_name).with_overrides(ppo_overrides))
     levels = env.param_space.sample(jax.random.PRNGKey(1), (5,))
     eval_levels = env.param_space.sample(jax.random.PRNGKey(2), (10,))
     s0 = jax.jit(student.init)(jax.random.PRNGKey(0))
@@ -99,9 +100,18 @@ def main(argv=None) -> int:
     p.add_argument("--steps", type=int, default=256)
     p.add_argument("--tag", default="")
     p.add_argument("--skip-student", action="store_true")
+    p.add_argument("--ppo", nargs="*", default=[], metavar="KEY=VALUE",
+                   help="student preset overrides for the ppo/eval timings, e.g. reset_draw=per_rollout")
     p.add_argument("--out", default=os.environ.get("OUT", "."))
     args = p.parse_args(argv)
-    os.makedirs(args.out, exist_ok=True)  # up front: a bad path fails before the work, not after it
+    from shed_jax.student.config import PPOConfig, parse_overrides
+
+    try:  # up front: a bad override fails in one line before the work, not after it
+        ppo = parse_overrides(args.ppo)
+        PPOConfig.for_env(args.env).with_overrides(ppo)
+    except ValueError as e:
+        p.error(str(e))
+    os.makedirs(args.out, exist_ok=True)  # likewise a bad path
     solver = {k: v for k, v in (("velocity_iterations", args.velocity_iterations),
                                 ("position_iterations", args.position_iterations)) if v is not None}
     if args.solver_kernel != "auto":  # an env without the option (the MJX walker) refuses it by name
@@ -115,12 +125,12 @@ def main(argv=None) -> int:
     res["solver_kernel"] = args.solver_kernel
     res["step"] = args.step
     step_fn = env.step if args.step == "step" else env.step_without_reset
-    for b in (int(x) for x in args.batches.split(",")):
+    for b in (int(x) for x in args.batches.split(",") if x):  # "": no env rows (student timings only)
         row = env_latency(env, b, args.steps, step_fn)
         res["env_rows"].append(row)
         print(json.dumps(row), flush=True)
     if not args.skip_student:
-        res.update(student_latency(env, args.env))
+        res.update(student_latency(env, args.env, ppo), ppo_overrides=ppo)
         print(json.dumps({k: v for k, v in res.items() if k != "env_rows"}), flush=True)
     name = f"latency_u{args.unroll}{'_' + args.tag if args.tag else ''}.json"
     with open(os.path.join(args.out, name), "w") as f:

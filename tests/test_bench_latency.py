@@ -30,6 +30,23 @@ def test_bench_latency_without_reset_names_its_step(tmp_path, monkeypatch):
     assert rec["step"] == "without-reset" and rec["terrain_unroll"] == 8
 
 
+def test_bench_latency_passes_and_records_student_overrides(tmp_path, monkeypatch, capsys):
+    import pytest
+    seen = []
+    monkeypatch.setattr(bench_latency, "env_latency", lambda e, b, n, fn: dict(batch=b, steps=n))
+    monkeypatch.setattr(bench_latency, "student_latency", lambda e, name, ppo: seen.append((name, ppo)) or {"ppo_update_s": 1.0})
+    argv = ["--env", "cartpole", "--batches", "4", "--ppo", "reset_draw=per_rollout", "num_envs=8", "--out", str(tmp_path)]
+    assert bench_latency.main(argv) == 0
+    assert seen == [("cartpole", {"reset_draw": "per_rollout", "num_envs": 8})]
+    rec = json.loads((tmp_path / "latency_u1.json").read_text())
+    assert rec["ppo_overrides"] == {"reset_draw": "per_rollout", "num_envs": 8} and rec["ppo_update_s"] == 1.0
+    # a bad override stops in one line before any work (and writes nothing)
+    with pytest.raises(SystemExit):
+        bench_latency.main(["--env", "cartpole", "--ppo", "reset_draw=once", "--out", str(tmp_path / "bad")])
+    assert "PPOConfig.reset_draw must be one of 'per_step', 'per_rollout', got 'once'" in capsys.readouterr().err
+    assert not (tmp_path / "bad").exists()
+
+
 def test_bipedal_speed_fields_from_latency_records(tmp_path):
     from experiments import bipedal_speed
 
