@@ -699,7 +699,8 @@ def make_plots(exp, env, hist: dict, out: pathlib.Path) -> None:
 
 def final_eval(exp, env, student, student_state, num_seeds: int, resolved, out: pathlib.Path, step: int,
                episodes: int) -> None:
-    """Evaluate the final students on one level set (as ``eval`` does) and write final_eval_<set>.json.
+    """Evaluate the final students on one level set (as ``eval`` does) and write final_eval_<set>.json
+    (with the device, command and date).
 
     The episode cap is the test set's (``LoopSpec.test_max_steps``). The run's results are already
     written, so a failure here is reported and does not fail the run. The JSON's ``wall_time_s`` is
@@ -718,8 +719,10 @@ def final_eval(exp, env, student, student_state, num_seeds: int, resolved, out: 
         print(f"[shed_jax] final evaluation on {resolved[2]!r} failed: {type(err).__name__}: {err}", file=sys.stderr)
         return
     path = out / f"final_eval_{body['levels']}.json"
-    path.write_text(json.dumps({"run": str(out), "budget_step": step, "wall_time_s": time.time() - t0, **body},
-                               indent=2))
+    from shed_jax.runtime import provenance
+
+    path.write_text(json.dumps({"run": str(out), "budget_step": step, "wall_time_s": time.time() - t0,
+                                **provenance("shed_jax"), **body}, indent=2))
     solved = f"solved: return > {body['solved_threshold']:g}" if body["solved_threshold"] is not None else "no solved threshold"
     print(f"[shed_jax] final students on {body['levels']!r} ({num_seeds} seed(s) x {episodes} episode(s) per level, {solved}):")
     print(text)

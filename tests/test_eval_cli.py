@@ -81,6 +81,7 @@ def test_eval_test_set_writes_json(run_dir, capsys):
     returns = np.asarray(res["returns"])
     assert returns.shape == (SEEDS, 2, 3)
     assert res["checkpoint_step"] == 4 and res["seeds"] == SEEDS and res["labels"] == ["test-0", "test-1"]
+    assert res["device"].startswith("cpu: ") and res["date"].endswith(" UTC") and res["command"].startswith("python -m shed_jax")
     assert res["level_params"]["gravity"] == pytest.approx([9.8, 1.62])
     # cartpole pays 1 per step, capped at --max-steps 30
     assert np.all((returns >= 1) & (returns <= 30)) and np.all(returns == np.round(returns))
@@ -127,6 +128,7 @@ def test_run_final_eval_equals_eval_on_the_saved_students(run_dir, tmp_path):
     same seed, episodes and cap (the test set's 20 steps), must return the very same episodes."""
     final = json.loads((run_dir / "final_eval_test.json").read_text())
     assert final["budget_step"] == 4 and final["episodes"] == 3 and final["max_steps"] == 20
+    assert final["device"].startswith("cpu: ") and final["date"].endswith(" UTC")
     summary = json.loads((run_dir / "summary.json").read_text())
     assert 0 < final["wall_time_s"] < summary["wall_time_s"]  # its own time, not in the run's wall time
     out = tmp_path / "again.json"

@@ -64,7 +64,9 @@ def _main(args) -> int:
           f"{args.episodes} episode(s) per level, {'deterministic' if args.deterministic else 'stochastic'} policy, "
           f"levels {args.levels!r}" + ("" if threshold is not None else " (no solved threshold for this env: pass --solved-threshold)"))
     print(text)
-    result = {"run": str(run_dir), "checkpoint_step": step, **body, "levels_arg": args.levels}
+    from shed_jax.runtime import provenance
+
+    result = {"run": str(run_dir), "checkpoint_step": step, **provenance("shed_jax"), **body, "levels_arg": args.levels}
     out = pathlib.Path(args.out) if args.out else run_dir / f"eval_{body['levels']}.json"
     out.write_text(json.dumps(result, indent=2))
     print(f"[shed_jax] wrote {out}")
