@@ -10,7 +10,8 @@ time for fewer device-loop iterations):
   (``--step without-reset``: ``step_without_reset``, the same step without the auto-reset's
   ``reset_env``, which every env computes at every step under ``vmap``: the difference is its cost);
 * ``ppo``: seconds per PPO update (one rollout and its epochs) with the env's student preset
-  (``--ppo KEY=VALUE``: overrides, e.g. ``reset_draw=per_rollout``);
+  (``--ppo KEY=VALUE``: overrides, e.g. ``reset_draw=per_rollout``; ``--student rollout`` times
+  one training rollout alone);
 * ``eval``: seconds for ``student.evaluate`` on 10 levels x 8 episodes x 500 steps.
 
     python -m experiments.bench_latency --unroll 1 --out $OUT
@@ -68,18 +69,31 @@ def env_latency(env, batch: int, steps: int, step_fn=None) -> dict:
     return dict(batch=batch, steps=steps, compile_s=compile_s, s_per_step=best / steps)
 
 
-def student_latency(env, env_name: str, ppo_overrides: dict | None = None) -> dict:
+STUDENT_PARTS = ("rollout", "update", "eval")
+
+
+def student_latency(env, env_name: str, ppo_overrides: dict | None = None, parts=("update", "eval")) -> dict:
+    """Seconds (best of 3 after the compile) of the student's ``parts``: ``rollout`` (one training
+    rollout, num_envs x num_steps, the env stepping alone), ``update`` (``train`` for one update: the
+    levels' reset, a rollout and the epochs) and ``eval`` (10 levels x 8 episodes x 500 steps). Each
+    part is its own program, so each costs a compile."""
     from shed_jax.student import PPOConfig, make_student
 
     student = make_student(env, PPOConfig.for_env(env_name).with_overrides(ppo_overrides))
     levels = env.param_space.sample(jax.random.PRNGKey(1), (5,))
     eval_levels = env.param_space.sample(jax.random.PRNGKey(2), (10,))
     s0 = jax.jit(student.init)(jax.random.PRNGKey(0))
-    train = jax.jit(lambda s, k: student.train(s, k, levels, 1)[0])
-    evaluate = jax.jit(lambda s, k: student.evaluate(s, k, eval_levels, 8, 500))
-    c_train, t_train = _timed(train, s0, jax.random.PRNGKey(3))
-    c_eval, t_eval = _timed(evaluate, s0, jax.random.PRNGKey(4))
-    return dict(ppo_update_s=t_train, ppo_compile_s=c_train, eval_10x8x500_s=t_eval, eval_compile_s=c_eval)
+    out = {}
+    if "rollout" in parts:
+        assigned = jax.jit(student.assign_levels)(s0, jax.random.PRNGKey(5), levels)
+        out["rollout_compile_s"], out["rollout_s"] = _timed(jax.jit(student.rollout), assigned, jax.random.PRNGKey(6))
+    if "update" in parts:
+        train = jax.jit(lambda s, k: student.train(s, k, levels, 1)[0])
+        out["ppo_compile_s"], out["ppo_update_s"] = _timed(train, s0, jax.random.PRNGKey(3))
+    if "eval" in parts:
+        evaluate = jax.jit(lambda s, k: student.evaluate(s, k, eval_levels, 8, 500))
+        out["eval_compile_s"], out["eval_10x8x500_s"] = _timed(evaluate, s0, jax.random.PRNGKey(4))
+    return out
 
 
 def main(argv=None) -> int:
@@ -100,6 +114,8 @@ def main(argv=None) -> int:
     p.add_argument("--steps", type=int, default=256)
     p.add_argument("--tag", default="")
     p.add_argument("--skip-student", action="store_true")
+    p.add_argument("--student", default="update,eval",
+                   help=f"the student timings to take, comma-separated, of {', '.join(STUDENT_PARTS)}")
     p.add_argument("--ppo", nargs="*", default=[], metavar="KEY=VALUE",
                    help="student preset overrides for the ppo/eval timings, e.g. reset_draw=per_rollout")
     p.add_argument("--out", default=os.environ.get("OUT", "."))
@@ -111,6 +127,9 @@ def main(argv=None) -> int:
         PPOConfig.for_env(args.env).with_overrides(ppo)
     except ValueError as e:
         p.error(str(e))
+    parts = tuple(x for x in args.student.split(",") if x)
+    if not parts or set(parts) - set(STUDENT_PARTS):
+        p.error(f"--student takes a comma-separated list of {', '.join(STUDENT_PARTS)}, got {args.student!r}")
     os.makedirs(args.out, exist_ok=True)  # likewise a bad path
     solver = {k: v for k, v in (("velocity_iterations", args.velocity_iterations),
                                 ("position_iterations", args.position_iterations)) if v is not None}
@@ -130,7 +149,7 @@ def main(argv=None) -> int:
         res["env_rows"].append(row)
         print(json.dumps(row), flush=True)
     if not args.skip_student:
-        res.update(student_latency(env, args.env, ppo), ppo_overrides=ppo)
+        res.update(student_latency(env, args.env, ppo, parts), ppo_overrides=ppo)
         print(json.dumps({k: v for k, v in res.items() if k != "env_rows"}), flush=True)
     name = f"latency_u{args.unroll}{'_' + args.tag if args.tag else ''}.json"
     with open(os.path.join(args.out, name), "w") as f:

@@ -34,10 +34,10 @@ def test_bench_latency_passes_and_records_student_overrides(tmp_path, monkeypatc
     import pytest
     seen = []
     monkeypatch.setattr(bench_latency, "env_latency", lambda e, b, n, fn: dict(batch=b, steps=n))
-    monkeypatch.setattr(bench_latency, "student_latency", lambda e, name, ppo: seen.append((name, ppo)) or {"ppo_update_s": 1.0})
+    monkeypatch.setattr(bench_latency, "student_latency", lambda e, name, ppo, parts: seen.append((name, ppo, parts)) or {"ppo_update_s": 1.0})
     argv = ["--env", "cartpole", "--batches", "4", "--ppo", "reset_draw=per_rollout", "num_envs=8", "--out", str(tmp_path)]
     assert bench_latency.main(argv) == 0
-    assert seen == [("cartpole", {"reset_draw": "per_rollout", "num_envs": 8})]
+    assert seen == [("cartpole", {"reset_draw": "per_rollout", "num_envs": 8}, ("update", "eval"))]
     rec = json.loads((tmp_path / "latency_u1.json").read_text())
     assert rec["ppo_overrides"] == {"reset_draw": "per_rollout", "num_envs": 8} and rec["ppo_update_s"] == 1.0
     # a bad override stops in one line before any work (and writes nothing)
@@ -45,6 +45,16 @@ def test_bench_latency_passes_and_records_student_overrides(tmp_path, monkeypatc
         bench_latency.main(["--env", "cartpole", "--ppo", "reset_draw=once", "--out", str(tmp_path / "bad")])
     assert "PPOConfig.reset_draw must be one of 'per_step', 'per_rollout', got 'once'" in capsys.readouterr().err
     assert not (tmp_path / "bad").exists()
+    with pytest.raises(SystemExit):
+        bench_latency.main(["--env", "cartpole", "--student", "rollout,train", "--out", str(tmp_path / "bad")])
+    assert "--student takes a comma-separated list of rollout, update, eval, got 'rollout,train'" in capsys.readouterr().err
+
+
+def test_student_latency_times_the_parts_asked_for():
+    import envs
+    env = envs.make("cartpole")
+    out = bench_latency.student_latency(env, "cartpole", {"num_envs": 4, "num_steps": 8, "reset_draw": "per_rollout"}, ("rollout",))
+    assert set(out) == {"rollout_s", "rollout_compile_s"} and out["rollout_s"] > 0 and out["rollout_compile_s"] > 0
 
 
 def test_bipedal_speed_fields_from_latency_records(tmp_path):
