@@ -117,8 +117,11 @@ def check_bounds(config, env) -> None:
         values = value if isinstance(value, (list, tuple)) else [value]
         if len(values) != space.dim or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values):
             name = getattr(env, "name", "this environment")
+            from shed_jax.levels import teacher_space
+
+            example = ",".join(f"{float(v):g}" for v in getattr(teacher_space(env), key))  # Θ's own bound
             raise ValueError(f"--set {key}: expected a list of {space.dim} numbers for {name} "
-                             f"({', '.join(space.names)}), got {json.dumps(value, default=str)}")
+                             f"({', '.join(space.names)}), e.g. {key}=[{example}], got {json.dumps(value, default=str)}")
 
 
 def test_levels(name: str, env):

@@ -58,7 +58,8 @@ def cwd(tmp_path, monkeypatch):
     (["--set", "eta=high"], "--set reward.eta: expected a number, got \"high\""),
     (["--set", 'reward={"etta": 1}'], "--set reward: RewardConfig has no field(s) 'etta'; known: code_cv"),
     (["--set", "num_levels=0"], "SHEDConfig.num_levels must be a positive int, got 0"),
-    (["--set", "low=[1,2]"], "--set low: expected a list of 3 numbers for lander (gravity, wind_power, turbulence_power), got [1, 2]"),
+    (["--set", "low=[1,2]"], "--set low: expected a list of 3 numbers for lander (gravity, wind_power, turbulence_power), "
+                             "e.g. low=[-9,0.01,0.01], got [1, 2]"),
     (["--method", "dr", "--set", "high=[-1, 2]"], "--set high: expected a list of 3 numbers for lander"),
     (["--ppo", "lr=-1"], "PPOHyperparams.lr must be a finite value in (0.0, inf), got -1.0"),
     (["--ppo", "num_step=32"], "--ppo: unknown field 'num_step'"),
