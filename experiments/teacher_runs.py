@@ -13,6 +13,9 @@ compact run as ``summarise`` would make it (its at-bound fraction was not logged
 ``--dr`` adds domain randomisation's final test return from the baselines record (DR has no
 teacher episodes: its episode-0 and gain fields are null).
 
+    # the mean box of the levels a teacher generated from teacher episode 30 on: a fixed-box DR control
+    python -m experiments.teacher_runs late-box SWEEP_DIR/hmdp-x/default [...] --from-episode 30
+
     # a figure: test return (mean ± SE over seeds) and diagnostics by teacher episode, one line per run
     python -m experiments.teacher_runs plot compact.json [...] --only NAME [--only NAME] --out fig.png
 
@@ -311,6 +314,27 @@ def plot(files, out, only=()):
     print(f"{len(runs)} runs -> {out}")
 
 
+def late_box(point_dirs, from_episode: int) -> dict:
+    """The box a teacher drew its levels from late in its runs, for a fixed-box DR control: over every
+    budget step of teacher episodes >= ``from_episode`` (every seed, every run), the per-parameter mean
+    of that step's lowest and highest generated level (``info/levels``, [n, d]). With n levels drawn
+    uniformly in a box, these under-state its width by about 1/(n+1) at each end."""
+    lows, highs = [], []
+    for d in point_dirs:
+        with open(pathlib.Path(d) / "metrics.jsonl") as f:
+            for line in f:
+                row = json.loads(line)
+                if int(row["episode"]) >= from_episode and row.get("info/levels") is not None:
+                    levels = np.asarray(row["info/levels"], float)
+                    lows.append(levels.min(0))
+                    highs.append(levels.max(0))
+    if not lows:
+        raise SystemExit(f"late-box: no budget step with info/levels at teacher episode >= {from_episode}")
+    lo, hi = np.asarray(lows), np.asarray(highs)
+    return {"from_episode": from_episode, "steps": len(lo), "low": lo.mean(0).tolist(), "high": hi.mean(0).tolist(),
+            "low_sd": lo.std(0).tolist(), "high_sd": hi.std(0).tolist()}
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="cmd", required=True)
@@ -330,8 +354,16 @@ def main(argv=None):
     q.add_argument("files", nargs="+")
     q.add_argument("--out", required=True)
     q.add_argument("--only", action="append", default=[], help="a run's group name to include (repeatable)")
+    b = sub.add_parser("late-box", help="the mean box of the generated levels late in runs (a DR control)")
+    b.add_argument("dirs", nargs="+", help="<method>/<point>/ directories")
+    b.add_argument("--from-episode", type=int, default=30)
     a = p.parse_args(argv)
-    if a.cmd == "summarise":
+    if a.cmd == "late-box":
+        box = late_box(a.dirs, a.from_episode)
+        print(json.dumps(box))
+        fmt = lambda v: "[" + ",".join(f"{x:.3g}" for x in v) + "]"  # noqa: E731
+        print(f"--set low={fmt(box['low'])} --set high={fmt(box['high'])}")
+    elif a.cmd == "summarise":
         summarise(a.dirs, a.out)
     elif a.cmd == "plot":
         plot(a.files, a.out, a.only)

@@ -4,6 +4,9 @@ import math
 
 import pytest
 
+import numpy as np
+
+from experiments import teacher_runs
 from experiments.teacher_runs import aggregate, record, reward_noise, summarise_point
 
 
@@ -172,3 +175,23 @@ def test_plot_writes_a_figure_and_names_what_is_missing(tmp_path):
     assert (tmp_path / "f.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     with pytest.raises(SystemExit, match=r"^plot: no run named shed-x in "):
         plot([tmp_path / "c.json"], tmp_path / "g.png", ["shed-x"])
+
+
+def test_late_box_means_each_steps_lowest_and_highest_level(tmp_path, capsys):
+    rows = [  # (episode, levels [n, d]); episode 0 is before the window and must not count
+        (0, [[-100.0, 0.0], [100.0, 9.0]]),
+        (1, [[-2.0, 1.0], [-1.0, 3.0], [-1.5, 2.0]]),
+        (2, [[-4.0, 0.5], [0.0, 5.0]]),
+    ]
+    point = tmp_path / "hmdp-x" / "default"
+    point.mkdir(parents=True)
+    (point / "metrics.jsonl").write_text("\n".join(json.dumps({"seed": 0, "episode": e, "info/levels": lv}) for e, lv in rows))
+    box = teacher_runs.late_box([point], from_episode=1)
+    assert box["steps"] == 2
+    np.testing.assert_allclose(box["low"], [(-2 - 4) / 2, (1 + 0.5) / 2])
+    np.testing.assert_allclose(box["high"], [(-1 + 0) / 2, (3 + 5) / 2])
+    np.testing.assert_allclose(box["low_sd"], [1.0, 0.25])
+    teacher_runs.main(["late-box", str(point), "--from-episode", "1"])
+    assert "--set low=[-3,0.75] --set high=[-0.5,4]" in capsys.readouterr().out
+    with pytest.raises(SystemExit, match="no budget step with info/levels at teacher episode >= 3"):
+        teacher_runs.late_box([point], from_episode=3)
