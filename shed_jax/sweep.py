@@ -532,8 +532,10 @@ def run_sweep(groups: list[Group], *, out: pathlib.Path, make_experiment: Callab
     finally:
         bar.close()
     group_walls = {r["group"]: r["group_wall_time_s"] for r in rows}
-    result = {"rows": rows, "groups": [b.group.label for b in built], "seeds": num_seeds, "root_seed": root_seed,
-              "devices": mesh.size,
+    from shed_jax.runtime import provenance
+
+    result = {**provenance("shed_jax"), "rows": rows, "groups": [b.group.label for b in built], "seeds": num_seeds,
+              "root_seed": root_seed, "devices": mesh.size,
               "wall_time_s": time.time() - t0,  # this process only (a resumed sweep's earlier ones are not in it)
               "groups_wall_time_s": sum(group_walls.values())}  # every group's run, earlier processes included
     if jax.process_index() == 0:

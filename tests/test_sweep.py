@@ -302,6 +302,7 @@ def test_end_to_end_sweep_writes_run_files(tmp_path):
     assert (tmp_path / "sweep.md").read_text().count("| shed |") == 2
     result = json.loads((tmp_path / "sweep.json").read_text())
     assert result["rows"] == rows and result["groups"] == ["shed"]
+    assert result["device"].startswith("cpu: ") and result["date"].endswith(" UTC") and result["command"].startswith("python -m shed_jax")
     recs = {}
     for r in rows:
         d = tmp_path / r["dir"]
