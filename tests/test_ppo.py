@@ -229,6 +229,10 @@ def test_per_rollout_resets_restart_from_one_drawn_state_and_leave_earlier_steps
     drawn_next, _ = jax.vmap(env.reset)(jax.random.split(jax.random.fold_in(key, 2), 4), nxt)
     first = np.argmax(np.asarray(t1.dones), axis=0)
     np.testing.assert_array_equal(np.asarray(t1.obs)[first + 1, np.arange(4)], np.asarray(drawn_next))
+    # and so does every later episode of a moved slot: slot 0 ends at 4 (old level), 13, 22, 31
+    ends0 = np.nonzero(np.asarray(t1.dones)[:, 0])[0]
+    np.testing.assert_array_equal(ends0, [4, 13, 22, 31])
+    np.testing.assert_array_equal(np.asarray(t1.obs)[ends0[:-1] + 1, 0], np.broadcast_to(np.asarray(drawn_next)[0], (3, 4)))
     np.testing.assert_allclose(s1.levels.gravity, [5.0, 6.0, 7.0, 8.0])
     assert np.nonzero(np.asarray(t1.dones)[:, 0])[0][1] == 4 + 9  # the next level's time limit
     with pytest.raises(ValueError, match="PPOConfig.reset_draw must be one of 'per_step', 'per_rollout'"):

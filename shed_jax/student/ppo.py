@@ -255,7 +255,8 @@ class PPOStudent:
         ``config.reset_draw``: with "per_step" the resets are the env's own, drawn at the step that
         needs them; with "per_rollout" each slot's reset (on its level, and on its next level when
         switching) is drawn once before the scan, so the scan never computes ``reset_env``, and a
-        slot whose episode ends twice in one rollout restarts from the same drawn state twice.
+        slot whose episode ends twice on one level in a rollout restarts from the same drawn state
+        twice (after a switch, from the state drawn on its new level).
         The steps before a slot's first episode end are identical under both.
         """
         cfg = self.config
@@ -275,7 +276,7 @@ class PPOStudent:
             pick = lambda new, old: jnp.where(moved, new, old)  # noqa: E731
             return jax.tree_util.tree_map(pick, (next_level, state_new, obs_new), (level, env_state, obs))
 
-        def env_step(keys, env_state, action, levels):
+        def env_step(keys, env_state, action, levels, drawn):
             if not ahead:
                 return jax.vmap(self.env.step)(keys, env_state, action, levels)
             obs2, env_state2, reward, done, info = jax.vmap(self.env.step_without_reset)(keys, env_state, action, levels)
@@ -283,24 +284,26 @@ class PPOStudent:
             return obs2, env_state2, reward, done, info
 
         def step(carry, k):
-            (env_state, obs, obs_norm, ret_norm), (levels, pending) = carry
+            (env_state, obs, obs_norm, ret_norm), (levels, pending, drawn) = carry
             if switching:
                 k, k_swap = jax.random.split(k)
             k_act, k_env = jax.random.split(k)
             obs_norm, acted = self.act_step(params, obs_norm, k_act, obs)
             keys = jax.random.split(k_env, n)
-            obs2, env_state2, reward, done, info = env_step(keys, env_state, self._env_action(acted[1]), levels)
+            obs2, env_state2, reward, done, info = env_step(keys, env_state, self._env_action(acted[1]), levels, drawn)
             ret_norm, tr = self.record_step(params, hp, obs_norm, ret_norm, acted, reward, done, info)
             if switching:  # an episode ended: the slot's next episode starts on its next level
                 moved = done & pending
                 levels, env_state2, obs2 = jax.vmap(swap)(moved, jax.random.split(k_swap, n), next_levels,
                                                            levels, env_state2, obs2, drawn_next)
+                if ahead:  # the slot's later episode ends restart on its new level too
+                    drawn = jax.vmap(restart_where)(moved, drawn_next, drawn)
                 pending = pending & ~moved
-            return ((env_state2, obs2.astype(jnp.float32), obs_norm, ret_norm), (levels, pending)), tr
+            return ((env_state2, obs2.astype(jnp.float32), obs_norm, ret_norm), (levels, pending, drawn)), tr
 
         carry0 = ((state.env_state, state.obs, state.obs_norm, state.ret_norm),
-                  (state.levels, jnp.ones((n,), bool)))
-        ((env_state, obs, obs_norm, ret_norm), (levels, pending)), traj = jax.lax.scan(
+                  (state.levels, jnp.ones((n,), bool), drawn))
+        ((env_state, obs, obs_norm, ret_norm), (levels, pending, _)), traj = jax.lax.scan(
             step, carry0, jax.random.split(key, cfg.num_steps))
         state = state.replace(env_state=env_state, obs=obs, obs_norm=obs_norm, ret_norm=ret_norm)
         return state.replace(levels=levels), traj
