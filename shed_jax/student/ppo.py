@@ -273,8 +273,7 @@ class PPOStudent:
         def swap(moved, key, next_level, level, env_state, obs, drawn_next):
             """One slot: if ``moved``, a new episode on ``next_level`` replaces the auto-reset one."""
             obs_new, state_new = self.env.reset(key, next_level) if drawn_next is None else drawn_next
-            pick = lambda new, old: jnp.where(moved, new, old)  # noqa: E731
-            return jax.tree_util.tree_map(pick, (next_level, state_new, obs_new), (level, env_state, obs))
+            return restart_where(moved, (next_level, state_new, obs_new), (level, env_state, obs))
 
         def env_step(keys, env_state, action, levels, drawn):
             if not ahead:
