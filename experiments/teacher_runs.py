@@ -16,6 +16,10 @@ teacher episodes: its episode-0 and gain fields are null).
     # the mean box of the levels a teacher generated from teacher episode 30 on: a fixed-box DR control
     python -m experiments.teacher_runs late-box SWEEP_DIR/hmdp-x/default [...] --from-episode 30
 
+    # two sets of sweeps with one point each (e.g. DR on a teacher's late box, and on Θ): final test
+    # returns pooled per set, and their difference paired by (root seed, seed index)
+    python -m experiments.teacher_runs paired BOX_SWEEP [...] --vs FULL_SWEEP [...] --out control.json
+
     # a figure: test return (mean ± SE over seeds) and diagnostics by teacher episode, one line per run
     python -m experiments.teacher_runs plot compact.json [...] --only NAME [--only NAME] --out fig.png
 
@@ -335,6 +339,43 @@ def late_box(point_dirs, from_episode: int) -> dict:
             "low_sd": lo.std(0).tolist(), "high_sd": hi.std(0).tolist()}
 
 
+def _finals(sweep_dirs) -> dict:
+    """{(root seed, seed index): final test return} of one-point sweeps, and each sweep's provenance."""
+    finals, prov = {}, []
+    for d in map(pathlib.Path, sweep_dirs):
+        sweep = json.loads((d / "sweep.json").read_text())
+        if len(sweep["rows"]) != 1:
+            raise SystemExit(f"paired: {d} has {len(sweep['rows'])} points; give sweeps of one point each")
+        per_seed = json.loads((d / sweep["rows"][0]["dir"] / "summary.json").read_text())["final_test_return_per_seed"]
+        root = sweep.get("root_seed", 0)
+        for i, v in enumerate(per_seed):
+            if (root, i) in finals:
+                raise SystemExit(f"paired: root seed {root} appears twice in one set ({d})")
+            finals[(root, i)] = float(v)
+        prov.append({"sweep": str(d), "group": sweep["rows"][0].get("group"), "root_seed": root, "seeds": len(per_seed),
+                     **{k: sweep.get(k) for k in ("device", "command", "date", "wall_time_s")}})
+    return {"finals": finals, "sweeps": prov}
+
+
+def paired(a_dirs, b_dirs) -> dict:
+    """Final test returns of two sets of sweeps: each set pooled (mean, SE over its seeds), and a - b over
+    the seeds both sets hold, matched by (root seed, seed index): with the same root seed and seed count
+    a sweep's students start from the same initialisations, so the pairing removes that part of the noise."""
+    a, b = _finals(a_dirs), _finals(b_dirs)
+    both = sorted(set(a["finals"]) & set(b["finals"]))
+    if len(both) < 2:
+        raise SystemExit(f"paired: {len(both)} seed(s) common to both sets; pairing needs at least 2")
+    out = {}
+    for name, s in (("a", a), ("b", b)):
+        m, se = _mean_se(list(s["finals"].values()))
+        out[name] = {"seeds": len(s["finals"]), "mean": m, "se": se, "sweeps": s["sweeps"],
+                     "final_by_root_seed": {str(r): [v for (rr, _), v in sorted(s["finals"].items()) if rr == r]
+                                            for r in sorted({r for r, _ in s["finals"]})}}
+    m, se = _mean_se([a["finals"][k] - b["finals"][k] for k in both])
+    out["paired"] = {"seeds": len(both), "mean": m, "se": se}
+    return out
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="cmd", required=True)
@@ -357,8 +398,23 @@ def main(argv=None):
     b = sub.add_parser("late-box", help="the mean box of the generated levels late in runs (a DR control)")
     b.add_argument("dirs", nargs="+", help="<method>/<point>/ directories")
     b.add_argument("--from-episode", type=int, default=30)
+    c = sub.add_parser("paired", help="two sets of one-point sweeps: pooled finals and their paired difference")
+    c.add_argument("dirs", nargs="+", help="the first set's sweep directories")
+    c.add_argument("--vs", nargs="+", required=True, help="the second set's sweep directories")
+    c.add_argument("--out", default=None, help="write the comparison here (JSON, with date and command)")
     a = p.parse_args(argv)
-    if a.cmd == "late-box":
+    if a.cmd == "paired":
+        res = paired(a.dirs, a.vs)
+        f1 = lambda e: f"{e['mean']:.1f} ± {e['se']:.1f} ({e['seeds']} seeds)"  # noqa: E731
+        print(f"a: {f1(res['a'])}; b: {f1(res['b'])}; a - b, paired: {f1(res['paired'])}")
+        if a.out:
+            devices = "; ".join(sorted({s["device"] for k in ("a", "b") for s in res[k]["sweeps"] if s.get("device")})) \
+                or "not recorded (sweeps from before sweep.json kept the device)"
+            rec = {"date": datetime.date.today().isoformat(),
+                   "command": "python -m experiments.teacher_runs paired " + " ".join(a.dirs) + " --vs " + " ".join(a.vs)
+                   + f" --out {a.out}", "device": devices, **res}
+            pathlib.Path(a.out).write_text(json.dumps(_finite(rec), indent=1, allow_nan=False) + "\n")
+    elif a.cmd == "late-box":
         box = late_box(a.dirs, a.from_episode)
         print(json.dumps(box))
         fmt = lambda v: "[" + ",".join(f"{x:.3g}" for x in v) + "]"  # noqa: E731

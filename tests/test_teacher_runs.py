@@ -195,3 +195,42 @@ def test_late_box_means_each_steps_lowest_and_highest_level(tmp_path, capsys):
     assert "--set low=[-3,0.75] --set high=[-0.5,4]" in capsys.readouterr().out
     with pytest.raises(SystemExit, match="no budget step with info/levels at teacher episode >= 3"):
         teacher_runs.late_box([point], from_episode=3)
+
+
+def _write_sweep(d, root_seed, finals, device="gpu: test"):
+    (d / "dr" / "default").mkdir(parents=True)
+    (d / "sweep.json").write_text(json.dumps({"device": device, "command": "sweep ...", "date": "2026-11-28", "root_seed": root_seed,
+                                              "rows": [{"method": "dr", "group": "dr", "dir": "dr/default"}]}))
+    (d / "dr" / "default" / "summary.json").write_text(json.dumps({"final_test_return_per_seed": finals}))
+
+
+def test_paired_matches_seeds_by_root_seed_and_index(tmp_path, capsys):
+    _write_sweep(tmp_path / "a0", 0, [10.0, 20.0])
+    _write_sweep(tmp_path / "a1", 1, [30.0, 40.0])
+    _write_sweep(tmp_path / "b1", 1, [25.0, 31.0])  # listed first: pairing is by key, not by order
+    _write_sweep(tmp_path / "b0", 0, [4.0, 18.0])
+    res = teacher_runs.paired([tmp_path / "a0", tmp_path / "a1"], [tmp_path / "b1", tmp_path / "b0"])
+    assert res["a"]["mean"] == pytest.approx(25.0) and res["a"]["seeds"] == 4
+    assert res["a"]["se"] == pytest.approx(np.std([10, 20, 30, 40], ddof=1) / 2)
+    assert res["b"]["mean"] == pytest.approx(19.5) and res["b"]["final_by_root_seed"] == {"0": [4.0, 18.0], "1": [25.0, 31.0]}
+    # a - b per seed: 6, 2, 5, 9
+    assert res["paired"]["mean"] == pytest.approx(5.5) and res["paired"]["seeds"] == 4
+    assert res["paired"]["se"] == pytest.approx(np.std([6, 2, 5, 9], ddof=1) / 2)
+    assert res["a"]["sweeps"][1]["device"] == "gpu: test" and res["b"]["sweeps"][0]["root_seed"] == 1
+    out = tmp_path / "c.json"
+    teacher_runs.main(["paired", str(tmp_path / "a0"), str(tmp_path / "a1"), "--vs", str(tmp_path / "b0"), "--out", str(out)])
+    rec = json.loads(out.read_text())
+    # a0 and a1 against b0 alone: only root seed 0 pairs (6, 2); a keeps its 4 seeds
+    assert rec["paired"] == {"seeds": 2, "mean": pytest.approx(4.0), "se": pytest.approx(2.0)}
+    assert rec["a"]["seeds"] == 4 and rec["device"] == "gpu: test" and "date" in rec and rec["command"].startswith("python -m")
+    assert "a - b, paired: 4.0 ± 2.0 (2 seeds)" in capsys.readouterr().out
+
+
+def test_paired_refuses_too_few_common_seeds_and_multi_point_sweeps(tmp_path):
+    _write_sweep(tmp_path / "a", 0, [1.0, 2.0])
+    _write_sweep(tmp_path / "b", 3, [1.0, 2.0])
+    with pytest.raises(SystemExit, match="0 seed"):
+        teacher_runs.paired([tmp_path / "a"], [tmp_path / "b"])
+    (tmp_path / "a" / "sweep.json").write_text(json.dumps({"rows": [{"dir": "x"}, {"dir": "y"}]}))
+    with pytest.raises(SystemExit, match="2 points"):
+        teacher_runs.paired([tmp_path / "a"], [tmp_path / "b"])
