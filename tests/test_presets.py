@@ -34,6 +34,16 @@ def test_walker_paper_budget_is_1e7_steps():
     assert shed.loop.num_episodes == 20 and build_experiment("lander", "shed", "paper").method_config.num_eval_episodes == 8
 
 
+def test_walker_students_draw_resets_per_rollout_and_the_lander_per_step():
+    """The walkers' resets are costly (a terrain build each), so their students draw one per slot and
+    rollout; the lander keeps the env's own auto-reset, the setting of every recorded lander result."""
+    for env in ("walker", "bipedal"):
+        for preset in ("paper", "quick"):
+            assert build_experiment(env, "dr", preset).ppo.reset_draw == "per_rollout"
+    assert build_experiment("lander", "shed", "paper").ppo.reset_draw == "per_step"
+    assert build_experiment("walker", "dr", "quick", ppo_overrides={"reset_draw": "per_step"}).ppo.reset_draw == "per_step"
+
+
 @pytest.mark.parametrize("method", ["dr", "shed"])
 def test_bipedal_runs_the_walker_protocol_with_the_walker_student(method):
     """The physics2d walker shares the MJX walker's levels, so its presets, student and default final
