@@ -11,7 +11,9 @@
 exported to (a row per seed, teacher episode and budget step, tested episodes only): each becomes a
 compact run as ``summarise`` would make it (its at-bound fraction was not logged then: null).
 ``--dr`` adds domain randomisation's final test return from the baselines record (DR has no
-teacher episodes: its episode-0 and gain fields are null).
+teacher episodes: its episode-0 and gain fields are null). ``--control FILE`` adds the two sets of a
+``paired`` file (below) the same way. The record's ``targets`` says, per teacher, whether each of
+issue #26's targets is shown, against the entry ``--dr-reference`` names (:func:`targets`).
 
     # the mean box of the levels a teacher generated from teacher episode 30 on: a fixed-box DR control
     python -m experiments.teacher_runs late-box SWEEP_DIR/hmdp-x/default [...] --from-episode 30
@@ -263,12 +265,59 @@ def _finite(o):
     return None if isinstance(o, float) and not math.isfinite(o) else o
 
 
-def record(files, out, device, command, date, notes=(), paper_csv=None, dr=None):
+def control_entries(path) -> dict:
+    """A ``paired`` comparison file -> one DR-like entry per set (no teacher: null teacher fields),
+    named by the set's group with its seed count, e.g. ``dr[level_switch=episode] (40 seeds)``."""
+    c = json.loads(pathlib.Path(path).read_text())
+    names = {k: f"{' + '.join(sorted({s.get('group') or '?' for s in c[k]['sweeps']}))} ({c[k]['seeds']} seeds)"
+             for k in ("a", "b")}
+    if names["a"] == names["b"]:  # the same group on both sides: tell them apart by side
+        names = {k: f"{n} [{'first' if k == 'a' else 'second'} set of {pathlib.Path(path).name}]" for k, n in names.items()}
+    out = {}
+    for key in ("a", "b"):
+        e = c[key]
+        out[names[key]] = {
+            "seeds": e["seeds"], "final_mean": e["mean"], "final_se": e["se"], "episode0_mean": None,
+            "episode0_se": None, "paired_gain_mean": None, "paired_gain_se": None, "at_bound_fraction": None,
+            "source": str(path)}
+    return out
+
+
+TARGET_SE = 2.0  # a difference counts as shown when it exceeds this many standard errors
+
+
+def targets(lander: dict, dr_reference: str = "dr") -> dict:
+    """Issue #26's targets, per teacher entry (those with an episode 0): the gain over its own episode 0
+    (paired; the late endpoint where it exists, else the last tested episode), the margin over the
+    entry ``dr_reference`` (unpaired: the SE of a difference of independent means; none if absent),
+    and the fraction of generated parameters at a bound (target: below 0.1). ``*_shown`` is
+    margin > TARGET_SE x SE."""
+    dr = lander.get(dr_reference)
+    out = {"se_multiple": TARGET_SE, "dr_reference": dr_reference if dr else None, "by_method": {}}
+    for name, e in lander.items():
+        if e.get("episode0_mean") is None:
+            continue
+        late = e.get("paired_late_gain_mean") is not None
+        g, gs = (e["paired_late_gain_mean"], e["paired_late_gain_se"]) if late else (e["paired_gain_mean"], e["paired_gain_se"])
+        t = {"endpoint": "late" if late else "final", "gain_over_episode0": g, "gain_se": gs,
+             "gain_shown": bool(g is not None and gs is not None and g > TARGET_SE * gs),
+             "at_bound_fraction": e.get("at_bound_fraction"),
+             "at_bound_met": None if e.get("at_bound_fraction") is None else bool(e["at_bound_fraction"] < 0.1)}
+        if dr is not None:
+            m = (e["late_mean"] if late else e["final_mean"]) - dr["final_mean"]
+            se = math.hypot(e["late_se"] if late else e["final_se"], dr["final_se"])
+            t |= {"margin_over_dr": m, "margin_se": se, "beats_dr_shown": bool(m > TARGET_SE * se)}
+        out["by_method"][name] = t
+    return out
+
+
+def record(files, out, device, command, date, notes=(), paper_csv=None, dr=None, controls=(), dr_reference="dr"):
     runs = [r for f in files for r in json.loads(pathlib.Path(f).read_text())]
     runs += paper_runs(paper_csv) if paper_csv else []
-    lander = ({"dr": dr_entry(dr)} if dr else {}) | aggregate(runs)
+    lander = ({"dr": dr_entry(dr)} if dr else {}) | {k: v for c in controls for k, v in control_entries(c).items()}
+    lander |= aggregate(runs)
     rec = {"device": device, "date": date or datetime.date.today().isoformat(), "command": command,
-           "notes": list(notes), "lander": lander}
+           "notes": list(notes), "targets": targets(lander, dr_reference), "lander": lander}
     pathlib.Path(out).write_text(json.dumps(_finite(rec), indent=1, allow_nan=False) + "\n")
     f1 = lambda x: "-" if x is None else f"{x:.1f}"  # noqa: E731
     for name, e in lander.items():
@@ -391,6 +440,9 @@ def main(argv=None):
     r.add_argument("--note", action="append", default=[], help="a line for the record's notes (repeatable)")
     r.add_argument("--paper-csv", default=None, help="the paper teachers' (SHED, h-MDP) long-form CSV")
     r.add_argument("--dr", default=None, help="the baselines record whose lander DR entry to add")
+    r.add_argument("--control", action="append", default=[],
+                   help="a `paired` comparison file whose two sets join the record as DR entries (repeatable)")
+    r.add_argument("--dr-reference", default="dr", help="the entry the targets compare each teacher with")
     q = sub.add_parser("plot")
     q.add_argument("files", nargs="+")
     q.add_argument("--out", required=True)
@@ -424,7 +476,7 @@ def main(argv=None):
     elif a.cmd == "plot":
         plot(a.files, a.out, a.only)
     else:
-        record(a.files, a.out, a.device, a.command, a.date, a.note, a.paper_csv, a.dr)
+        record(a.files, a.out, a.device, a.command, a.date, a.note, a.paper_csv, a.dr, a.control, a.dr_reference)
 
 
 if __name__ == "__main__":

@@ -234,3 +234,39 @@ def test_paired_refuses_too_few_common_seeds_and_multi_point_sweeps(tmp_path):
     (tmp_path / "a" / "sweep.json").write_text(json.dumps({"rows": [{"dir": "x"}, {"dir": "y"}]}))
     with pytest.raises(SystemExit, match="2 points"):
         teacher_runs.paired([tmp_path / "a"], [tmp_path / "b"])
+
+
+def test_targets_use_the_late_gain_and_the_named_dr_entry():
+    lander = {
+        "dr": {"seeds": 10, "final_mean": 100.0, "final_se": 4.0, "episode0_mean": None},
+        "dr[x] (40 seeds)": {"seeds": 40, "final_mean": 110.0, "final_se": 3.0, "episode0_mean": None},
+        "t": {"seeds": 30, "episode0_mean": 1.0, "final_mean": 130.0, "final_se": 1.0, "late_mean": 124.0, "late_se": 4.0,
+              "paired_gain_mean": 9.0, "paired_gain_se": 1.0, "paired_late_gain_mean": 5.0, "paired_late_gain_se": 2.6,
+              "at_bound_fraction": 0.02},
+        "u": {"seeds": 10, "episode0_mean": 1.0, "final_mean": 119.0, "final_se": 4.0, "paired_gain_mean": 9.0,
+              "paired_gain_se": 4.0, "paired_late_gain_mean": None, "at_bound_fraction": 0.5},
+    }
+    t = teacher_runs.targets(lander, "dr[x] (40 seeds)")
+    assert t["dr_reference"] == "dr[x] (40 seeds)" and sorted(t["by_method"]) == ["t", "u"]
+    assert teacher_runs.targets(lander)["by_method"]["t"]["margin_over_dr"] == pytest.approx(24.0)  # "dr": 124 - 100
+    assert "margin_over_dr" not in teacher_runs.targets(lander, "nope")["by_method"]["t"]
+    a = t["by_method"]["t"]  # late endpoint: gain 5.0 < 2 x 2.6; margin 124 - 110 = 14 > 2 x hypot(4, 3) = 10
+    assert a["endpoint"] == "late" and a["gain_over_episode0"] == 5.0 and not a["gain_shown"]
+    assert a["margin_over_dr"] == pytest.approx(14.0) and a["margin_se"] == pytest.approx(5.0) and a["beats_dr_shown"]
+    assert a["at_bound_met"]
+    b = t["by_method"]["u"]  # no late endpoint: final; gain 9 > 2 x 4; margin 9 < 2 x 5
+    assert b["endpoint"] == "final" and b["gain_shown"] and not b["beats_dr_shown"] and b["at_bound_met"] is False
+
+
+def test_a_paired_file_joins_the_record_as_two_dr_entries(tmp_path):
+    _write_sweep(tmp_path / "a", 0, [10.0, 20.0, 30.0])
+    _write_sweep(tmp_path / "b", 0, [12.0, 18.0, 24.0])
+    c = tmp_path / "c.json"
+    teacher_runs.main(["paired", str(tmp_path / "a"), "--vs", str(tmp_path / "b"), "--out", str(c)])
+    (tmp_path / "none.json").write_text("[]")
+    record([tmp_path / "none.json"], tmp_path / "r.json", "cpu", "cmd", "2026-01-01", controls=[c])
+    rec = json.loads((tmp_path / "r.json").read_text())
+    lander = rec["lander"]  # both sets are group "dr", so each name says its side
+    assert lander["dr (3 seeds) [first set of c.json]"]["final_mean"] == pytest.approx(20.0)
+    assert lander["dr (3 seeds) [second set of c.json]"]["final_se"] == pytest.approx(np.std([12, 18, 24], ddof=1) / math.sqrt(3))
+    assert rec["targets"]["by_method"] == {}
