@@ -20,7 +20,8 @@ issue #26's targets is shown, against the entry ``--dr-reference`` names (:func:
 
     # two sets of sweeps with one point each (e.g. DR on a teacher's late box, and on Θ): final test
     # returns pooled per set, and their difference paired by (root seed, seed index)
-    python -m experiments.teacher_runs paired BOX_SWEEP [...] --vs FULL_SWEEP [...] --out control.json
+    python -m experiments.teacher_runs paired BOX_SWEEP [...] --vs FULL_SWEEP [...] --out control.json \
+        [--plot control.png --labels box Θ]
 
     # a figure: test return (mean ± SE over seeds) and diagnostics by teacher episode, one line per run
     python -m experiments.teacher_runs plot compact.json [...] --only NAME [--only NAME] --out fig.png
@@ -425,6 +426,32 @@ def paired(a_dirs, b_dirs) -> dict:
     return out
 
 
+def plot_paired(res: dict, out, labels=("a", "b")) -> None:
+    """Each set's per-seed finals (dots) with mean ± SE, and each pair's difference a - b."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    per = {k: {(r, i): v for r, vs in res[k]["final_by_root_seed"].items() for i, v in enumerate(vs)} for k in ("a", "b")}
+    both = sorted(set(per["a"]) & set(per["b"]))
+    fig, (ax, bx) = plt.subplots(1, 2, figsize=(8, 3.6), gridspec_kw={"width_ratios": [2, 1]})
+    rng = np.random.default_rng(0)  # horizontal jitter only
+    for x, k in enumerate(("a", "b")):
+        v = np.array(list(per[k].values()))
+        ax.scatter(x + rng.uniform(-0.15, 0.15, len(v)), v, s=10, alpha=0.6)
+        ax.errorbar(x + 0.3, res[k]["mean"], yerr=res[k]["se"], fmt="o", color="k", capsize=4)
+    ax.set_xticks([0, 1], [f"{lab}\n{res[k]['mean']:.1f} ± {res[k]['se']:.1f} ({res[k]['seeds']})"
+                           for lab, k in zip(labels, ("a", "b"))], fontsize=8)
+    ax.set_ylabel("final test return")
+    d = np.array([per["a"][k] - per["b"][k] for k in both])
+    bx.scatter(rng.uniform(-0.15, 0.15, len(d)), d, s=10, alpha=0.6)
+    bx.errorbar(0.3, res["paired"]["mean"], yerr=res["paired"]["se"], fmt="o", color="k", capsize=4)
+    bx.axhline(0, color="grey", lw=0.8)
+    bx.set_xticks([0], [f"a - b, paired\n{res['paired']['mean']:+.1f} ± {res['paired']['se']:.1f} ({len(d)})"], fontsize=8)
+    fig.tight_layout()
+    fig.savefig(out, dpi=110)
+    print(f"-> {out}")
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="cmd", required=True)
@@ -454,6 +481,8 @@ def main(argv=None):
     c.add_argument("dirs", nargs="+", help="the first set's sweep directories")
     c.add_argument("--vs", nargs="+", required=True, help="the second set's sweep directories")
     c.add_argument("--out", default=None, help="write the comparison here (JSON, with date and command)")
+    c.add_argument("--plot", default=None, help="a figure of the per-seed finals and differences (PNG)")
+    c.add_argument("--labels", nargs=2, default=("a", "b"), help="the two sets' names in the figure")
     a = p.parse_args(argv)
     if a.cmd == "paired":
         res = paired(a.dirs, a.vs)
@@ -466,6 +495,8 @@ def main(argv=None):
                    "command": "python -m experiments.teacher_runs paired " + " ".join(a.dirs) + " --vs " + " ".join(a.vs)
                    + f" --out {a.out}", "device": devices, **res}
             pathlib.Path(a.out).write_text(json.dumps(_finite(rec), indent=1, allow_nan=False) + "\n")
+        if a.plot:
+            plot_paired(res, a.plot, a.labels)
     elif a.cmd == "late-box":
         box = late_box(a.dirs, a.from_episode)
         print(json.dumps(box))

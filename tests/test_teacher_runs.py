@@ -224,6 +224,8 @@ def test_paired_matches_seeds_by_root_seed_and_index(tmp_path, capsys):
     assert rec["paired"] == {"seeds": 2, "mean": pytest.approx(4.0), "se": pytest.approx(2.0)}
     assert rec["a"]["seeds"] == 4 and rec["device"] == "gpu: test" and "date" in rec and rec["command"].startswith("python -m")
     assert "a - b, paired: 4.0 ± 2.0 (2 seeds)" in capsys.readouterr().out
+    teacher_runs.main(["paired", str(tmp_path / "a0"), "--vs", str(tmp_path / "b0"), "--plot", str(tmp_path / "c.png")])
+    assert (tmp_path / "c.png").stat().st_size > 1000
 
 
 def test_paired_refuses_too_few_common_seeds_and_multi_point_sweeps(tmp_path):
