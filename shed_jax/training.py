@@ -134,18 +134,30 @@ def smoothed(x: np.ndarray, window: int) -> np.ndarray:
         return (c[..., idx] - c[..., lo]) / (n[..., idx] - n[..., lo])
 
 
+def fixed_level_config(args):
+    """The env's PPO preset with the ``ppo`` command's ``--ppo KEY=VALUE`` items, ``--num-envs`` and
+    ``--lr`` applied (ValueError naming a bad field or value)."""
+    from shed_jax.student import PPOConfig
+    from shed_jax.student.config import parse_overrides
+
+    overrides = parse_overrides(getattr(args, "ppo", None) or [])
+    if args.num_envs is not None:
+        overrides["num_envs"] = args.num_envs
+    if args.lr is not None:
+        overrides["lr"] = args.lr
+    return PPOConfig.for_env(args.env).with_overrides(overrides)
+
+
 def train_fixed_level(args) -> dict:
     """``python -m shed_jax ppo``: ``args`` has its flags as attributes; writes ``args.out`` (default
     runs/ppo_<env>) and returns the summary."""
     import envs
     from shed_jax import reporting, runtime
-    from shed_jax.student import PPOConfig, PPOHyperparams, make_student
+    from shed_jax.student import PPOHyperparams, make_student
 
     env = envs.make(args.env)
-    config = PPOConfig.for_env(args.env)
-    if args.num_envs is not None:
-        config = config.replace(num_envs=args.num_envs)
-    hp = config.hparams if args.lr is None else config.hparams.replace(lr=args.lr)
+    config = fixed_level_config(args)
+    hp = config.hparams
     student = make_student(env, config)
     level = resolve_level(env, args.level)
     out = pathlib.Path(args.out or f"runs/ppo_{args.env}")

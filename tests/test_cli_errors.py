@@ -185,3 +185,22 @@ def test_ppo_unknown_level_is_one_line_and_the_bipedal_walker_has_dcds_levels(cw
     bipedal = envs.make("bipedal")  # shares the MJX walker's named levels (and builds no physics here)
     assert find_levels(bipedal) is LEVELS
     assert resolve_level(bipedal, "Stairs") == LEVELS["Stairs"]()
+
+
+def test_ppo_command_takes_the_student_overrides_of_run(cwd, capsys):
+    """`ppo --ppo KEY=VALUE` applies fields as `run --ppo` does (with --lr and --num-envs folded in), and a
+    bad one is one line before anything is built."""
+    import argparse
+
+    from shed_jax.cli import ppo as ppo_cli
+
+    args = argparse.Namespace(env="walker", ppo=["reset_draw=per_step", "num_steps=32"], num_envs=16, lr=1e-4)
+    cfg = ppo_cli.ppo_config(args)
+    assert (cfg.reset_draw, cfg.num_steps, cfg.num_envs, cfg.hparams.lr) == ("per_step", 32, 16, 1e-4)
+    assert cfg.update_epochs == 10 and cfg.normalize_observations  # the rest is the walker preset
+    assert ppo_cli.ppo_config(argparse.Namespace(env="walker", ppo=[], num_envs=None, lr=None)).reset_draw == "per_rollout"
+    assert main(["ppo", "--env", "cartpole", "--ppo", "reset_draw=once"]) == errors.EXIT_USAGE
+    assert "PPOConfig.reset_draw must be one of 'per_step', 'per_rollout', got 'once'" in error_line(capsys)
+    assert main(["ppo", "--env", "cartpole", "--ppo", "num_step=32"]) == errors.EXIT_USAGE
+    assert "--ppo: unknown field 'num_step'" in error_line(capsys)
+    assert list(cwd.iterdir()) == []

@@ -21,7 +21,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--eval-episodes", type=int, default=16, help="episodes per seed for the final evaluation")
     parser.add_argument("--lr", type=float, default=None, help="override the preset learning rate")
     parser.add_argument("--num-envs", type=int, default=None, help="override the preset number of envs")
+    parser.add_argument("--ppo", action="append", default=[], metavar="KEY=VALUE",
+                        help="override a field of the student's PPOConfig or PPOHyperparams (repeatable), as for run, "
+                             "e.g. --ppo reset_draw=per_step")
     parser.add_argument("--out", default=None, help="output directory (default runs/ppo_<env>)")
+
+
+def ppo_config(args):
+    """The student config the command trains (``training.fixed_level_config``); UsageError naming a bad value."""
+    from shed_jax.errors import UsageError
+    from shed_jax.training import fixed_level_config
+
+    try:
+        return fixed_level_config(args)
+    except ValueError as err:
+        raise UsageError(str(err)) from None
 
 
 def main(args) -> int:
@@ -35,5 +49,6 @@ def main(args) -> int:
         resolve_level(envs.make(args.env), args.level)
     except ValueError as e:
         raise UsageError(f"--level: {e}") from None
+    ppo_config(args)  # a bad --ppo/--lr/--num-envs: one line, before anything is built
     train_fixed_level(args)
     return 0

@@ -193,8 +193,8 @@ PRESETS: dict[str, PPOConfig] = {
     # of 8, gamma 0.99, lambda 0.9, raw observations) needed 18.4M steps for a median of 230.
     # Resets drawn once per rollout: on the MJX walker (H100, 4 seeds, 5.2M steps) training ran 1.34x
     # faster than with a reset at every step (74 s vs 99 s) and the final stochastic median was 276 vs
-    # 275; on the 2-D walker a per-step reset's rollout did not finish compiling in 7.5 minutes
-    # (docs/walker.md, "Resets once per rollout").
+    # 275; on the 2-D walker a per-step reset's rollout was still compiling after 7.5 minutes
+    # (docs/walker.md, "Resets once per rollout"; docs/bipedal.md).
     "walker": PPOConfig(
         num_envs=1024,
         num_steps=64,
