@@ -390,7 +390,8 @@ def late_box(point_dirs, from_episode: int) -> dict:
 
 
 def _finals(sweep_dirs) -> dict:
-    """{(root seed, seed index): final test return} of one-point sweeps, and each sweep's provenance."""
+    """{(root seed, seed count, seed index): final test return} of one-point sweeps, and each sweep's
+    provenance. The seed count is part of the key: a sweep splits its root key by it."""
     finals, prov = {}, []
     for d in map(pathlib.Path, sweep_dirs):
         sweep = json.loads((d / "sweep.json").read_text())
@@ -399,9 +400,9 @@ def _finals(sweep_dirs) -> dict:
         per_seed = json.loads((d / sweep["rows"][0]["dir"] / "summary.json").read_text())["final_test_return_per_seed"]
         root = sweep.get("root_seed", 0)
         for i, v in enumerate(per_seed):
-            if (root, i) in finals:
-                raise SystemExit(f"paired: root seed {root} appears twice in one set ({d})")
-            finals[(root, i)] = float(v)
+            if (root, len(per_seed), i) in finals:
+                raise SystemExit(f"paired: root seed {root} with {len(per_seed)} seeds appears twice in one set ({d})")
+            finals[(root, len(per_seed), i)] = float(v)
         prov.append({"sweep": str(d), "group": sweep["rows"][0].get("group"), "root_seed": root, "seeds": len(per_seed),
                      **{k: sweep.get(k) for k in ("device", "command", "date", "wall_time_s")}})
     return {"finals": finals, "sweeps": prov}
@@ -409,8 +410,8 @@ def _finals(sweep_dirs) -> dict:
 
 def paired(a_dirs, b_dirs) -> dict:
     """Final test returns of two sets of sweeps: each set pooled (mean, SE over its seeds), and a - b over
-    the seeds both sets hold, matched by (root seed, seed index): with the same root seed and seed count
-    a sweep's students start from the same initialisations, so the pairing removes that part of the noise."""
+    the seeds both sets hold, matched by (root seed, seed count, seed index): such seeds start their
+    students from the same initialisations, so the pairing removes that part of the noise."""
     a, b = _finals(a_dirs), _finals(b_dirs)
     both = sorted(set(a["finals"]) & set(b["finals"]))
     if len(both) < 2:
@@ -419,8 +420,8 @@ def paired(a_dirs, b_dirs) -> dict:
     for name, s in (("a", a), ("b", b)):
         m, se = _mean_se(list(s["finals"].values()))
         out[name] = {"seeds": len(s["finals"]), "mean": m, "se": se, "sweeps": s["sweeps"],
-                     "final_by_root_seed": {str(r): [v for (rr, _), v in sorted(s["finals"].items()) if rr == r]
-                                            for r in sorted({r for r, _ in s["finals"]})}}
+                     "final_by_sweep": {f"{r}/{n}": [v for (rr, nn, _), v in sorted(s["finals"].items()) if (rr, nn) == (r, n)]
+                                        for r, n in sorted({(r, n) for r, n, _ in s["finals"]})}}
     m, se = _mean_se([a["finals"][k] - b["finals"][k] for k in both])
     out["paired"] = {"seeds": len(both), "mean": m, "se": se}
     return out
@@ -431,7 +432,7 @@ def plot_paired(res: dict, out, labels=("a", "b")) -> None:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    per = {k: {(r, i): v for r, vs in res[k]["final_by_root_seed"].items() for i, v in enumerate(vs)} for k in ("a", "b")}
+    per = {k: {(rn, i): v for rn, vs in res[k]["final_by_sweep"].items() for i, v in enumerate(vs)} for k in ("a", "b")}
     both = sorted(set(per["a"]) & set(per["b"]))
     fig, (ax, bx) = plt.subplots(1, 2, figsize=(8, 3.6), gridspec_kw={"width_ratios": [2, 1]})
     rng = np.random.default_rng(0)  # horizontal jitter only

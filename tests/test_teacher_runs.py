@@ -204,7 +204,7 @@ def _write_sweep(d, root_seed, finals, device="gpu: test"):
     (d / "dr" / "default" / "summary.json").write_text(json.dumps({"final_test_return_per_seed": finals}))
 
 
-def test_paired_matches_seeds_by_root_seed_and_index(tmp_path, capsys):
+def test_paired_matches_seeds_by_root_seed_count_and_index(tmp_path, capsys):
     _write_sweep(tmp_path / "a0", 0, [10.0, 20.0])
     _write_sweep(tmp_path / "a1", 1, [30.0, 40.0])
     _write_sweep(tmp_path / "b1", 1, [25.0, 31.0])  # listed first: pairing is by key, not by order
@@ -212,7 +212,7 @@ def test_paired_matches_seeds_by_root_seed_and_index(tmp_path, capsys):
     res = teacher_runs.paired([tmp_path / "a0", tmp_path / "a1"], [tmp_path / "b1", tmp_path / "b0"])
     assert res["a"]["mean"] == pytest.approx(25.0) and res["a"]["seeds"] == 4
     assert res["a"]["se"] == pytest.approx(np.std([10, 20, 30, 40], ddof=1) / 2)
-    assert res["b"]["mean"] == pytest.approx(19.5) and res["b"]["final_by_root_seed"] == {"0": [4.0, 18.0], "1": [25.0, 31.0]}
+    assert res["b"]["mean"] == pytest.approx(19.5) and res["b"]["final_by_sweep"] == {"0/2": [4.0, 18.0], "1/2": [25.0, 31.0]}
     # a - b per seed: 6, 2, 5, 9
     assert res["paired"]["mean"] == pytest.approx(5.5) and res["paired"]["seeds"] == 4
     assert res["paired"]["se"] == pytest.approx(np.std([6, 2, 5, 9], ddof=1) / 2)
@@ -231,8 +231,11 @@ def test_paired_matches_seeds_by_root_seed_and_index(tmp_path, capsys):
 def test_paired_refuses_too_few_common_seeds_and_multi_point_sweeps(tmp_path):
     _write_sweep(tmp_path / "a", 0, [1.0, 2.0])
     _write_sweep(tmp_path / "b", 3, [1.0, 2.0])
+    _write_sweep(tmp_path / "c", 0, [1.0, 2.0, 3.0])  # root seed 0 too, but 3 seeds split the key otherwise
     with pytest.raises(SystemExit, match="0 seed"):
         teacher_runs.paired([tmp_path / "a"], [tmp_path / "b"])
+    with pytest.raises(SystemExit, match="0 seed"):
+        teacher_runs.paired([tmp_path / "a"], [tmp_path / "c"])
     (tmp_path / "a" / "sweep.json").write_text(json.dumps({"rows": [{"dir": "x"}, {"dir": "y"}]}))
     with pytest.raises(SystemExit, match="2 points"):
         teacher_runs.paired([tmp_path / "a"], [tmp_path / "b"])
