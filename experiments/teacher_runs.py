@@ -273,7 +273,7 @@ def control_entries(path) -> dict:
     names = {k: f"{' + '.join(sorted({s.get('group') or '?' for s in c[k]['sweeps']}))} ({c[k]['seeds']} seeds)"
              for k in ("a", "b")}
     if names["a"] == names["b"]:  # the same group on both sides: tell them apart by side
-        names = {k: f"{n} [{'first' if k == 'a' else 'second'} set of {pathlib.Path(path).name}]" for k, n in names.items()}
+        names = {k: f"{n} [{'first' if k == 'a' else 'second'} set of {path}]" for k, n in names.items()}
     out = {}
     for key in ("a", "b"):
         e = c[key]
@@ -287,6 +287,10 @@ def control_entries(path) -> dict:
 TARGET_SE = 2.0  # a difference counts as shown when it exceeds this many standard errors
 
 
+def _finite_num(x) -> bool:
+    return isinstance(x, (int, float)) and math.isfinite(x)
+
+
 def targets(lander: dict, dr_reference: str = "dr") -> dict:
     """Issue #26's targets, per teacher entry (those with an episode 0): the gain over its own episode 0
     (paired; the late endpoint where it exists, else the last tested episode), the margin over the
@@ -296,27 +300,38 @@ def targets(lander: dict, dr_reference: str = "dr") -> dict:
     dr = lander.get(dr_reference)
     out = {"se_multiple": TARGET_SE, "dr_reference": dr_reference if dr else None, "by_method": {}}
     for name, e in lander.items():
-        if e.get("episode0_mean") is None:
+        if not _finite_num(e.get("episode0_mean")):  # no teacher (DR entries), or never tested at episode 0
             continue
         late = e.get("paired_late_gain_mean") is not None
         g, gs = (e["paired_late_gain_mean"], e["paired_late_gain_se"]) if late else (e["paired_gain_mean"], e["paired_gain_se"])
         t = {"endpoint": "late" if late else "final", "gain_over_episode0": g, "gain_se": gs,
-             "gain_shown": bool(g is not None and gs is not None and g > TARGET_SE * gs),
+             "gain_shown": bool(_finite_num(g) and _finite_num(gs) and g > TARGET_SE * gs),
              "at_bound_fraction": e.get("at_bound_fraction"),
              "at_bound_met": None if e.get("at_bound_fraction") is None else bool(e["at_bound_fraction"] < 0.1)}
-        if dr is not None:
-            m = (e["late_mean"] if late else e["final_mean"]) - dr["final_mean"]
-            se = math.hypot(e["late_se"] if late else e["final_se"], dr["final_se"])
+        vals = (e["late_mean"] if late else e["final_mean"], e["late_se"] if late else e["final_se"],
+                dr and dr.get("final_mean"), dr and dr.get("final_se"))
+        if dr is not None and all(map(_finite_num, vals)):  # else no margin (e.g. a 1-seed reference: no SE)
+            m, se = vals[0] - vals[2], math.hypot(vals[1], vals[3])
             t |= {"margin_over_dr": m, "margin_se": se, "beats_dr_shown": bool(m > TARGET_SE * se)}
         out["by_method"][name] = t
     return out
 
 
-def record(files, out, device, command, date, notes=(), paper_csv=None, dr=None, controls=(), dr_reference="dr"):
+def record(files, out, device, command, date, notes=(), paper_csv=None, dr=None, controls=(), dr_reference=None):
+    """Write the record; ``dr_reference`` names the entry ``targets`` compares with (default "dr", if any)."""
     runs = [r for f in files for r in json.loads(pathlib.Path(f).read_text())]
     runs += paper_runs(paper_csv) if paper_csv else []
-    lander = ({"dr": dr_entry(dr)} if dr else {}) | {k: v for c in controls for k, v in control_entries(c).items()}
-    lander |= aggregate(runs)
+    parts = [{"dr": dr_entry(dr)} if dr else {}, *(control_entries(c) for c in controls), aggregate(runs)]
+    lander = {}
+    for part in parts:
+        for k, v in part.items():
+            if k in lander:
+                raise SystemExit(f"record: two entries named {k!r} (from --dr, --control or the runs); give one of each")
+            lander[k] = v
+    if dr_reference is not None and dr_reference not in lander:
+        raise SystemExit(f"record: --dr-reference {dr_reference!r} is not an entry; entries without a teacher: "
+                         + ", ".join(k for k, e in lander.items() if e.get("episode0_mean") is None))
+    dr_reference = "dr" if dr_reference is None else dr_reference
     rec = {"device": device, "date": date or datetime.date.today().isoformat(), "command": command,
            "notes": list(notes), "targets": targets(lander, dr_reference), "lander": lander}
     pathlib.Path(out).write_text(json.dumps(_finite(rec), indent=1, allow_nan=False) + "\n")
@@ -390,19 +405,26 @@ def late_box(point_dirs, from_episode: int) -> dict:
 
 
 def _finals(sweep_dirs) -> dict:
-    """{(root seed, seed count, seed index): final test return} of one-point sweeps, and each sweep's
-    provenance. The seed count is part of the key: a sweep splits its root key by it."""
+    """{(root seed, seed index): final test return} of one-point sweeps, and each sweep's provenance.
+    Seed i of a sweep with root seed r has the key ``fold_in(PRNGKey(r), i)`` whatever the seed count."""
     finals, prov = {}, []
     for d in map(pathlib.Path, sweep_dirs):
-        sweep = json.loads((d / "sweep.json").read_text())
-        if len(sweep["rows"]) != 1:
-            raise SystemExit(f"paired: {d} has {len(sweep['rows'])} points; give sweeps of one point each")
-        per_seed = json.loads((d / sweep["rows"][0]["dir"] / "summary.json").read_text())["final_test_return_per_seed"]
-        root = sweep.get("root_seed", 0)
+        try:
+            sweep = json.loads((d / "sweep.json").read_text())
+            if len(sweep["rows"]) != 1:
+                raise SystemExit(f"paired: {d} has {len(sweep['rows'])} points; give sweeps of one point each")
+            point = d / sweep["rows"][0]["dir"]
+            per_seed = json.loads((point / "summary.json").read_text()).get("final_test_return_per_seed")
+            # sweeps from before sweep.json kept the root seed have it in the point's config
+            root = sweep["root_seed"] if "root_seed" in sweep else json.loads((point / "config.json").read_text())["root_seed"]
+        except (OSError, KeyError, ValueError) as err:
+            raise SystemExit(f"paired: {d} is not a finished sweep ({type(err).__name__}: {err})") from None
+        if not per_seed or not all(isinstance(v, (int, float)) and math.isfinite(v) for v in per_seed):
+            raise SystemExit(f"paired: {d} has no finite final test return per seed (a stopped run?)")
+        if any((root, i) in finals for i in range(len(per_seed))):
+            raise SystemExit(f"paired: root seed {root} appears twice in one set ({d}): its seeds would count twice")
         for i, v in enumerate(per_seed):
-            if (root, len(per_seed), i) in finals:
-                raise SystemExit(f"paired: root seed {root} with {len(per_seed)} seeds appears twice in one set ({d})")
-            finals[(root, len(per_seed), i)] = float(v)
+            finals[(root, i)] = float(v)
         prov.append({"sweep": str(d), "group": sweep["rows"][0].get("group"), "root_seed": root, "seeds": len(per_seed),
                      **{k: sweep.get(k) for k in ("device", "command", "date", "wall_time_s")}})
     return {"finals": finals, "sweeps": prov}
@@ -410,8 +432,8 @@ def _finals(sweep_dirs) -> dict:
 
 def paired(a_dirs, b_dirs) -> dict:
     """Final test returns of two sets of sweeps: each set pooled (mean, SE over its seeds), and a - b over
-    the seeds both sets hold, matched by (root seed, seed count, seed index): such seeds start their
-    students from the same initialisations, so the pairing removes that part of the noise."""
+    the seeds both sets hold, matched by (root seed, seed index): such seeds start their students from
+    the same initialisations, so the pairing removes that part of the noise."""
     a, b = _finals(a_dirs), _finals(b_dirs)
     both = sorted(set(a["finals"]) & set(b["finals"]))
     if len(both) < 2:
@@ -420,8 +442,8 @@ def paired(a_dirs, b_dirs) -> dict:
     for name, s in (("a", a), ("b", b)):
         m, se = _mean_se(list(s["finals"].values()))
         out[name] = {"seeds": len(s["finals"]), "mean": m, "se": se, "sweeps": s["sweeps"],
-                     "final_by_sweep": {f"{r}/{n}": [v for (rr, nn, _), v in sorted(s["finals"].items()) if (rr, nn) == (r, n)]
-                                        for r, n in sorted({(r, n) for r, n, _ in s["finals"]})}}
+                     "final_by_root_seed": {str(r): [v for (rr, _), v in sorted(s["finals"].items()) if rr == r]
+                                            for r in sorted({r for r, _ in s["finals"]})}}
     m, se = _mean_se([a["finals"][k] - b["finals"][k] for k in both])
     out["paired"] = {"seeds": len(both), "mean": m, "se": se}
     return out
@@ -432,7 +454,7 @@ def plot_paired(res: dict, out, labels=("a", "b")) -> None:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    per = {k: {(rn, i): v for rn, vs in res[k]["final_by_sweep"].items() for i, v in enumerate(vs)} for k in ("a", "b")}
+    per = {k: {(r, i): v for r, vs in res[k]["final_by_root_seed"].items() for i, v in enumerate(vs)} for k in ("a", "b")}
     both = sorted(set(per["a"]) & set(per["b"]))
     fig, (ax, bx) = plt.subplots(1, 2, figsize=(8, 3.6), gridspec_kw={"width_ratios": [2, 1]})
     rng = np.random.default_rng(0)  # horizontal jitter only
@@ -470,7 +492,7 @@ def main(argv=None):
     r.add_argument("--dr", default=None, help="the baselines record whose lander DR entry to add")
     r.add_argument("--control", action="append", default=[],
                    help="a `paired` comparison file whose two sets join the record as DR entries (repeatable)")
-    r.add_argument("--dr-reference", default="dr", help="the entry the targets compare each teacher with")
+    r.add_argument("--dr-reference", default=None, help="the entry the targets compare each teacher with (default: dr)")
     q = sub.add_parser("plot")
     q.add_argument("files", nargs="+")
     q.add_argument("--out", required=True)

@@ -141,10 +141,11 @@ def fixed_level_config(args):
     from shed_jax.student.config import parse_overrides
 
     overrides = parse_overrides(getattr(args, "ppo", None) or [])
-    if args.num_envs is not None:
-        overrides["num_envs"] = args.num_envs
-    if args.lr is not None:
-        overrides["lr"] = args.lr
+    for key, value in (("num_envs", args.num_envs), ("lr", args.lr)):
+        if value is not None:
+            if key in overrides:
+                raise ValueError(f"--{key.replace('_', '-')} and --ppo {key}=... both given; give one")
+            overrides[key] = value
     return PPOConfig.for_env(args.env).with_overrides(overrides)
 
 

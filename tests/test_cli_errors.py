@@ -203,4 +203,6 @@ def test_ppo_command_takes_the_student_overrides_of_run(cwd, capsys):
     assert "PPOConfig.reset_draw must be one of 'per_step', 'per_rollout', got 'once'" in error_line(capsys)
     assert main(["ppo", "--env", "cartpole", "--ppo", "num_step=32"]) == errors.EXIT_USAGE
     assert "--ppo: unknown field 'num_step'" in error_line(capsys)
+    assert main(["ppo", "--env", "cartpole", "--lr", "1e-3", "--ppo", "lr=1e-4"]) == errors.EXIT_USAGE
+    assert "--lr and --ppo lr=... both given; give one" in error_line(capsys)
     assert list(cwd.iterdir()) == []

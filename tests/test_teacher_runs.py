@@ -204,7 +204,7 @@ def _write_sweep(d, root_seed, finals, device="gpu: test"):
     (d / "dr" / "default" / "summary.json").write_text(json.dumps({"final_test_return_per_seed": finals}))
 
 
-def test_paired_matches_seeds_by_root_seed_count_and_index(tmp_path, capsys):
+def test_paired_matches_seeds_by_root_seed_and_index(tmp_path, capsys):
     _write_sweep(tmp_path / "a0", 0, [10.0, 20.0])
     _write_sweep(tmp_path / "a1", 1, [30.0, 40.0])
     _write_sweep(tmp_path / "b1", 1, [25.0, 31.0])  # listed first: pairing is by key, not by order
@@ -212,7 +212,7 @@ def test_paired_matches_seeds_by_root_seed_count_and_index(tmp_path, capsys):
     res = teacher_runs.paired([tmp_path / "a0", tmp_path / "a1"], [tmp_path / "b1", tmp_path / "b0"])
     assert res["a"]["mean"] == pytest.approx(25.0) and res["a"]["seeds"] == 4
     assert res["a"]["se"] == pytest.approx(np.std([10, 20, 30, 40], ddof=1) / 2)
-    assert res["b"]["mean"] == pytest.approx(19.5) and res["b"]["final_by_sweep"] == {"0/2": [4.0, 18.0], "1/2": [25.0, 31.0]}
+    assert res["b"]["mean"] == pytest.approx(19.5) and res["b"]["final_by_root_seed"] == {"0": [4.0, 18.0], "1": [25.0, 31.0]}
     # a - b per seed: 6, 2, 5, 9
     assert res["paired"]["mean"] == pytest.approx(5.5) and res["paired"]["seeds"] == 4
     assert res["paired"]["se"] == pytest.approx(np.std([6, 2, 5, 9], ddof=1) / 2)
@@ -228,17 +228,31 @@ def test_paired_matches_seeds_by_root_seed_count_and_index(tmp_path, capsys):
     assert (tmp_path / "c.png").stat().st_size > 1000
 
 
-def test_paired_refuses_too_few_common_seeds_and_multi_point_sweeps(tmp_path):
+def test_paired_refuses_too_few_common_seeds_repeated_roots_and_unfinished_sweeps(tmp_path):
     _write_sweep(tmp_path / "a", 0, [1.0, 2.0])
     _write_sweep(tmp_path / "b", 3, [1.0, 2.0])
-    _write_sweep(tmp_path / "c", 0, [1.0, 2.0, 3.0])  # root seed 0 too, but 3 seeds split the key otherwise
+    _write_sweep(tmp_path / "c", 0, [3.0, 5.0, 9.0])  # root seed 0 with 3 seeds: its seeds 0 and 1 are a's
     with pytest.raises(SystemExit, match="0 seed"):
         teacher_runs.paired([tmp_path / "a"], [tmp_path / "b"])
-    with pytest.raises(SystemExit, match="0 seed"):
-        teacher_runs.paired([tmp_path / "a"], [tmp_path / "c"])
+    res = teacher_runs.paired([tmp_path / "a"], [tmp_path / "c"])
+    assert res["paired"] == {"seeds": 2, "mean": pytest.approx(-2.5), "se": pytest.approx(0.5)}  # 1-3, 2-5
+    with pytest.raises(SystemExit, match="root seed 0 appears twice"):  # the same students would count twice
+        teacher_runs.paired([tmp_path / "a", tmp_path / "c"], [tmp_path / "b"])
+    _write_sweep(tmp_path / "stopped", 3, None)
+    with pytest.raises(SystemExit, match="no finite final test return"):
+        teacher_runs.paired([tmp_path / "stopped"], [tmp_path / "b"])
+    with pytest.raises(SystemExit, match="is not a finished sweep"):
+        teacher_runs.paired([tmp_path / "nowhere"], [tmp_path / "b"])
+    _write_sweep(tmp_path / "old", 3, [7.0, 8.0])  # a sweep from before sweep.json kept its root seed
+    sweep = json.loads((tmp_path / "old" / "sweep.json").read_text())
+    del sweep["root_seed"]
+    (tmp_path / "old" / "sweep.json").write_text(json.dumps(sweep))
+    (tmp_path / "old" / "dr" / "default" / "config.json").write_text(json.dumps({"root_seed": 3}))
+    assert teacher_runs.paired([tmp_path / "old"], [tmp_path / "b"])["paired"]["mean"] == pytest.approx(6.0)
     (tmp_path / "a" / "sweep.json").write_text(json.dumps({"rows": [{"dir": "x"}, {"dir": "y"}]}))
     with pytest.raises(SystemExit, match="2 points"):
         teacher_runs.paired([tmp_path / "a"], [tmp_path / "b"])
+
 
 
 def test_targets_use_the_late_gain_and_the_named_dr_entry():
@@ -255,6 +269,10 @@ def test_targets_use_the_late_gain_and_the_named_dr_entry():
     assert t["dr_reference"] == "dr[x] (40 seeds)" and sorted(t["by_method"]) == ["t", "u"]
     assert teacher_runs.targets(lander)["by_method"]["t"]["margin_over_dr"] == pytest.approx(24.0)  # "dr": 124 - 100
     assert "margin_over_dr" not in teacher_runs.targets(lander, "nope")["by_method"]["t"]
+    one_seed = lander | {"dr": {"seeds": 1, "final_mean": 100.0, "final_se": None, "episode0_mean": None},
+                         "untested": {"seeds": 3, "episode0_mean": math.nan, "final_mean": 1.0}}
+    t1 = teacher_runs.targets(one_seed)  # a reference without an SE gives no margin, and no crash
+    assert "margin_over_dr" not in t1["by_method"]["t"] and "untested" not in t1["by_method"]
     a = t["by_method"]["t"]  # late endpoint: gain 5.0 < 2 x 2.6; margin 124 - 110 = 14 > 2 x hypot(4, 3) = 10
     assert a["endpoint"] == "late" and a["gain_over_episode0"] == 5.0 and not a["gain_shown"]
     assert a["margin_over_dr"] == pytest.approx(14.0) and a["margin_se"] == pytest.approx(5.0) and a["beats_dr_shown"]
@@ -272,6 +290,10 @@ def test_a_paired_file_joins_the_record_as_two_dr_entries(tmp_path):
     record([tmp_path / "none.json"], tmp_path / "r.json", "cpu", "cmd", "2026-01-01", controls=[c])
     rec = json.loads((tmp_path / "r.json").read_text())
     lander = rec["lander"]  # both sets are group "dr", so each name says its side
-    assert lander["dr (3 seeds) [first set of c.json]"]["final_mean"] == pytest.approx(20.0)
-    assert lander["dr (3 seeds) [second set of c.json]"]["final_se"] == pytest.approx(np.std([12, 18, 24], ddof=1) / math.sqrt(3))
+    assert lander[f"dr (3 seeds) [first set of {c}]"]["final_mean"] == pytest.approx(20.0)
+    assert lander[f"dr (3 seeds) [second set of {c}]"]["final_se"] == pytest.approx(np.std([12, 18, 24], ddof=1) / math.sqrt(3))
+    with pytest.raises(SystemExit, match="two entries named"):  # the same control twice would overwrite itself
+        record([tmp_path / "none.json"], tmp_path / "r2.json", "cpu", "cmd", "2026-01-01", controls=[c, c])
+    with pytest.raises(SystemExit, match="--dr-reference 'dr' is not an entry"):
+        record([tmp_path / "none.json"], tmp_path / "r2.json", "cpu", "cmd", "2026-01-01", controls=[c], dr_reference="dr")
     assert rec["targets"]["by_method"] == {}
