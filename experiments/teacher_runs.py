@@ -193,9 +193,13 @@ def paper_runs(csv_path) -> list[dict]:
 def dr_entry(baselines_path) -> dict:
     """DR's lander entry from the baselines record: its final test return; no teacher, so no episode 0."""
     dr = json.loads(pathlib.Path(baselines_path).read_text())["lander"]["dr"]
-    return {"seeds": dr["seeds"], "final_mean": dr["final_mean"], "final_se": dr["final_se"],
-            "episode0_mean": None, "episode0_se": None, "paired_gain_mean": None, "paired_gain_se": None,
-            "at_bound_fraction": None, "source": str(baselines_path)}
+    return _no_teacher_entry(dr["seeds"], dr["final_mean"], dr["final_se"], baselines_path)
+
+
+def _no_teacher_entry(seeds, mean, se, source) -> dict:
+    """A record entry of a method without teacher episodes (DR): its finals, null teacher fields."""
+    return {"seeds": seeds, "final_mean": mean, "final_se": se, "episode0_mean": None, "episode0_se": None,
+            "paired_gain_mean": None, "paired_gain_se": None, "at_bound_fraction": None, "source": str(source)}
 
 
 def _mean_se(x):
@@ -274,14 +278,7 @@ def control_entries(path) -> dict:
              for k in ("a", "b")}
     if names["a"] == names["b"]:  # the same group on both sides: tell them apart by side
         names = {k: f"{n} [{'first' if k == 'a' else 'second'} set of {path}]" for k, n in names.items()}
-    out = {}
-    for key in ("a", "b"):
-        e = c[key]
-        out[names[key]] = {
-            "seeds": e["seeds"], "final_mean": e["mean"], "final_se": e["se"], "episode0_mean": None,
-            "episode0_se": None, "paired_gain_mean": None, "paired_gain_se": None, "at_bound_fraction": None,
-            "source": str(path)}
-    return out
+    return {names[k]: _no_teacher_entry(c[k]["seeds"], c[k]["mean"], c[k]["se"], path) for k in ("a", "b")}
 
 
 TARGET_SE = 2.0  # a difference counts as shown when it exceeds this many standard errors
@@ -419,7 +416,7 @@ def _finals(sweep_dirs) -> dict:
             root = sweep["root_seed"] if "root_seed" in sweep else json.loads((point / "config.json").read_text())["root_seed"]
         except (OSError, KeyError, ValueError) as err:
             raise SystemExit(f"paired: {d} is not a finished sweep ({type(err).__name__}: {err})") from None
-        if not per_seed or not all(isinstance(v, (int, float)) and math.isfinite(v) for v in per_seed):
+        if not per_seed or not all(map(_finite_num, per_seed)):
             raise SystemExit(f"paired: {d} has no finite final test return per seed (a stopped run?)")
         if any((root, i) in finals for i in range(len(per_seed))):
             raise SystemExit(f"paired: root seed {root} appears twice in one set ({d}): its seeds would count twice")
