@@ -21,7 +21,7 @@ apply_cpu_guard()  # before any JAX computation (shed_jax/xla_cpu.py says why)
 COMMANDS = {
     "demo": "roll out a built-in controller on generated levels; print a table and write a GIF",
     "ppo": "train the PPO student on fixed levels",
-    "run": "run a UED method (shed, hmdp, dr, paired, accel, accel-norevisit, plr)",
+    "run": "run a UED method (the paper's shed and hmdp, the learning teachers hmdp-x and shed-x, and the baselines dr, paired, accel, accel-norevisit, plr)",
     "eval": "evaluate a saved student on a level set",
     "sweep": "vmapped sweep over seeds x hyperparameters x methods",
 }

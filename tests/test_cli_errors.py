@@ -7,6 +7,7 @@ run-directory behaviours (resume, restart, damage, signals, full disks) are test
 import argparse
 import errno
 import json
+import re
 
 import pytest
 
@@ -206,3 +207,17 @@ def test_ppo_command_takes_the_student_overrides_of_run(cwd, capsys):
     assert main(["ppo", "--env", "cartpole", "--lr", "1e-3", "--ppo", "lr=1e-4"]) == errors.EXIT_USAGE
     assert "--lr and --ppo lr=... both given; give one" in error_line(capsys)
     assert list(cwd.iterdir()) == []
+
+
+def test_run_help_names_every_registered_method(capsys):
+    # the --method help and the command list are what a user reads first; a method added to the
+    # registry must appear in both
+    from shed_jax.__main__ import COMMANDS
+    from shed_jax.methods.registry import METHODS
+
+    assert main(["run", "--help"]) == 0
+    text = " ".join(capsys.readouterr().out.split())
+    listed = re.search(r"--method \{[^}]*\} (.*?) \(default", text).group(1).split(" | ")
+    assert listed == list(METHODS)
+    for m in METHODS:
+        assert re.search(rf"\b{re.escape(m)}\b", COMMANDS["run"]), m

@@ -28,7 +28,7 @@ def add_arguments(p) -> None:
     count = errors.positive_int
     p.add_argument("--env", default=None, choices=ENVS, help=f"{' | '.join(ENVS)} (default {DEFAULT_ENV})")
     p.add_argument("--method", default=None, choices=METHODS,
-                   help=f"shed | hmdp | dr | paired | accel | accel-norevisit | plr (default {DEFAULT_METHOD})")
+                   help=f"{' | '.join(METHODS)} (default {DEFAULT_METHOD})")
     p.add_argument("--preset", default=None, choices=("auto",) + PRESETS,
                    help="auto (default): 'paper' on a GPU, 'quick' on a CPU (the choice is printed)")
     p.add_argument("--seeds", type=count, default=None, help="number of vmapped seeds (default: quick 2, paper 5; the walker on a CPU 1)")
