@@ -95,14 +95,18 @@ def summarise_point(point_dir: pathlib.Path) -> dict:
     A run stopped by ``--time-limit`` has no summary.json: it is summarised from config.json and its
     metrics so far, with ``"stopped": true`` and no final returns; its last tested episode stands as final.
     """
+    config = json.loads((point_dir / "config.json").read_text()) if (point_dir / "config.json").exists() else {}
     if (point_dir / "summary.json").exists():
         summary = json.loads((point_dir / "summary.json").read_text())
-    else:
-        config = json.loads((point_dir / "config.json").read_text())
+    elif "sweep_point" in config:  # a sweep's point
         point = config["sweep_point"]
         summary = {"method": point_dir.parent.name, "point": point["name"], "values": point["values"],
                    "seeds": config["seeds"], "final_test_return_per_seed": None, "stopped": True,
                    "group": point.get("group", point_dir.parent.name)}  # no sweep.json row names it
+    else:  # the directory of one ``shed_jax run``
+        method = config["experiment"]["method"]
+        summary = {"method": method, "point": "default", "seeds": config["seeds"],
+                   "final_test_return_per_seed": None, "stopped": True, "group": method}
     tests: dict[int, dict[int, float]] = {}
     diag: dict[str, dict[int, list]] = {k: {} for k in DIAGNOSTICS + ("teacher_reward",)}
     checks = []
@@ -124,7 +128,8 @@ def summarise_point(point_dir: pathlib.Path) -> dict:
     per_episode = {k: {str(ep): float(np.nanmean(v)) if np.isfinite(v).any() else None for ep, v in sorted(d.items())}
                    for k, d in diag.items() if d}
     return {
-        "method": summary["method"], "point": summary["point"], "values": summary.get("values", {}),
+        "method": summary["method"], "point": summary.get("point", "default"), "values": summary.get("values", {}),
+        "env": summary.get("env", config.get("experiment", {}).get("env")),
         "seeds": summary["seeds"], "wall_time_s": summary.get("wall_time_s"),
         "final_per_seed": summary["final_test_return_per_seed"],
         "test_by_seed_episode": {str(s): {str(e): v for e, v in sorted(d.items())} for s, d in sorted(tests.items())},
@@ -143,6 +148,14 @@ def _with_episodes(group: str, episodes) -> str:
     return f"{group[:-1]},episodes={episodes}]" if group.endswith("]") else f"{group}[episodes={episodes}]"
 
 
+def _point_dirs(d: pathlib.Path) -> list[pathlib.Path]:
+    """The run directories in ``d``: a sweep's ``<method>/<point>/``, or ``d`` itself when it is the
+    directory of one ``shed_jax run`` (metrics.jsonl at its top)."""
+    if (d / "metrics.jsonl").exists() and not (d / "sweep.json").exists():
+        return [d]
+    return [m.parent for m in sorted(d.glob("*/*/metrics.jsonl"))]
+
+
 def summarise(dirs, out):
     runs = []
     for d in dirs:
@@ -152,9 +165,13 @@ def summarise(dirs, out):
                   for row in json.loads(sweep.read_text())["rows"]} if sweep.exists() else {}
         args = d / "sweep_args.json"
         episodes = json.loads(args.read_text()).get("episodes") if args.exists() else None
-        for metrics in sorted(d.glob("*/*/metrics.jsonl")):
-            run = summarise_point(metrics.parent)
-            group = groups.get(str(metrics.parent.relative_to(d)), run.get("group", run["method"]))
+        found = _point_dirs(d)
+        if not found:
+            raise SystemExit(f"summarise: {d} holds no run (give a sweep directory or a `shed_jax run` directory "
+                             "with metrics.jsonl)")
+        for point_dir in found:
+            run = summarise_point(point_dir)
+            group = groups.get(str(point_dir.relative_to(d)), run.get("group", run["method"]))
             run["group"] = _with_episodes(group, episodes)
             runs.append({"sweep": str(d), **run})
     pathlib.Path(out).write_text(json.dumps(runs, indent=1))
@@ -407,7 +424,14 @@ def _finals(sweep_dirs) -> dict:
     finals, prov = {}, []
     for d in map(pathlib.Path, sweep_dirs):
         try:
-            sweep = json.loads((d / "sweep.json").read_text())
+            if _point_dirs(d) == [d]:  # one `shed_jax run`: its config holds the root seed
+                config = json.loads((d / "config.json").read_text())
+                sweep = {"rows": [{"dir": ".", "group": config["experiment"]["method"]}], "root_seed": config["root_seed"],
+                         "device": f"{config.get('backend')}: {', '.join(config.get('devices') or [])}"}
+                summ = d / "summary.json"
+                sweep |= {k: v for k, v in (json.loads(summ.read_text()) if summ.exists() else {}).items() if k == "wall_time_s"}
+            else:
+                sweep = json.loads((d / "sweep.json").read_text())
             if len(sweep["rows"]) != 1:
                 raise SystemExit(f"paired: {d} has {len(sweep['rows'])} points; give sweeps of one point each")
             point = d / sweep["rows"][0]["dir"]
@@ -415,7 +439,7 @@ def _finals(sweep_dirs) -> dict:
             # sweeps from before sweep.json kept the root seed have it in the point's config
             root = sweep["root_seed"] if "root_seed" in sweep else json.loads((point / "config.json").read_text())["root_seed"]
         except (OSError, KeyError, ValueError) as err:
-            raise SystemExit(f"paired: {d} is not a finished sweep ({type(err).__name__}: {err})") from None
+            raise SystemExit(f"paired: {d} is not a finished sweep or run ({type(err).__name__}: {err})") from None
         if not per_seed or not all(map(_finite_num, per_seed)):
             raise SystemExit(f"paired: {d} has no finite final test return per seed (a stopped run?)")
         if any((root, i) in finals for i in range(len(per_seed))):

@@ -297,3 +297,37 @@ def test_a_paired_file_joins_the_record_as_two_dr_entries(tmp_path):
     with pytest.raises(SystemExit, match="--dr-reference 'dr' is not an entry"):
         record([tmp_path / "none.json"], tmp_path / "r2.json", "cpu", "cmd", "2026-01-01", controls=[c], dr_reference="dr")
     assert rec["targets"]["by_method"] == {}
+
+
+def _write_run(d, root_seed, rows, finals=None):
+    """The directory of one `shed_jax run`: config.json and metrics.jsonl at its top; summary.json once finished."""
+    d.mkdir(parents=True)
+    (d / "config.json").write_text(json.dumps({"experiment": {"env": "walker", "method": "hmdp-x"}, "seeds": 2,
+                                               "root_seed": root_seed, "backend": "gpu", "devices": ["cuda:0"]}))
+    (d / "metrics.jsonl").write_text("\n".join(json.dumps(r) for r in rows) + "\n")
+    if finals is not None:
+        (d / "summary.json").write_text(json.dumps({"env": "walker", "method": "hmdp-x", "seeds": len(finals),
+                                                    "wall_time_s": 9.0, "final_test_return_per_seed": finals}))
+
+
+def test_a_run_directory_is_summarised_and_paired_like_a_sweep(tmp_path, capsys):
+    rows = _rows(0, [10.0, 14.0], [[0.0, 0.2], [0.1, 0.3]]) + _rows(1, [20.0, 30.0], [[0.0, 0.0], [0.0, 0.0]])
+    _write_run(tmp_path / "stopped", 0, rows)  # stopped by --time-limit: no summary.json yet
+    _write_run(tmp_path / "run", 0, rows, finals=[14.0, 30.0])
+    teacher_runs.summarise([tmp_path / "stopped", tmp_path / "run"], tmp_path / "c.json")
+    stopped, run = json.loads((tmp_path / "c.json").read_text())
+    assert stopped["stopped"] and stopped["group"] == "hmdp-x" and stopped["env"] == "walker"
+    assert run["test_by_seed_episode"] == {"0": {"0": 10.0, "1": 14.0}, "1": {"0": 20.0, "1": 30.0}}
+    assert run["final_per_seed"] == [14.0, 30.0] and run["env"] == "walker" and "stopped" not in run
+    e = aggregate([run])["hmdp-x"]
+    assert e["paired_gain_mean"] == pytest.approx(7.0) and e["paired_gain_se"] == pytest.approx(3.0)  # gains 4, 10
+    _write_sweep(tmp_path / "dr", 0, [4.0, 18.0])  # the same root seed: its seeds pair with the run's
+    res = teacher_runs.paired([tmp_path / "run"], [tmp_path / "dr"])
+    assert res["paired"] == {"seeds": 2, "mean": pytest.approx(11.0), "se": pytest.approx(1.0)}  # 10, 12
+    assert res["a"]["sweeps"][0]["device"] == "gpu: cuda:0" and res["a"]["sweeps"][0]["group"] == "hmdp-x"
+    with pytest.raises(SystemExit, match="not a finished sweep or run"):  # a stopped run has no summary.json
+        teacher_runs.paired([tmp_path / "stopped"], [tmp_path / "dr"])
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(SystemExit, match="holds no run"):  # never an empty summary written as if it were one
+        teacher_runs.summarise([tmp_path / "empty"], tmp_path / "e.json")
+    assert not (tmp_path / "e.json").exists()
