@@ -188,6 +188,7 @@ def paper_runs(csv_path) -> list[dict]:
     import csv
     tests: dict[str, dict[int, dict[int, tuple[int, float]]]] = {}
     reward: dict[str, dict[int, list[float]]] = {}
+    envs: dict[str, set] = {}
     with open(csv_path, newline="") as f:
         for row in csv.DictReader(f):
             name = PAPER_NAMES.get(row["method"])
@@ -198,7 +199,9 @@ def paper_runs(csv_path) -> list[dict]:
             if ep not in by_ep or t > by_ep[ep][0]:
                 by_ep[ep] = (t, float(row["test_return"]))
             reward.setdefault(name, {}).setdefault(ep, []).append(float(row["teacher_reward"]))
+            envs.setdefault(name, set()).add(row.get("env"))
     return [{"sweep": str(csv_path), "method": name, "group": name, "point": "default", "values": {},
+             "env": next(iter(envs[name])) if len(envs[name]) == 1 else None,
              "seeds": len(by_seed), "wall_time_s": None,
              "test_by_seed_episode": {str(s): {str(e): v for e, (_, v) in sorted(d.items())}
                                       for s, d in sorted(by_seed.items())},
@@ -207,10 +210,15 @@ def paper_runs(csv_path) -> list[dict]:
             for name, by_seed in tests.items()]
 
 
-def dr_entry(baselines_path) -> dict:
-    """DR's lander entry from the baselines record: its final test return; no teacher, so no episode 0."""
-    dr = json.loads(pathlib.Path(baselines_path).read_text())["lander"]["dr"]
-    return _no_teacher_entry(dr["seeds"], dr["final_mean"], dr["final_se"], baselines_path)
+def dr_entry(baselines_path, env: str = "lander") -> dict:
+    """DR's entry for ``env`` from a baselines record (``experiments.baselines_record``): its final test
+    return (the walker's entries keep it as ``test_set_b``); no teacher, so no episode 0."""
+    try:
+        dr = json.loads(pathlib.Path(baselines_path).read_text())[env]["dr"]
+        mean, se = (dr["final_mean"], dr["final_se"]) if "final_mean" in dr else (dr["test_set_b"]["mean"], dr["test_set_b"]["se"])
+    except (OSError, KeyError, ValueError) as err:
+        raise SystemExit(f"record: --dr {baselines_path} has no {env} DR entry ({type(err).__name__}: {err})") from None
+    return _no_teacher_entry(dr["seeds"], mean, se, baselines_path)
 
 
 def _no_teacher_entry(seeds, mean, se, source) -> dict:
@@ -331,11 +339,16 @@ def targets(lander: dict, dr_reference: str = "dr") -> dict:
     return out
 
 
-def record(files, out, device, command, date, notes=(), paper_csv=None, dr=None, controls=(), dr_reference=None):
-    """Write the record; ``dr_reference`` names the entry ``targets`` compares with (default "dr", if any)."""
+def record(files, out, device, command, date, notes=(), paper_csv=None, dr=None, controls=(), dr_reference=None,
+           env="lander"):
+    """Write the record; its entries go under ``env`` (the runs' environment; summaries that name another
+    are refused); ``dr_reference`` names the entry ``targets`` compares with (default "dr", if any)."""
     runs = [r for f in files for r in json.loads(pathlib.Path(f).read_text())]
     runs += paper_runs(paper_csv) if paper_csv else []
-    parts = [{"dr": dr_entry(dr)} if dr else {}, *(control_entries(c) for c in controls), aggregate(runs)]
+    others = sorted({r["env"] for r in runs if r.get("env") not in (None, env)})
+    if others:
+        raise SystemExit(f"record: the runs are on {', '.join(others)}, the record on {env}; give --env to match")
+    parts = [{"dr": dr_entry(dr, env)} if dr else {}, *(control_entries(c) for c in controls), aggregate(runs)]
     lander = {}
     for part in parts:
         for k, v in part.items():
@@ -347,7 +360,7 @@ def record(files, out, device, command, date, notes=(), paper_csv=None, dr=None,
                          + ", ".join(k for k, e in lander.items() if e.get("episode0_mean") is None))
     dr_reference = "dr" if dr_reference is None else dr_reference
     rec = {"device": device, "date": date or datetime.date.today().isoformat(), "command": command,
-           "notes": list(notes), "targets": targets(lander, dr_reference), "lander": lander}
+           "notes": list(notes), "targets": targets(lander, dr_reference), env: lander}
     pathlib.Path(out).write_text(json.dumps(_finite(rec), indent=1, allow_nan=False) + "\n")
     f1 = lambda x: "-" if x is None else f"{x:.1f}"  # noqa: E731
     for name, e in lander.items():
@@ -514,6 +527,7 @@ def main(argv=None):
     r.add_argument("--control", action="append", default=[],
                    help="a `paired` comparison file whose two sets join the record as DR entries (repeatable)")
     r.add_argument("--dr-reference", default=None, help="the entry the targets compare each teacher with (default: dr)")
+    r.add_argument("--env", default="lander", help="the environment the runs are on: the record's block (default lander)")
     q = sub.add_parser("plot")
     q.add_argument("files", nargs="+")
     q.add_argument("--out", required=True)
@@ -522,8 +536,8 @@ def main(argv=None):
     b.add_argument("dirs", nargs="+", help="<method>/<point>/ directories")
     b.add_argument("--from-episode", type=int, default=30)
     c = sub.add_parser("paired", help="two sets of one-point sweeps: pooled finals and their paired difference")
-    c.add_argument("dirs", nargs="+", help="the first set's sweep directories")
-    c.add_argument("--vs", nargs="+", required=True, help="the second set's sweep directories")
+    c.add_argument("dirs", nargs="+", help="the first set: sweep directories, or directories of one `shed_jax run`")
+    c.add_argument("--vs", nargs="+", required=True, help="the second set, as the first")
     c.add_argument("--out", default=None, help="write the comparison here (JSON, with date and command)")
     c.add_argument("--plot", default=None, help="a figure of the per-seed finals and differences (PNG)")
     c.add_argument("--labels", nargs=2, default=("a", "b"), help="the two sets' names in the figure")
@@ -551,7 +565,7 @@ def main(argv=None):
     elif a.cmd == "plot":
         plot(a.files, a.out, a.only)
     else:
-        record(a.files, a.out, a.device, a.command, a.date, a.note, a.paper_csv, a.dr, a.control, a.dr_reference)
+        record(a.files, a.out, a.device, a.command, a.date, a.note, a.paper_csv, a.dr, a.control, a.dr_reference, a.env)
 
 
 if __name__ == "__main__":

@@ -331,3 +331,23 @@ def test_a_run_directory_is_summarised_and_paired_like_a_sweep(tmp_path, capsys)
     with pytest.raises(SystemExit, match="holds no run"):  # never an empty summary written as if it were one
         teacher_runs.summarise([tmp_path / "empty"], tmp_path / "e.json")
     assert not (tmp_path / "e.json").exists()
+
+
+def test_a_walker_record_keeps_its_runs_under_walker_with_the_walker_dr(tmp_path):
+    rows = _rows(0, [10.0, 14.0], [[0.0, 0.2], [0.1, 0.3]]) + _rows(1, [20.0, 30.0], [[0.0, 0.0], [0.0, 0.0]])
+    _write_run(tmp_path / "run", 0, rows, finals=[14.0, 30.0])
+    teacher_runs.summarise([tmp_path / "run"], tmp_path / "c.json")
+    # the walker's baselines record keeps DR's final as test_set_b
+    (tmp_path / "b.json").write_text(json.dumps({"walker": {"dr": {"seeds": 5, "test_set_b": {"mean": 15.0, "se": 1.0}}}}))
+    teacher_runs.main(["record", str(tmp_path / "c.json"), "--env", "walker", "--dr", str(tmp_path / "b.json"),
+                       "--device", "gpu", "--command", "cmd", "--out", str(tmp_path / "r.json")])
+    rec = json.loads((tmp_path / "r.json").read_text())
+    assert "lander" not in rec and sorted(rec["walker"]) == ["dr", "hmdp-x"]
+    assert rec["walker"]["dr"]["final_mean"] == 15.0 and rec["walker"]["hmdp-x"]["final_mean"] == pytest.approx(22.0)
+    t = rec["targets"]["by_method"]["hmdp-x"]
+    assert t["margin_over_dr"] == pytest.approx(7.0) and t["margin_se"] == pytest.approx(math.hypot(8.0, 1.0))
+    with pytest.raises(SystemExit, match="the runs are on walker, the record on lander"):  # never filed under the wrong env
+        record([tmp_path / "c.json"], tmp_path / "x.json", "gpu", "cmd", None)
+    with pytest.raises(SystemExit, match="no lander DR entry"):
+        record([], tmp_path / "x.json", "gpu", "cmd", None, dr=tmp_path / "b.json")
+    assert not (tmp_path / "x.json").exists()
