@@ -83,7 +83,7 @@ def student_latency(env, env_name: str, ppo_overrides: dict | None = None, parts
     levels = env.param_space.sample(jax.random.PRNGKey(1), (5,))
     eval_levels = env.param_space.sample(jax.random.PRNGKey(2), (10,))
     s0 = jax.jit(student.init)(jax.random.PRNGKey(0))
-    out = {}
+    out = {"num_envs": student.config.num_envs, "num_steps": student.config.num_steps}  # one rollout's shape
     if "rollout" in parts:
         assigned = jax.jit(student.assign_levels)(s0, jax.random.PRNGKey(5), levels)
         out["rollout_compile_s"], out["rollout_s"] = _timed(jax.jit(student.rollout), assigned, jax.random.PRNGKey(6))

@@ -2,7 +2,9 @@
 
 Reads ``experiments.bench_latency --env bipedal`` records and writes, keeping the record's other keys:
 ``speed.rows`` (one per batch and record: ms per sequential step, env steps per second, where and
-when; the solver passes, the step timed and the terrain unroll), ``ms_per_step_batch200`` (the best at a batch
+when; the solver passes, the step timed and the terrain unroll), ``speed.student_rows`` (one per record
+and student part timed with ``--student``: a training rollout or a whole PPO update, with its env
+steps per second), ``ms_per_step_batch200`` (the best at a batch
 of 200) and ``steps_per_second_best`` (the best batch). Both headline figures use only rows at
 Box2D's solver passes and of the full ``env.step``: fewer passes (which break parity,
 docs/bipedal.md) or a step without its auto-reset split the step's cost, they are not a faster
@@ -32,6 +34,34 @@ def speed_rows(records: list[dict]) -> list[dict]:
     return rows
 
 
+STUDENT_PARTS = (("rollout", "rollout_s", "rollout_compile_s"), ("update", "ppo_update_s", "ppo_compile_s"))
+
+
+def student_rows(records: list[dict]) -> list[dict]:
+    """One row per (record, student part timed): seconds for one training rollout (the env stepping under
+    the policy) or one whole PPO update, and env steps per second = num_envs x num_steps / seconds.
+    Records from before bench_latency kept the rollout's shape get it from today's student preset with
+    the record's overrides (``shape_from``: "preset")."""
+    from shed_jax.student import PPOConfig
+
+    rows = []
+    for rec in records:
+        parts = [(name, rec[t], rec.get(c)) for name, t, c in STUDENT_PARTS if rec.get(t) is not None]
+        if not parts:
+            continue
+        if rec.get("num_envs") is not None:
+            envs_, steps, source = rec["num_envs"], rec["num_steps"], "record"
+        else:
+            cfg = PPOConfig.for_env(rec["env"]).with_overrides(rec.get("ppo_overrides"))
+            envs_, steps, source = cfg.num_envs, cfg.num_steps, "preset"
+        for name, secs, compile_s in parts:
+            rows.append({"part": name, "s": secs, "compile_s": compile_s, "num_envs": envs_, "num_steps": steps,
+                         "shape_from": source, "env_steps_per_second": envs_ * steps / secs,
+                         "ppo_overrides": rec.get("ppo_overrides") or {},
+                         **{k: rec.get(k) for k in ("device", "date", "command", "note")}})
+    return rows
+
+
 def summary(rows: list[dict]) -> dict:
     rows = [r for r in rows if r["step"] == "step"
             and (r["velocity_iterations"], r["position_iterations"]) == (VELOCITY_ITERATIONS, POSITION_ITERATIONS)]
@@ -54,15 +84,16 @@ def main(argv=None) -> int:
             rec = json.loads(path.read_text())
         except json.JSONDecodeError as e:
             p.error(f"{f}: not JSON ({e})")
-        if rec.get("env") != "bipedal" or not rec.get("env_rows"):
-            p.error(f"{f}: not a bench_latency record of the bipedal env (env {rec.get('env')!r}, "
-                    f"{len(rec.get('env_rows') or [])} batch rows)")
+        timed = rec.get("env_rows") or any(rec.get(t) is not None for _, t, _ in STUDENT_PARTS)
+        if rec.get("env") != "bipedal" or not timed:
+            p.error(f"{f}: not a bench_latency record of the bipedal env with a timing (env {rec.get('env')!r}, "
+                    f"{len(rec.get('env_rows') or [])} batch rows, no student part)")
         records.append(rec)
     rows = speed_rows(records)
     out = pathlib.Path(args.out)
     rec = json.loads(out.read_text()) if out.is_file() else {}
     s = summary(rows)
-    rec.update(s, speed={"rows": rows, "sources": list(args.latency)})
+    rec.update(s, speed={"rows": rows, "student_rows": student_rows(records), "sources": list(args.latency)})
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(rec, indent=1) + "\n")
     print(f"ms per step at batch 200: {s['ms_per_step_batch200']}; best steps/s: {s['steps_per_second_best']}")

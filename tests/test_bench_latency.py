@@ -54,7 +54,8 @@ def test_student_latency_times_the_parts_asked_for():
     import envs
     env = envs.make("cartpole")
     out = bench_latency.student_latency(env, "cartpole", {"num_envs": 4, "num_steps": 8, "reset_draw": "per_rollout"}, ("rollout",))
-    assert set(out) == {"rollout_s", "rollout_compile_s"} and out["rollout_s"] > 0 and out["rollout_compile_s"] > 0
+    assert set(out) == {"rollout_s", "rollout_compile_s", "num_envs", "num_steps"}
+    assert out["rollout_s"] > 0 and out["rollout_compile_s"] > 0 and (out["num_envs"], out["num_steps"]) == (4, 8)
 
 
 def test_bipedal_speed_fields_from_latency_records(tmp_path):
@@ -82,6 +83,24 @@ def test_bipedal_speed_fields_from_latency_records(tmp_path):
     assert len(rows) == 6 and rows[0]["device"] == "gpu: X"
     assert [(r["velocity_iterations"], r["position_iterations"]) for r in rows] == [(180, 60)] * 3 + [(1, 1)] * 2 + [(180, 60)]
     assert [r["step"] for r in rows] == ["step"] * 5 + ["without-reset"]
+    assert rec["speed"]["student_rows"] == []  # no record timed the student
+    # student parts (bench_latency --student): a rollout whose record keeps its shape, and an older
+    # record without it, whose shape is today's preset with its overrides
+    e = tmp_path / "e.json"
+    e.write_text(json.dumps({"env": "bipedal", "device": "gpu: X", "date": "d", "command": "c", "env_rows": [],
+                             "num_envs": 8, "num_steps": 4, "rollout_s": 0.5, "rollout_compile_s": 3.0,
+                             "ppo_update_s": 2.0, "ppo_compile_s": 9.0, "ppo_overrides": {"reset_draw": "per_rollout"}}))
+    f = tmp_path / "f.json"
+    f.write_text(json.dumps({"env": "bipedal", "env_rows": [], "rollout_s": 0.25, "rollout_compile_s": 1.0,
+                             "ppo_overrides": {"num_envs": 16}}))
+    assert bipedal_speed.main([b, str(e), str(f), "--out", str(out)]) == 0
+    rec = json.loads(out.read_text())
+    assert abs(rec["ms_per_step_batch200"] - 8.0) < 1e-9 and len(rec["speed"]["rows"]) == 2
+    srows = rec["speed"]["student_rows"]
+    assert [(r["part"], r["s"], r["num_envs"], r["num_steps"], r["shape_from"]) for r in srows] == [
+        ("rollout", 0.5, 8, 4, "record"), ("update", 2.0, 8, 4, "record"), ("rollout", 0.25, 16, 64, "preset")]
+    assert srows[0]["env_steps_per_second"] == 64.0 and srows[1]["env_steps_per_second"] == 16.0
+    assert srows[2]["env_steps_per_second"] == 16 * 64 / 0.25 and srows[1]["ppo_overrides"] == {"reset_draw": "per_rollout"}
     # a record of another env is refused with one line
     import pytest
     with pytest.raises(SystemExit):
