@@ -90,6 +90,8 @@ def main(argv=None) -> int:
                     f"{len(rec.get('env_rows') or [])} batch rows, no student part)")
         records.append(rec)
     rows = speed_rows(records)
+    if not rows:  # the headline figures come from env rows: never overwrite them with nothing
+        p.error("no input has batch rows (env steps timed); give the latency records with them too")
     out = pathlib.Path(args.out)
     rec = json.loads(out.read_text()) if out.is_file() else {}
     s = summary(rows)

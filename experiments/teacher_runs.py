@@ -1,11 +1,16 @@
-"""The learning teacher's runs (issue #26): compact summaries of sweep directories, and docs/results/teacher.json.
+"""The learning teacher's runs (issue #26): compact summaries of sweep and run directories, and docs/results/teacher.json.
 
-    # where the runs are (the device machine): per-episode numbers of every <method>/<point>/ of each sweep
-    python -m experiments.teacher_runs summarise SWEEP_DIR [SWEEP_DIR ...] --out compact.json
+    # where the runs are (the device machine): per-episode numbers of every <method>/<point>/ of each
+    # sweep, or of the directory of one `shed_jax run` (labelled by what it sets apart from its preset)
+    python -m experiments.teacher_runs summarise DIR [DIR ...] --out compact.json
     # here: merge compact files (seeds of one method/point from several runs pool) into the record
     python -m experiments.teacher_runs record compact.json [...] --out docs/results/teacher.json \
         --device "one NVIDIA H200" --command "python -m shed_jax sweep ..." \
         [--paper-csv docs/results/lander_shed_hmdp_10seeds_2026-11-23.csv] [--dr docs/results/baselines.json]
+    # the walker's runs: their own record (default docs/results/teacher_walker.json), DR from the
+    # baselines record of the same student
+    python -m experiments.teacher_runs record compact.json --env walker \
+        --dr docs/results/walker_baselines_per_rollout_h100_2026-11-28.json --device ... --command ...
 
 ``--paper-csv`` adds the paper teachers (SHED, h-MDP) from the long-form CSV their 10-seed runs were
 exported to (a row per seed, teacher episode and budget step, tested episodes only): each becomes a
@@ -18,8 +23,8 @@ issue #26's targets is shown, against the entry ``--dr-reference`` names (:func:
     # the mean box of the levels a teacher generated from teacher episode 30 on: a fixed-box DR control
     python -m experiments.teacher_runs late-box SWEEP_DIR/hmdp-x/default [...] --from-episode 30
 
-    # two sets of sweeps with one point each (e.g. DR on a teacher's late box, and on Θ): final test
-    # returns pooled per set, and their difference paired by (root seed, seed index)
+    # two sets of sweeps with one point each, or of run directories (e.g. DR on a teacher's late box,
+    # and on Θ): final test returns pooled per set, and their difference paired by (root seed, seed index)
     python -m experiments.teacher_runs paired BOX_SWEEP [...] --vs FULL_SWEEP [...] --out control.json \
         [--plot control.png --labels box Θ]
 
@@ -89,13 +94,35 @@ def reward_noise(rows: list[tuple[int, float, float, float, float]]) -> dict:
     return out
 
 
+def run_group(config: dict) -> str:
+    """The label of one ``shed_jax run`` (its config.json): the method, with every setting of its
+    experiment that differs from today's preset, e.g. ``hmdp-x[episodes=3]``, as a sweep's group names
+    its ``--set`` values, so runs of other lengths or settings never pool with the preset's."""
+    from shed_jax.checkpoint import config_differences
+    from shed_jax.presets import build_experiment
+
+    exp = config["experiment"]
+    try:
+        default = build_experiment(exp["env"], exp["method"], exp["preset"]).to_dict()
+    except (KeyError, ValueError, TypeError):  # a preset or method this version no longer has
+        return f"{exp['method']}[preset={exp.get('preset')}?]"
+    short = {"loop.num_episodes": "episodes"}
+    parts = []
+    for key, saved, _ in config_differences({"e": exp}, {"e": default}, ["e"]):
+        key = key.removeprefix("e.")
+        parts.append(f"{short.get(key, key.removeprefix('method_config.'))}={saved}")
+    return f"{exp['method']}[{','.join(parts)}]" if parts else exp["method"]
+
+
 def summarise_point(point_dir: pathlib.Path) -> dict:
-    """One ``<method>/<point>/`` directory -> per-seed test returns by episode and per-episode diagnostics.
+    """One run directory -> per-seed test returns by episode and per-episode diagnostics: a sweep's
+    ``<method>/<point>/``, or the directory of one ``shed_jax run`` (grouped by :func:`run_group`).
 
     A run stopped by ``--time-limit`` has no summary.json: it is summarised from config.json and its
     metrics so far, with ``"stopped": true`` and no final returns; its last tested episode stands as final.
     """
     config = json.loads((point_dir / "config.json").read_text()) if (point_dir / "config.json").exists() else {}
+    one_run = "sweep_point" not in config and "experiment" in config  # the directory of one ``shed_jax run``
     if (point_dir / "summary.json").exists():
         summary = json.loads((point_dir / "summary.json").read_text())
     elif "sweep_point" in config:  # a sweep's point
@@ -103,10 +130,13 @@ def summarise_point(point_dir: pathlib.Path) -> dict:
         summary = {"method": point_dir.parent.name, "point": point["name"], "values": point["values"],
                    "seeds": config["seeds"], "final_test_return_per_seed": None, "stopped": True,
                    "group": point.get("group", point_dir.parent.name)}  # no sweep.json row names it
-    else:  # the directory of one ``shed_jax run``
-        method = config["experiment"]["method"]
-        summary = {"method": method, "point": "default", "seeds": config["seeds"],
-                   "final_test_return_per_seed": None, "stopped": True, "group": method}
+    elif one_run:
+        summary = {"method": config["experiment"]["method"], "point": "default", "seeds": config["seeds"],
+                   "final_test_return_per_seed": None, "stopped": True}
+    else:
+        raise SystemExit(f"summarise: {point_dir} has neither summary.json nor a run's config.json")
+    if one_run:
+        summary["group"] = run_group(config)
     tests: dict[int, dict[int, float]] = {}
     diag: dict[str, dict[int, list]] = {k: {} for k in DIAGNOSTICS + ("teacher_reward",)}
     checks = []
@@ -135,7 +165,8 @@ def summarise_point(point_dir: pathlib.Path) -> dict:
         "test_by_seed_episode": {str(s): {str(e): v for e, v in sorted(d.items())} for s, d in sorted(tests.items())},
         "diagnostics_by_episode": per_episode,
         **({"reward_noise": reward_noise(checks)} if checks else {}),
-        **({"stopped": True, "group": summary["group"]} if summary.get("stopped") else {}),
+        **({"stopped": True} if summary.get("stopped") else {}),
+        **({"group": summary["group"]} if "group" in summary and (summary.get("stopped") or one_run) else {}),
     }
 
 
@@ -170,7 +201,10 @@ def summarise(dirs, out):
             raise SystemExit(f"summarise: {d} holds no run (give a sweep directory or a `shed_jax run` directory "
                              "with metrics.jsonl)")
         for point_dir in found:
-            run = summarise_point(point_dir)
+            try:
+                run = summarise_point(point_dir)
+            except (OSError, KeyError, ValueError) as err:
+                raise SystemExit(f"summarise: {point_dir} is not a readable run ({type(err).__name__}: {err})") from None
             group = groups.get(str(point_dir.relative_to(d)), run.get("group", run["method"]))
             run["group"] = _with_episodes(group, episodes)
             runs.append({"sweep": str(d), **run})
@@ -361,6 +395,7 @@ def record(files, out, device, command, date, notes=(), paper_csv=None, dr=None,
     dr_reference = "dr" if dr_reference is None else dr_reference
     rec = {"device": device, "date": date or datetime.date.today().isoformat(), "command": command,
            "notes": list(notes), "targets": targets(lander, dr_reference), env: lander}
+    pathlib.Path(out).parent.mkdir(parents=True, exist_ok=True)
     pathlib.Path(out).write_text(json.dumps(_finite(rec), indent=1, allow_nan=False) + "\n")
     f1 = lambda x: "-" if x is None else f"{x:.1f}"  # noqa: E731
     for name, e in lander.items():
@@ -439,7 +474,7 @@ def _finals(sweep_dirs) -> dict:
         try:
             if _point_dirs(d) == [d]:  # one `shed_jax run`: its config holds the root seed
                 config = json.loads((d / "config.json").read_text())
-                sweep = {"rows": [{"dir": ".", "group": config["experiment"]["method"]}], "root_seed": config["root_seed"],
+                sweep = {"rows": [{"dir": ".", "group": run_group(config)}], "root_seed": config["root_seed"],
                          "device": f"{config.get('backend')}: {', '.join(config.get('devices') or [])}"}
                 summ = d / "summary.json"
                 sweep |= {k: v for k, v in (json.loads(summ.read_text()) if summ.exists() else {}).items() if k == "wall_time_s"}
@@ -512,12 +547,13 @@ def plot_paired(res: dict, out, labels=("a", "b")) -> None:
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="cmd", required=True)
-    s = sub.add_parser("summarise")
-    s.add_argument("dirs", nargs="+")
+    s = sub.add_parser("summarise", help="compact per-episode summaries of sweep or run directories")
+    s.add_argument("dirs", nargs="+", help="sweep directories, or directories of one `shed_jax run`")
     s.add_argument("--out", required=True)
     r = sub.add_parser("record")
     r.add_argument("files", nargs="+")
-    r.add_argument("--out", default="docs/results/teacher.json")
+    r.add_argument("--out", default=None, help="default docs/results/teacher.json for the lander, "
+                   "docs/results/teacher_<env>.json for another env (never the lander's record)")
     r.add_argument("--device", required=True)
     r.add_argument("--command", required=True)
     r.add_argument("--date", default=None)
@@ -535,7 +571,7 @@ def main(argv=None):
     b = sub.add_parser("late-box", help="the mean box of the generated levels late in runs (a DR control)")
     b.add_argument("dirs", nargs="+", help="<method>/<point>/ directories")
     b.add_argument("--from-episode", type=int, default=30)
-    c = sub.add_parser("paired", help="two sets of one-point sweeps: pooled finals and their paired difference")
+    c = sub.add_parser("paired", help="two sets of one-point sweeps or runs: pooled finals and their paired difference")
     c.add_argument("dirs", nargs="+", help="the first set: sweep directories, or directories of one `shed_jax run`")
     c.add_argument("--vs", nargs="+", required=True, help="the second set, as the first")
     c.add_argument("--out", default=None, help="write the comparison here (JSON, with date and command)")
@@ -565,7 +601,8 @@ def main(argv=None):
     elif a.cmd == "plot":
         plot(a.files, a.out, a.only)
     else:
-        record(a.files, a.out, a.device, a.command, a.date, a.note, a.paper_csv, a.dr, a.control, a.dr_reference, a.env)
+        out = a.out or ("docs/results/teacher.json" if a.env == "lander" else f"docs/results/teacher_{a.env}.json")
+        record(a.files, out, a.device, a.command, a.date, a.note, a.paper_csv, a.dr, a.control, a.dr_reference, a.env)
 
 
 if __name__ == "__main__":

@@ -101,7 +101,10 @@ def test_bipedal_speed_fields_from_latency_records(tmp_path):
         ("rollout", 0.5, 8, 4, "record"), ("update", 2.0, 8, 4, "record"), ("rollout", 0.25, 16, 64, "preset")]
     assert srows[0]["env_steps_per_second"] == 64.0 and srows[1]["env_steps_per_second"] == 16.0
     assert srows[2]["env_steps_per_second"] == 16 * 64 / 0.25 and srows[1]["ppo_overrides"] == {"reset_draw": "per_rollout"}
-    # a record of another env is refused with one line
+    # a record of another env, or student timings alone (no batch rows for the headline), are refused
     import pytest
+    with pytest.raises(SystemExit):
+        bipedal_speed.main([str(e), "--out", str(out)])
+    assert json.loads(out.read_text()) == rec  # the record is left as it was
     with pytest.raises(SystemExit):
         bipedal_speed.main([latency("c.json", [(200, 0.001)], env="lander"), "--out", str(out)])

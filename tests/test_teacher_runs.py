@@ -302,8 +302,10 @@ def test_a_paired_file_joins_the_record_as_two_dr_entries(tmp_path):
 def _write_run(d, root_seed, rows, finals=None):
     """The directory of one `shed_jax run`: config.json and metrics.jsonl at its top; summary.json once finished."""
     d.mkdir(parents=True)
-    (d / "config.json").write_text(json.dumps({"experiment": {"env": "walker", "method": "hmdp-x"}, "seeds": 2,
-                                               "root_seed": root_seed, "backend": "gpu", "devices": ["cuda:0"]}))
+    from shed_jax.presets import build_experiment
+    exp = build_experiment("walker", "hmdp-x", "paper", episodes=2).to_dict()  # what `run --episodes 2` saves
+    (d / "config.json").write_text(json.dumps({"experiment": exp, "seeds": 2, "root_seed": root_seed,
+                                               "backend": "gpu", "devices": ["cuda:0"]}))
     (d / "metrics.jsonl").write_text("\n".join(json.dumps(r) for r in rows) + "\n")
     if finals is not None:
         (d / "summary.json").write_text(json.dumps({"env": "walker", "method": "hmdp-x", "seeds": len(finals),
@@ -316,24 +318,29 @@ def test_a_run_directory_is_summarised_and_paired_like_a_sweep(tmp_path, capsys)
     _write_run(tmp_path / "run", 0, rows, finals=[14.0, 30.0])
     teacher_runs.summarise([tmp_path / "stopped", tmp_path / "run"], tmp_path / "c.json")
     stopped, run = json.loads((tmp_path / "c.json").read_text())
-    assert stopped["stopped"] and stopped["group"] == "hmdp-x" and stopped["env"] == "walker"
+    # the preset's walker hmdp-x has 20 teacher episodes, these runs 2: their label says so
+    assert stopped["stopped"] and stopped["group"] == "hmdp-x[episodes=2]" and stopped["env"] == "walker"
+    assert run["group"] == "hmdp-x[episodes=2]"
     assert run["test_by_seed_episode"] == {"0": {"0": 10.0, "1": 14.0}, "1": {"0": 20.0, "1": 30.0}}
     assert run["final_per_seed"] == [14.0, 30.0] and run["env"] == "walker" and "stopped" not in run
-    e = aggregate([run])["hmdp-x"]
+    e = aggregate([run])["hmdp-x[episodes=2]"]
     assert e["paired_gain_mean"] == pytest.approx(7.0) and e["paired_gain_se"] == pytest.approx(3.0)  # gains 4, 10
     _write_sweep(tmp_path / "dr", 0, [4.0, 18.0])  # the same root seed: its seeds pair with the run's
     res = teacher_runs.paired([tmp_path / "run"], [tmp_path / "dr"])
     assert res["paired"] == {"seeds": 2, "mean": pytest.approx(11.0), "se": pytest.approx(1.0)}  # 10, 12
-    assert res["a"]["sweeps"][0]["device"] == "gpu: cuda:0" and res["a"]["sweeps"][0]["group"] == "hmdp-x"
+    assert res["a"]["sweeps"][0]["device"] == "gpu: cuda:0" and res["a"]["sweeps"][0]["group"] == "hmdp-x[episodes=2]"
     with pytest.raises(SystemExit, match="not a finished sweep or run"):  # a stopped run has no summary.json
         teacher_runs.paired([tmp_path / "stopped"], [tmp_path / "dr"])
+    (tmp_path / "stopped" / "config.json").unlink()  # metrics but no config: one line, no traceback
+    with pytest.raises(SystemExit, match="neither summary.json nor a run's config.json"):
+        teacher_runs.summarise([tmp_path / "stopped"], tmp_path / "e.json")
     (tmp_path / "empty").mkdir()
     with pytest.raises(SystemExit, match="holds no run"):  # never an empty summary written as if it were one
         teacher_runs.summarise([tmp_path / "empty"], tmp_path / "e.json")
     assert not (tmp_path / "e.json").exists()
 
 
-def test_a_walker_record_keeps_its_runs_under_walker_with_the_walker_dr(tmp_path):
+def test_a_walker_record_keeps_its_runs_under_walker_with_the_walker_dr(tmp_path, monkeypatch):
     rows = _rows(0, [10.0, 14.0], [[0.0, 0.2], [0.1, 0.3]]) + _rows(1, [20.0, 30.0], [[0.0, 0.0], [0.0, 0.0]])
     _write_run(tmp_path / "run", 0, rows, finals=[14.0, 30.0])
     teacher_runs.summarise([tmp_path / "run"], tmp_path / "c.json")
@@ -342,12 +349,16 @@ def test_a_walker_record_keeps_its_runs_under_walker_with_the_walker_dr(tmp_path
     teacher_runs.main(["record", str(tmp_path / "c.json"), "--env", "walker", "--dr", str(tmp_path / "b.json"),
                        "--device", "gpu", "--command", "cmd", "--out", str(tmp_path / "r.json")])
     rec = json.loads((tmp_path / "r.json").read_text())
-    assert "lander" not in rec and sorted(rec["walker"]) == ["dr", "hmdp-x"]
-    assert rec["walker"]["dr"]["final_mean"] == 15.0 and rec["walker"]["hmdp-x"]["final_mean"] == pytest.approx(22.0)
-    t = rec["targets"]["by_method"]["hmdp-x"]
+    assert "lander" not in rec and sorted(rec["walker"]) == ["dr", "hmdp-x[episodes=2]"]
+    assert rec["walker"]["dr"]["final_mean"] == 15.0 and rec["walker"]["hmdp-x[episodes=2]"]["final_mean"] == pytest.approx(22.0)
+    t = rec["targets"]["by_method"]["hmdp-x[episodes=2]"]
     assert t["margin_over_dr"] == pytest.approx(7.0) and t["margin_se"] == pytest.approx(math.hypot(8.0, 1.0))
     with pytest.raises(SystemExit, match="the runs are on walker, the record on lander"):  # never filed under the wrong env
         record([tmp_path / "c.json"], tmp_path / "x.json", "gpu", "cmd", None)
     with pytest.raises(SystemExit, match="no lander DR entry"):
         record([], tmp_path / "x.json", "gpu", "cmd", None, dr=tmp_path / "b.json")
     assert not (tmp_path / "x.json").exists()
+    # without --out a walker record never lands on the lander's record
+    monkeypatch.chdir(tmp_path)
+    teacher_runs.main(["record", str(tmp_path / "c.json"), "--env", "walker", "--device", "gpu", "--command", "cmd"])
+    assert (tmp_path / "docs/results/teacher_walker.json").exists() and not (tmp_path / "docs/results/teacher.json").exists()
