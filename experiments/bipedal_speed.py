@@ -34,7 +34,7 @@ def speed_rows(records: list[dict]) -> list[dict]:
     return rows
 
 
-STUDENT_PARTS = (("rollout", "rollout_s", "rollout_compile_s"), ("update", "ppo_update_s", "ppo_compile_s"))
+STUDENT_TIMINGS = (("rollout", "rollout_s", "rollout_compile_s"), ("update", "ppo_update_s", "ppo_compile_s"))
 
 
 def student_rows(records: list[dict]) -> list[dict]:
@@ -46,7 +46,7 @@ def student_rows(records: list[dict]) -> list[dict]:
 
     rows = []
     for rec in records:
-        parts = [(name, rec[t], rec.get(c)) for name, t, c in STUDENT_PARTS if rec.get(t) is not None]
+        parts = [(name, rec[t], rec.get(c)) for name, t, c in STUDENT_TIMINGS if rec.get(t) is not None]
         if not parts:
             continue
         if rec.get("num_envs") is not None:
@@ -84,7 +84,7 @@ def main(argv=None) -> int:
             rec = json.loads(path.read_text())
         except json.JSONDecodeError as e:
             p.error(f"{f}: not JSON ({e})")
-        timed = rec.get("env_rows") or any(rec.get(t) is not None for _, t, _ in STUDENT_PARTS)
+        timed = rec.get("env_rows") or any(rec.get(t) is not None for _, t, _ in STUDENT_TIMINGS)
         if rec.get("env") != "bipedal" or not timed:
             p.error(f"{f}: not a bench_latency record of the bipedal env with a timing (env {rec.get('env')!r}, "
                     f"{len(rec.get('env_rows') or [])} batch rows, no student part)")

@@ -135,8 +135,9 @@ def summarise_point(point_dir: pathlib.Path) -> dict:
                    "final_test_return_per_seed": None, "stopped": True}
     else:
         raise SystemExit(f"summarise: {point_dir} has neither summary.json nor a run's config.json")
-    if one_run:
-        summary["group"] = run_group(config)
+    # a run's label comes from its config; a stopped sweep point's from its config's sweep point (a
+    # finished point's from its sweep.json row, in summarise)
+    group = run_group(config) if one_run else summary.get("group") if summary.get("stopped") else None
     tests: dict[int, dict[int, float]] = {}
     diag: dict[str, dict[int, list]] = {k: {} for k in DIAGNOSTICS + ("teacher_reward",)}
     checks = []
@@ -166,7 +167,7 @@ def summarise_point(point_dir: pathlib.Path) -> dict:
         "diagnostics_by_episode": per_episode,
         **({"reward_noise": reward_noise(checks)} if checks else {}),
         **({"stopped": True} if summary.get("stopped") else {}),
-        **({"group": summary["group"]} if "group" in summary and (summary.get("stopped") or one_run) else {}),
+        **({"group": group} if group else {}),
     }
 
 
@@ -383,22 +384,22 @@ def record(files, out, device, command, date, notes=(), paper_csv=None, dr=None,
     if others:
         raise SystemExit(f"record: the runs are on {', '.join(others)}, the record on {env}; give --env to match")
     parts = [{"dr": dr_entry(dr, env)} if dr else {}, *(control_entries(c) for c in controls), aggregate(runs)]
-    lander = {}
+    entries = {}
     for part in parts:
         for k, v in part.items():
-            if k in lander:
+            if k in entries:
                 raise SystemExit(f"record: two entries named {k!r} (from --dr, --control or the runs); give one of each")
-            lander[k] = v
-    if dr_reference is not None and dr_reference not in lander:
+            entries[k] = v
+    if dr_reference is not None and dr_reference not in entries:
         raise SystemExit(f"record: --dr-reference {dr_reference!r} is not an entry; entries without a teacher: "
-                         + ", ".join(k for k, e in lander.items() if e.get("episode0_mean") is None))
+                         + ", ".join(k for k, e in entries.items() if e.get("episode0_mean") is None))
     dr_reference = "dr" if dr_reference is None else dr_reference
     rec = {"device": device, "date": date or datetime.date.today().isoformat(), "command": command,
-           "notes": list(notes), "targets": targets(lander, dr_reference), env: lander}
+           "notes": list(notes), "targets": targets(entries, dr_reference), env: entries}
     pathlib.Path(out).parent.mkdir(parents=True, exist_ok=True)
     pathlib.Path(out).write_text(json.dumps(_finite(rec), indent=1, allow_nan=False) + "\n")
     f1 = lambda x: "-" if x is None else f"{x:.1f}"  # noqa: E731
-    for name, e in lander.items():
+    for name, e in entries.items():
         print(f"{name}: {e['seeds']} seeds, final {f1(e['final_mean'])} ± {f1(e['final_se'])}, episode 0 "
               f"{f1(e['episode0_mean'])} ± {f1(e['episode0_se'])}, paired gain {f1(e['paired_gain_mean'])} ± "
               f"{f1(e['paired_gain_se'])}, late gain {f1(e.get('paired_late_gain_mean'))} ± {f1(e.get('paired_late_gain_se'))}, at a bound {e['at_bound_fraction']}, final episodes {e.get('final_episode')}")
@@ -472,20 +473,21 @@ def _finals(sweep_dirs) -> dict:
     finals, prov = {}, []
     for d in map(pathlib.Path, sweep_dirs):
         try:
-            if _point_dirs(d) == [d]:  # one `shed_jax run`: its config holds the root seed
+            if _point_dirs(d) == [d]:  # one `shed_jax run`: its own point; its config holds the root seed
                 config = json.loads((d / "config.json").read_text())
-                sweep = {"rows": [{"dir": ".", "group": run_group(config)}], "root_seed": config["root_seed"],
-                         "device": f"{config.get('backend')}: {', '.join(config.get('devices') or [])}"}
-                summ = d / "summary.json"
-                sweep |= {k: v for k, v in (json.loads(summ.read_text()) if summ.exists() else {}).items() if k == "wall_time_s"}
+                point, group, root = d, run_group(config), config["root_seed"]
+                meta = {"device": f"{config.get('backend')}: {', '.join(config.get('devices') or [])}"}
             else:
                 sweep = json.loads((d / "sweep.json").read_text())
-            if len(sweep["rows"]) != 1:
-                raise SystemExit(f"paired: {d} has {len(sweep['rows'])} points; give sweeps of one point each")
-            point = d / sweep["rows"][0]["dir"]
-            per_seed = json.loads((point / "summary.json").read_text()).get("final_test_return_per_seed")
-            # sweeps from before sweep.json kept the root seed have it in the point's config
-            root = sweep["root_seed"] if "root_seed" in sweep else json.loads((point / "config.json").read_text())["root_seed"]
+                if len(sweep["rows"]) != 1:
+                    raise SystemExit(f"paired: {d} has {len(sweep['rows'])} points; give sweeps of one point each")
+                point, group = d / sweep["rows"][0]["dir"], sweep["rows"][0].get("group")
+                # sweeps from before sweep.json kept the root seed have it in the point's config
+                root = sweep["root_seed"] if "root_seed" in sweep else json.loads((point / "config.json").read_text())["root_seed"]
+                meta = {k: sweep.get(k) for k in ("device", "command", "date", "wall_time_s")}
+            summary = json.loads((point / "summary.json").read_text())
+            per_seed = summary.get("final_test_return_per_seed")
+            meta.setdefault("wall_time_s", summary.get("wall_time_s"))  # a run's own wall time
         except (OSError, KeyError, ValueError) as err:
             raise SystemExit(f"paired: {d} is not a finished sweep or run ({type(err).__name__}: {err})") from None
         if not per_seed or not all(map(_finite_num, per_seed)):
@@ -494,8 +496,8 @@ def _finals(sweep_dirs) -> dict:
             raise SystemExit(f"paired: root seed {root} appears twice in one set ({d}): its seeds would count twice")
         for i, v in enumerate(per_seed):
             finals[(root, i)] = float(v)
-        prov.append({"sweep": str(d), "group": sweep["rows"][0].get("group"), "root_seed": root, "seeds": len(per_seed),
-                     **{k: sweep.get(k) for k in ("device", "command", "date", "wall_time_s")}})
+        prov.append({"sweep": str(d), "group": group, "root_seed": root, "seeds": len(per_seed),
+                     **{k: meta.get(k) for k in ("device", "command", "date", "wall_time_s")}})
     return {"finals": finals, "sweeps": prov}
 
 
