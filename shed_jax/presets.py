@@ -9,6 +9,11 @@
   one student over the same T budget steps. Walker: C = 3 updates of 1,024 x 64 = 196,608 steps,
   T = 50 (9.83e6 student steps, the paper's 1e7 to 2 %), n = 4, E_eval = 4, N_ep = 20, test set B (10 ladder levels, 2000
   steps).
+* ``dcd`` (walker and bipedal only): DCD's BipedalWalker budget (Parker-Holder et al. 2022, ACCEL:
+  about 6.6e8 student steps per seed) with the paper preset's student and levels: T = 3,360 budget
+  steps of 196,608 (6.606e8 steps), one teacher episode, test set B at every 168th step (20 points,
+  the last included). The student is this project's walker preset, not DCD's PPO settings, so the
+  comparison with DCD's table is at equal student steps, not an equal learner.
 
 ``build_experiment(env, method, preset, **overrides)`` returns an :class:`Experiment`; the CLI and
 the sweep tools are the only places that read presets, so a library user can ignore this module and
@@ -23,7 +28,7 @@ from shed_jax import configs
 from shed_jax.loop import LoopSpec
 from shed_jax.student import PPOConfig
 
-PRESETS = ("quick", "paper")
+PRESETS = ("quick", "paper", "dcd")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -86,7 +91,9 @@ class Preset:
     teacher: dict = dataclasses.field(default_factory=dict)  # fields of the episodic methods' configs
     test_episode_every: int = 1  # episodic methods: test in every k-th teacher episode (and the last)
     test_every: int = 1  # the baselines (one student, one episode): test every k-th budget step
+    test_every_episodic: int = 1  # episodic methods: test every k-th budget step of a tested episode
     chunk: int | None = None  # budget steps per compiled chunk; None: one teacher episode
+    max_recorded_levels: int | None = 64  # generated levels kept per budget step in the record (LoopSpec)
 
 
 # The table: (environment, preset) -> its budgets. ``paper`` is docs/design.md §10.3; ``quick`` is
@@ -125,10 +132,19 @@ TABLE: dict[tuple[str, str], Preset] = {
         teacher_episodes=2, test_set="walker-test-b", test_episodes=1, test_max_steps=100,
         method={"updates_per_step": 2, "num_levels": 4}, teacher={"num_eval_episodes": 1, "eval_max_steps": 100},
     ),}
+# DCD's budget: 3,360 x 196,608 = 6.606e8 steps per seed (DCD's 6.6e8 to 0.1 %), one student and one
+# teacher episode for every method. Chunks of 8 budget steps keep the host's progress line and the
+# checkpoints about once a minute on the 2-D walker; the test set runs 20 times. The record keeps 8
+# generated levels per budget step (not 64), so 5 seeds' metrics.jsonl stays near 20 MB and the
+# checkpoint's history near 10 MB over 3,360 steps: small enough to carry between device machines.
+TABLE[("walker", "dcd")] = dataclasses.replace(
+    TABLE[("walker", "paper")], steps_per_episode=3360, teacher_episodes=1, test_every=168, test_every_episodic=168,
+    test_episode_every=1, chunk=8, max_recorded_levels=8)
 # The Box2D-faithful walker on physics2d shares the MJX walker's level space, level sets and student
 # (docs/bipedal.md), so it runs the walker's protocol; only its physics (and speed) differ.
 TABLE[("bipedal", "paper")] = TABLE[("walker", "paper")]
 TABLE[("bipedal", "quick")] = TABLE[("walker", "quick")]
+TABLE[("bipedal", "dcd")] = TABLE[("walker", "dcd")]
 
 
 def preset_row(env: str, name: str) -> Preset:
@@ -137,7 +153,10 @@ def preset_row(env: str, name: str) -> Preset:
         raise ValueError(f"unknown preset {name!r}; known: {', '.join(PRESETS)}")
     if (env, name) not in TABLE:
         envs = sorted({e for e, _ in TABLE})
-        raise ValueError(f"no UED presets for environment {env!r}; use {', '.join(envs)}")
+        if env not in envs:
+            raise ValueError(f"no UED presets for environment {env!r}; use {', '.join(envs)}")
+        own = [n for n in PRESETS if (env, n) in TABLE]
+        raise ValueError(f"environment {env!r} has no preset {name!r}; its presets: {', '.join(own)}")
     return TABLE[(env, name)]
 
 
@@ -184,8 +203,9 @@ def build_experiment(env: str, method: str, preset: str, *, episodes: int | None
         steps_per_episode=T,
         num_episodes=(row.teacher_episodes if is_episodic else 1) if episodes is None else episodes,
         test_episode_every=(row.test_episode_every if is_episodic else 1) if test_episode_every is None else test_episode_every,
-        test_every=1 if is_episodic else row.test_every,
+        test_every=row.test_every_episodic if is_episodic else row.test_every,
         test_episodes=row.test_episodes,
         test_max_steps=row.test_max_steps,
+        max_recorded_levels=row.max_recorded_levels,
     )
     return Experiment(env=env, method=method, preset=preset, ppo=ppo, method_config=mcfg, loop=loop, test_set=row.test_set)

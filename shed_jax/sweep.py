@@ -651,7 +651,7 @@ def sweep(opts: SweepOptions) -> int:
         raise UsageError(f"--methods: unknown method(s) {', '.join(map(repr, unknown))}; known: {', '.join(METHODS)}")
     if len(set(methods)) != len(methods):
         raise UsageError(f"--methods lists a method twice: {opts.methods}")
-    num_seeds = opts.seeds or (5 if preset == "paper" else 2)
+    num_seeds = opts.seeds or (2 if preset == "quick" else 5)
     devices = jax.devices()
     if opts.devices is not None:
         if not 1 <= opts.devices <= len(devices):

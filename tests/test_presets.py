@@ -151,3 +151,29 @@ def test_default_chunk_keeps_walker_progress_under_a_minute():
 
     exp = build_experiment("walker", "dr", "paper")
     assert driver.make_batch(exp, build(exp), [({}, {})], num_seeds=1, root_seed=0).chunk == 2
+
+
+@pytest.mark.parametrize("env", ["walker", "bipedal"])
+def test_dcd_preset_is_dcds_budget_with_the_paper_student_and_twenty_test_points(env):
+    import numpy as np
+
+    from shed_jax import experiment as xp
+    from shed_jax.presets import default_chunk
+
+    paper, dr = build_experiment(env, "dr", "paper"), build_experiment(env, "dr", "dcd")
+    steps = dr.env_steps_per_budget_step * dr.loop.steps_per_episode
+    assert steps == 196_608 * 3360 and abs(steps / 6.6e8 - 1) < 1e-3  # DCD's 6.6e8 student steps, to 0.1 %
+    assert dr.ppo == paper.ppo and dr.method_config == paper.method_config and dr.test_set == paper.test_set
+    for method in ("dr", "accel", "shed"):  # one student: every method, the episodic ones in one teacher episode
+        loop = build_experiment(env, method, "dcd").loop
+        assert loop.num_episodes == 1
+        tested = np.flatnonzero(loop.tests_at(np.arange(loop.total_steps)))
+        assert list(tested) == list(range(167, 3360, 168))  # 20 points, the last step among them
+    assert build_experiment(env, "shed", "dcd").method_config.budget_steps == 3360
+    assert default_chunk(dr) == 8 and xp.default_seeds(dr) == 5
+    assert dr.loop.max_recorded_levels == 8 and paper.loop.max_recorded_levels == 64  # a small record over 3,360 steps
+
+
+def test_a_preset_an_env_lacks_names_the_env_s_presets():
+    with pytest.raises(ValueError, match=r"environment 'lander' has no preset 'dcd'; its presets: quick, paper"):
+        build_experiment("lander", "dr", "dcd")

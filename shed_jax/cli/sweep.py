@@ -21,7 +21,8 @@ def add_arguments(p) -> None:
     p.add_argument("--env", default="lander", choices=ENVS, help=" | ".join(ENVS))
     p.add_argument("--methods", default="shed", help="comma-separated: shed,hmdp,dr,paired,accel,accel-norevisit,plr")
     p.add_argument("--preset", default="auto", choices=("auto",) + PRESETS,
-                   help="auto: 'paper' on a GPU, 'quick' on a CPU (the choice is printed)")
+                   help="auto: 'paper' on a GPU, 'quick' on a CPU (the choice is printed); dcd: DCD's walker budget, "
+                        "6.6e8 student steps per seed (walker and bipedal)")
     p.add_argument("--seeds", type=count, default=None, help="seeds per grid point (default: quick 2, paper 5)")
     p.add_argument("--seed", type=int, default=0, help="root seed; seed i uses fold_in(root, i) at every point")
     p.add_argument("--grid", action="append", default=[], metavar="KEY=V1,V2,...",
