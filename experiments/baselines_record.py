@@ -1,19 +1,21 @@
-"""Write docs/results/baselines.json from finished sweeps: the native baselines' lander finals and
-their students on DCD's named walker levels.
+"""Write docs/results/baselines.json from finished runs: the native baselines' lander finals and
+their students on DCD's named levels of the MJX walker (``--walker``) and the 2-D walker (``--bipedal``).
 
-Each ``--lander`` / ``--walker`` argument is a sweep output directory (``python -m shed_jax sweep
-... --out DIR``); every row of its ``sweep.json`` becomes one entry, keyed by method, with the
-sweep's ``--set`` values (e.g. ``level_switch=episode``) and its saved arguments (``sweep_args.json``)
-kept beside it. Walker sweeps must have run
-with ``--final-eval named``; their entry holds, per named level, the mean return over seeds and the
-solved rate (return > 230), and ``dcd_six_solved_mean`` is the solved rate averaged over DCD's six
-test levels (the comparison of DCD's table). The device is the one the sweeps ran on (sweeps do not record it).
+Each argument is a sweep output directory (``python -m shed_jax sweep ... --out DIR``: every row of
+its ``sweep.json`` becomes one entry) or the directory of one ``python -m shed_jax run`` (one entry);
+entries are keyed by method, with the sweep's ``--set`` values (e.g. ``level_switch=episode``; for a
+run, what it sets apart from its preset) and its saved arguments kept beside them. A directory of
+another environment than its flag names is refused. Walker runs must have run with ``--final-eval
+named``; their entry holds, per named level, the mean return over seeds and the solved rate (return >
+230), and ``dcd_six_solved_mean`` is the solved rate averaged over DCD's six test levels (the
+comparison of DCD's table). The device is the one the runs ran on (sweeps do not record it).
 With ``--keep``, the entries already in ``--out`` that these sweeps do not measure again stay; every
 entry then names the run that measured it by index into ``runs`` (device, date, command, note).
 
     python -m experiments.baselines_record --device "NVIDIA H200" --date 2026-11-25 \\
         --lander runs/ep_plr --lander runs/ep_accel --walker runs/wdr --out docs/results/baselines.json
     python -m experiments.baselines_record --keep --device "NVIDIA H100 80GB HBM3" --walker runs/wpaired
+    python -m experiments.baselines_record --device "NVIDIA H200" --bipedal runs/bipedal_dr --out OUT.json
 """
 from __future__ import annotations
 
@@ -26,39 +28,73 @@ import time
 from shed_jax.eval_sets import DCD_TEST_LEVELS
 
 
-def _sweep(path: str) -> tuple[dict, dict]:
+ENVS = ("lander", "walker", "bipedal")
+NAMED_LEVEL_ENVS = ("walker", "bipedal")  # whose entries hold the students' returns on DCD's named levels
+
+
+def _rows(path: str, env: str) -> tuple[list[dict], dict]:
+    """The rows (``sweep.json``'s form: method, seeds, dir, final test return, wall time) and saved
+    arguments of a sweep output or of one ``shed_jax run`` directory; ValueError where it is
+    neither, or holds another environment than ``env``."""
     d = pathlib.Path(path)
-    return json.loads((d / "sweep.json").read_text()), json.loads((d / "sweep_args.json").read_text())
+    if (d / "sweep.json").is_file():
+        sweep, args = json.loads((d / "sweep.json").read_text()), json.loads((d / "sweep_args.json").read_text())
+        rows, found = sweep["rows"], args.get("env")
+    elif (d / "summary.json").is_file() and (d / "config.json").is_file():
+        from experiments.teacher_runs import run_settings
+
+        summary, config = json.loads((d / "summary.json").read_text()), json.loads((d / "config.json").read_text())
+        found = config["experiment"]["env"]
+        rows = [{"method": summary["method"], "seeds": summary["seeds"], "dir": ".",
+                 "final_test_return_mean": summary["final_test_return_mean"],
+                 "final_test_return_se": summary["final_test_return_se"],
+                 "group_wall_time_s": summary.get("wall_time_s")}]
+        args = {"env": found, "run": str(d), "preset": config["experiment"]["preset"],
+                "set": run_settings(config) or [], "seeds": config["seeds"], "root_seed": config["root_seed"]}
+    else:
+        raise ValueError(f"{path} is neither a sweep output (sweep.json) nor a finished run (summary.json, config.json)")
+    if found != env:
+        raise ValueError(f"{path} holds runs on {found!r}, not {env!r}: pass it with --{found}")
+    return rows, args
 
 
 def lander_entries(path: str) -> dict:
-    sweep, args = _sweep(path)
+    rows, args = _rows(path, "lander")
     return {row["method"]: {"seeds": row["seeds"], "final_mean": row["final_test_return_mean"],
                             "final_se": row["final_test_return_se"], "set": args.get("set") or [],
                             "wall_time_s": row.get("group_wall_time_s"), "sweep_args": args}
-            for row in sweep["rows"]}
+            for row in rows}
 
 
-def walker_entries(path: str) -> dict:
-    sweep, args = _sweep(path)
+def named_level_entries(path: str, env: str) -> dict:
+    rows, args = _rows(path, env)
     out = {}
-    for row in sweep["rows"]:
-        named = json.loads((pathlib.Path(path) / row["dir"] / "final_eval_named.json").read_text())
+    for row in rows:
+        named_file = pathlib.Path(path) / row["dir"] / "final_eval_named.json"
+        if not named_file.is_file():
+            raise ValueError(f"{named_file} is missing: {env} runs need --final-eval named")
+        named = json.loads(named_file.read_text())
         levels = {r["label"]: {"return": r["mean"], "se": r["se"], "solved": r["solved_rate"]} for r in named["per_level"]}
         six = [levels[name]["solved"] for name in DCD_TEST_LEVELS if name in levels]
         out[row["method"]] = {"seeds": row["seeds"], "set": args.get("set") or [], "levels": levels,
                               "dcd_six_solved_mean": sum(six) / len(six) if len(six) == len(DCD_TEST_LEVELS) else None,
                               "test_set_b": {"mean": row["final_test_return_mean"], "se": row["final_test_return_se"]},
+                              "all_named": named.get("overall"), "final_eval_command": named.get("command"),
                               "wall_time_s": row.get("group_wall_time_s"), "sweep_args": args}
     return out
+
+
+def entries(path: str, env: str) -> dict:
+    return named_level_entries(path, env) if env in NAMED_LEVEL_ENVS else lander_entries(path)
 
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--device", required=True, help="the device the sweeps ran on")
     p.add_argument("--date", default=time.strftime("%Y-%m-%d", time.gmtime()), help="the date the sweeps ran")
-    p.add_argument("--lander", action="append", default=[], metavar="SWEEP_DIR")
-    p.add_argument("--walker", action="append", default=[], metavar="SWEEP_DIR")
+    p.add_argument("--lander", action="append", default=[], metavar="DIR")
+    p.add_argument("--walker", action="append", default=[], metavar="DIR")
+    p.add_argument("--bipedal", action="append", default=[], metavar="DIR")
     p.add_argument("--note", default="", help="a sentence kept in the record (what was not run, and why)")
     p.add_argument("--out", default="docs/results/baselines.json")
     p.add_argument("--keep", action="store_true",
@@ -70,12 +106,16 @@ def main(argv=None) -> int:
     runs = old.get("runs") or ([{k: old[k] for k in ("device", "date", "command", "note") if k in old}] if old else [])
     run = len(runs)
     runs.append({"device": args.device, "date": args.date, "command": command, **({"note": args.note} if args.note else {})})
-    record = {"device": args.device, "date": args.date, "command": command, "runs": runs, "lander": {}, "walker": {}}
-    for env, paths, entries in (("lander", args.lander, lander_entries), ("walker", args.walker, walker_entries)):
+    record = {"device": args.device, "date": args.date, "command": command, "runs": runs}
+    for env in ENVS:
         kept = {m: dict(e, run=e.get("run", 0)) for m, e in old.get(env, {}).items()}
-        for path in paths:
-            kept.update({m: dict(e, run=run) for m, e in entries(path).items()})
-        record[env] = kept
+        for path in getattr(args, env):
+            try:
+                kept.update({m: dict(e, run=run) for m, e in entries(path, env).items()})
+            except (ValueError, OSError, KeyError, json.JSONDecodeError) as err:
+                p.error(f"--{env} {path}: {err}")
+        if kept or env in ("lander", "walker"):
+            record[env] = kept
     if args.note:
         record["note"] = args.note
     record["note_runs"] = "run: index into runs, the run (device, date, command) that measured the entry"

@@ -94,23 +94,34 @@ def reward_noise(rows: list[tuple[int, float, float, float, float]]) -> dict:
     return out
 
 
-def run_group(config: dict) -> str:
-    """The label of one ``shed_jax run`` (its config.json): the method, with every setting of its
-    experiment that differs from today's preset, e.g. ``hmdp-x[episodes=3]``, as a sweep's group names
-    its ``--set`` values, so runs of other lengths or settings never pool with the preset's."""
+def run_settings(config: dict) -> list[str] | None:
+    """What one ``shed_jax run`` (its config.json) sets apart from today's preset, as ``key=value``
+    strings in the form of a sweep's ``--set`` values (``episodes=3``, ``level_switch=episode``);
+    None where this version no longer has the run's preset or method."""
     from shed_jax.checkpoint import config_differences
     from shed_jax.presets import build_experiment
 
     exp = config["experiment"]
     try:
         default = build_experiment(exp["env"], exp["method"], exp["preset"]).to_dict()
-    except (KeyError, ValueError, TypeError):  # a preset or method this version no longer has
-        return f"{exp['method']}[preset={exp.get('preset')}?]"
+    except (KeyError, ValueError, TypeError):
+        return None
     short = {"loop.num_episodes": "episodes"}
-    parts = []
+    out = []
     for key, saved, _ in config_differences({"e": exp}, {"e": default}, ["e"]):
         key = key.removeprefix("e.")
-        parts.append(f"{short.get(key, key.removeprefix('method_config.'))}={saved}")
+        out.append(f"{short.get(key, key.removeprefix('method_config.'))}={saved}")
+    return out
+
+
+def run_group(config: dict) -> str:
+    """The label of one ``shed_jax run``: the method with :func:`run_settings`, e.g.
+    ``hmdp-x[episodes=3]``, as a sweep's group names its ``--set`` values, so runs of other lengths
+    or settings never pool with the preset's."""
+    exp = config["experiment"]
+    parts = run_settings(config)
+    if parts is None:
+        return f"{exp['method']}[preset={exp.get('preset')}?]"
     return f"{exp['method']}[{','.join(parts)}]" if parts else exp["method"]
 
 

@@ -133,3 +133,30 @@ def test_baselines_record_keep_adds_a_run_and_keeps_the_entries_it_did_not_measu
     rec = json.loads(out.read_text())
     assert len(rec["runs"]) == 3 and (rec["walker"]["dr"]["run"], rec["walker"]["dr"]["test_set_b"]["mean"]) == (2, -20.0)
     assert rec["walker"]["paired"]["run"] == 1
+
+
+def test_baselines_record_reads_one_run_directory_and_refuses_another_env(tmp_path, capsys):
+    from experiments import baselines_record
+    from shed_jax.presets import build_experiment
+
+    run = tmp_path / "bipedal_dr"
+    run.mkdir()
+    exp = build_experiment("bipedal", "dr", "paper").to_dict()
+    exp["loop"]["num_episodes"] = 2  # one setting apart from the preset: it must be named in the entry
+    (run / "config.json").write_text(json.dumps({"experiment": exp, "seeds": 5, "root_seed": 0}))
+    (run / "summary.json").write_text(json.dumps({"method": "dr", "seeds": 5, "final_test_return_mean": -37.1,
+                                                  "final_test_return_se": 2.5, "wall_time_s": 816.0}))
+    _named_eval(run / "final_eval_named.json", [("BipedalWalker", 66.7, 27.1, 0.08)])
+    out = tmp_path / "b.json"
+    assert baselines_record.main(["--device", "H200", "--date", "2026-11-28", "--bipedal", str(run), "--out", str(out)]) == 0
+    rec = json.loads(out.read_text())
+    dr = rec["bipedal"]["dr"]
+    assert dr["test_set_b"] == {"mean": -37.1, "se": 2.5} and dr["wall_time_s"] == 816.0
+    assert dr["levels"] == {"BipedalWalker": {"return": 66.7, "se": 27.1, "solved": 0.08}}
+    assert dr["set"] == ["episodes=2"] and dr["sweep_args"]["run"] == str(run)
+    # the same directory under another env's flag, or a directory that is no run, is one line naming it
+    for flag, path, words in (("--walker", run, "pass it with --bipedal"), ("--bipedal", tmp_path, "neither a sweep")):
+        with pytest.raises(SystemExit) as e:
+            baselines_record.main(["--device", "H200", flag, str(path), "--out", str(tmp_path / "x.json")])
+        assert e.value.code == 2 and words in capsys.readouterr().err
+    assert not (tmp_path / "x.json").exists()
