@@ -341,10 +341,14 @@ def _finite(o):
     return None if isinstance(o, float) and not math.isfinite(o) else o
 
 
-def control_entries(path) -> dict:
+def control_entries(path, env: str = "lander") -> dict:
     """A ``paired`` comparison file -> one DR-like entry per set (no teacher: null teacher fields),
-    named by the set's group with its seed count, e.g. ``dr[level_switch=episode] (40 seeds)``."""
+    named by the set's group with its seed count, e.g. ``dr[level_switch=episode] (40 seeds)``. A file
+    that compares runs on another environment than ``env`` is refused (files written before ``paired``
+    recorded the environment say none, and are taken as they are)."""
     c = json.loads(pathlib.Path(path).read_text())
+    if c.get("env") not in (None, env):
+        raise SystemExit(f"record: --control {path} compares runs on {c['env']}, the record is on {env}; give --env to match")
     names = {k: f"{' + '.join(sorted({s.get('group') or '?' for s in c[k]['sweeps']}))} ({c[k]['seeds']} seeds)"
              for k in ("a", "b")}
     if names["a"] == names["b"]:  # the same group on both sides: tell them apart by side
@@ -394,7 +398,7 @@ def record(files, out, device, command, date, notes=(), paper_csv=None, dr=None,
     others = sorted({r["env"] for r in runs if r.get("env") not in (None, env)})
     if others:
         raise SystemExit(f"record: the runs are on {', '.join(others)}, the record on {env}; give --env to match")
-    parts = [{"dr": dr_entry(dr, env)} if dr else {}, *(control_entries(c) for c in controls), aggregate(runs)]
+    parts = [{"dr": dr_entry(dr, env)} if dr else {}, *(control_entries(c, env) for c in controls), aggregate(runs)]
     entries = {}
     for part in parts:
         for k, v in part.items():
@@ -478,6 +482,15 @@ def late_box(point_dirs, from_episode: int) -> dict:
             "low_sd": lo.std(0).tolist(), "high_sd": hi.std(0).tolist()}
 
 
+def _sweep_env(d: pathlib.Path, point: pathlib.Path) -> str | None:
+    """A sweep's environment: its saved arguments, else its point's config; None where neither says."""
+    for f, get in ((d / "sweep_args.json", lambda c: c.get("env")),
+                   (point / "config.json", lambda c: c.get("experiment", {}).get("env"))):
+        if f.is_file():
+            return get(json.loads(f.read_text()))
+    return None
+
+
 def _finals(sweep_dirs) -> dict:
     """{(root seed, seed index): final test return} of one-point sweeps, and each sweep's provenance.
     Seed i of a sweep with root seed r has the key ``fold_in(PRNGKey(r), i)`` whatever the seed count."""
@@ -487,7 +500,8 @@ def _finals(sweep_dirs) -> dict:
             if _point_dirs(d) == [d]:  # one `shed_jax run`: its own point; its config holds the root seed
                 config = json.loads((d / "config.json").read_text())
                 point, group, root = d, run_group(config), config["root_seed"]
-                meta = {"device": f"{config.get('backend')}: {', '.join(config.get('devices') or [])}"}
+                meta = {"device": f"{config.get('backend')}: {', '.join(config.get('devices') or [])}",
+                        "env": config["experiment"]["env"]}
             else:
                 sweep = json.loads((d / "sweep.json").read_text())
                 if len(sweep["rows"]) != 1:
@@ -496,6 +510,7 @@ def _finals(sweep_dirs) -> dict:
                 # sweeps from before sweep.json kept the root seed have it in the point's config
                 root = sweep["root_seed"] if "root_seed" in sweep else json.loads((point / "config.json").read_text())["root_seed"]
                 meta = {k: sweep.get(k) for k in ("device", "command", "date", "wall_time_s")}
+                meta["env"] = _sweep_env(d, point)
             summary = json.loads((point / "summary.json").read_text())
             per_seed = summary.get("final_test_return_per_seed")
             meta.setdefault("wall_time_s", summary.get("wall_time_s"))  # a run's own wall time
@@ -508,7 +523,7 @@ def _finals(sweep_dirs) -> dict:
         for i, v in enumerate(per_seed):
             finals[(root, i)] = float(v)
         prov.append({"sweep": str(d), "group": group, "root_seed": root, "seeds": len(per_seed),
-                     **{k: meta.get(k) for k in ("device", "command", "date", "wall_time_s")}})
+                     **{k: meta.get(k) for k in ("device", "command", "date", "wall_time_s", "env")}})
     return {"finals": finals, "sweeps": prov}
 
 
@@ -517,6 +532,9 @@ def paired(a_dirs, b_dirs) -> dict:
     the seeds both sets hold, matched by (root seed, seed index): such seeds start their students from
     the same initialisations, so the pairing removes that part of the noise."""
     a, b = _finals(a_dirs), _finals(b_dirs)
+    envs = sorted({p["env"] for side in (a, b) for p in side["sweeps"] if p.get("env")})
+    if len(envs) > 1:
+        raise SystemExit(f"paired: the sets hold runs on {' and '.join(envs)}; pair runs of one environment")
     both = sorted(set(a["finals"]) & set(b["finals"]))
     if len(both) < 2:
         raise SystemExit(f"paired: {len(both)} seed(s) common to both sets; pairing needs at least 2")
@@ -528,6 +546,7 @@ def paired(a_dirs, b_dirs) -> dict:
                                             for r in sorted({r for r, _ in s["finals"]})}}
     m, se = _mean_se([a["finals"][k] - b["finals"][k] for k in both])
     out["paired"] = {"seeds": len(both), "mean": m, "se": se}
+    out["env"] = envs[0] if envs else None
     return out
 
 

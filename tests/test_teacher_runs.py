@@ -362,3 +362,23 @@ def test_a_walker_record_keeps_its_runs_under_walker_with_the_walker_dr(tmp_path
     monkeypatch.chdir(tmp_path)
     teacher_runs.main(["record", str(tmp_path / "c.json"), "--env", "walker", "--device", "gpu", "--command", "cmd"])
     assert (tmp_path / "docs/results/teacher_walker.json").exists() and not (tmp_path / "docs/results/teacher.json").exists()
+
+
+def test_paired_records_the_environment_and_a_record_refuses_a_control_of_another(tmp_path):
+    rows = _rows(0, [10.0, 14.0], [[0.0, 0.2], [0.1, 0.3]]) + _rows(1, [20.0, 30.0], [[0.0, 0.0], [0.0, 0.0]])
+    _write_run(tmp_path / "run", 0, rows, finals=[14.0, 30.0])  # a walker run
+    _write_sweep(tmp_path / "dr", 0, [4.0, 18.0])
+    (tmp_path / "dr" / "sweep_args.json").write_text(json.dumps({"env": "walker"}))
+    c = tmp_path / "c.json"
+    teacher_runs.main(["paired", str(tmp_path / "run"), "--vs", str(tmp_path / "dr"), "--out", str(c)])
+    assert json.loads(c.read_text())["env"] == "walker"
+    (tmp_path / "none.json").write_text("[]")
+    with pytest.raises(SystemExit, match="compares runs on walker, the record is on lander"):
+        record([tmp_path / "none.json"], tmp_path / "r.json", "cpu", "cmd", "2026-01-01", controls=[c])
+    record([tmp_path / "none.json"], tmp_path / "r.json", "cpu", "cmd", "2026-01-01", controls=[c], env="walker")
+    assert len(json.loads((tmp_path / "r.json").read_text())["walker"]) == 2
+    # a lander sweep against the walker run: no pairing across environments
+    _write_sweep(tmp_path / "lander", 0, [4.0, 18.0])
+    (tmp_path / "lander" / "sweep_args.json").write_text(json.dumps({"env": "lander"}))
+    with pytest.raises(SystemExit, match="the sets hold runs on lander and walker"):
+        teacher_runs.paired([tmp_path / "run"], [tmp_path / "lander"])
