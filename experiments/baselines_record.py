@@ -76,7 +76,9 @@ def named_level_entries(path: str, env: str) -> dict:
         named = json.loads(named_file.read_text())
         levels = {r["label"]: {"return": r["mean"], "se": r["se"], "solved": r["solved_rate"]} for r in named["per_level"]}
         six = [levels[name]["solved"] for name in DCD_TEST_LEVELS if name in levels]
-        out[row["method"]] = {"seeds": row["seeds"], "set": args.get("set") or [], "levels": levels,
+        config_file = pathlib.Path(path) / row["dir"] / "config.json"  # the preset as resolved (a sweep's may say auto)
+        preset = json.loads(config_file.read_text())["experiment"]["preset"] if config_file.is_file() else args.get("preset")
+        out[row["method"]] = {"seeds": row["seeds"], "preset": preset, "set": args.get("set") or [], "levels": levels,
                               "dcd_six_solved_mean": sum(six) / len(six) if len(six) == len(DCD_TEST_LEVELS) else None,
                               "test_set_b": {"mean": row["final_test_return_mean"], "se": row["final_test_return_se"]},
                               "all_named": named.get("overall"), "final_eval_command": named.get("command"),
@@ -97,6 +99,9 @@ def main(argv=None) -> int:
     p.add_argument("--bipedal", action="append", default=[], metavar="DIR")
     p.add_argument("--note", default="", help="a sentence kept in the record (what was not run, and why)")
     p.add_argument("--out", default="docs/results/baselines.json")
+    p.add_argument("--dcd-into", default=None, metavar="RECORD",
+                   help="also write the --bipedal entries, runs at --preset dcd only, as the 'dcd' block of this "
+                        "record (docs/results/bipedal.json: {method: {level: {return, se, solved}}}), keeping its other keys")
     p.add_argument("--keep", action="store_true",
                    help="keep the entries of --out that these sweeps do not measure again (each entry names its run)")
     args = p.parse_args(argv)
@@ -119,9 +124,22 @@ def main(argv=None) -> int:
     if args.note:
         record["note"] = args.note
     record["note_runs"] = "run: index into runs, the run (device, date, command) that measured the entry"
+    if args.dcd_into:
+        dcd = {m: e for m, e in record.get("bipedal", {}).items() if e["run"] == run}
+        wrong = sorted(f"{m} ({e.get('preset')})" for m, e in dcd.items() if e.get("preset") != "dcd")
+        if not dcd or wrong:
+            p.error(f"--dcd-into takes --bipedal runs at --preset dcd; got {', '.join(wrong) or 'none'}")
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(record, indent=2) + "\n")
     print(f"wrote {out}")
+    if args.dcd_into:
+        target = pathlib.Path(args.dcd_into)
+        env_record = json.loads(target.read_text()) if target.exists() else {}
+        env_record["dcd"] = {m: e["levels"] for m, e in dcd.items()}
+        env_record["dcd_source"] = {"record": str(out), "device": args.device, "date": args.date,
+                                    "seeds": {m: e["seeds"] for m, e in dcd.items()}}
+        target.write_text(json.dumps(env_record, indent=1) + "\n")
+        print(f"wrote the 'dcd' block of {target}")
     return 0
 
 

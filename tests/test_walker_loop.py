@@ -160,3 +160,32 @@ def test_baselines_record_reads_one_run_directory_and_refuses_another_env(tmp_pa
             baselines_record.main(["--device", "H200", flag, str(path), "--out", str(tmp_path / "x.json")])
         assert e.value.code == 2 and words in capsys.readouterr().err
     assert not (tmp_path / "x.json").exists()
+
+
+def test_dcd_budget_runs_fill_the_bipedal_records_dcd_block_and_other_presets_are_refused(tmp_path, capsys):
+    from experiments import baselines_record
+    from shed_jax.presets import build_experiment
+
+    def run(name, method, preset, flat):
+        d = tmp_path / name
+        d.mkdir()
+        (d / "config.json").write_text(json.dumps({"experiment": build_experiment("bipedal", method, preset).to_dict(),
+                                                   "seeds": 5, "root_seed": 0}))
+        (d / "summary.json").write_text(json.dumps({"method": method, "seeds": 5, "final_test_return_mean": 1.0,
+                                                    "final_test_return_se": 0.5}))
+        _named_eval(d / "final_eval_named.json", [("BipedalWalker", flat, 3.0, 0.9), ("Stump", -10.0, 2.0, 0.0)])
+        return str(d)
+
+    target = tmp_path / "bipedal.json"
+    target.write_text(json.dumps({"device": "cpu", "parity": {"flat": {"gym_mean": 1.0}}}))
+    common = ["--device", "H200", "--date", "2026-12-01", "--out", str(tmp_path / "dcd.json"), "--dcd-into", str(target)]
+    assert baselines_record.main(["--bipedal", run("dr", "dr", "dcd", 266.0), "--bipedal", run("accel", "accel", "dcd", 310.0),
+                                  *common]) == 0
+    rec = json.loads(target.read_text())
+    assert rec["parity"] == {"flat": {"gym_mean": 1.0}} and rec["device"] == "cpu"  # the record's other keys stay
+    assert rec["dcd"]["dr"]["BipedalWalker"] == {"return": 266.0, "se": 3.0, "solved": 0.9}
+    assert rec["dcd"]["accel"]["Stump"]["solved"] == 0.0 and rec["dcd_source"]["seeds"] == {"dr": 5, "accel": 5}
+    with pytest.raises(SystemExit) as e:  # a paper-preset run is not DCD's budget
+        baselines_record.main(["--bipedal", run("paper", "plr", "paper", 50.0), *common])
+    assert e.value.code == 2 and "got plr (paper)" in capsys.readouterr().err
+    assert "plr" not in json.loads(target.read_text())["dcd"]
