@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import json
 import pathlib
+import shlex
 import sys
 import time
 
@@ -32,29 +33,53 @@ ENVS = ("lander", "walker", "bipedal")
 NAMED_LEVEL_ENVS = ("walker", "bipedal")  # whose entries hold the students' returns on DCD's named levels
 
 
+def _json(path: pathlib.Path, kind=dict):
+    """A JSON file that must hold a ``kind``; ValueError naming the file otherwise."""
+    value = json.loads(path.read_text())
+    if not isinstance(value, kind):
+        raise ValueError(f"{path} holds a JSON {type(value).__name__}, not a {kind.__name__}")
+    return value
+
+
+def _need(d: dict, keys, where) -> None:
+    missing = [k for k in keys if k not in d]
+    if missing:
+        raise ValueError(f"{where} lacks {', '.join(missing)}")
+
+
 def _rows(path: str, env: str) -> tuple[list[dict], dict]:
     """The rows (``sweep.json``'s form: method, seeds, dir, final test return, wall time) and saved
     arguments of a sweep output or of one ``shed_jax run`` directory; ValueError where it is
-    neither, or holds another environment than ``env``."""
+    neither, or holds another environment than ``env``. A run's ``set`` is what it sets apart from
+    its preset, None where this version no longer has that preset."""
     d = pathlib.Path(path)
     if (d / "sweep.json").is_file():
-        sweep, args = json.loads((d / "sweep.json").read_text()), json.loads((d / "sweep_args.json").read_text())
-        rows, found = sweep["rows"], args.get("env")
+        sweep, args = _json(d / "sweep.json"), _json(d / "sweep_args.json")
+        _need(sweep, ("rows",), d / "sweep.json")
+        rows = sweep["rows"]
+        for row in rows:
+            _need(row, ("method", "seeds", "dir", "final_test_return_mean", "final_test_return_se"), d / "sweep.json")
+        found = args.get("env")
+        if found is None and rows and (d / rows[0]["dir"] / "config.json").is_file():  # older sweeps: the point says
+            found = _json(d / rows[0]["dir"] / "config.json").get("experiment", {}).get("env")
     elif (d / "summary.json").is_file() and (d / "config.json").is_file():
         from experiments.teacher_runs import run_settings
 
-        summary, config = json.loads((d / "summary.json").read_text()), json.loads((d / "config.json").read_text())
-        found = config["experiment"]["env"]
+        summary, config = _json(d / "summary.json"), _json(d / "config.json")
+        _need(summary, ("method", "seeds", "final_test_return_mean", "final_test_return_se"), d / "summary.json")
+        _need(config, ("experiment", "seeds", "root_seed"), d / "config.json")
+        found = config["experiment"].get("env")
         rows = [{"method": summary["method"], "seeds": summary["seeds"], "dir": ".",
                  "final_test_return_mean": summary["final_test_return_mean"],
                  "final_test_return_se": summary["final_test_return_se"],
                  "group_wall_time_s": summary.get("wall_time_s")}]
-        args = {"env": found, "run": str(d), "preset": config["experiment"]["preset"],
-                "set": run_settings(config) or [], "seeds": config["seeds"], "root_seed": config["root_seed"]}
+        args = {"env": found, "run": str(d), "preset": config["experiment"].get("preset"),
+                "set": run_settings(config), "seeds": config["seeds"], "root_seed": config["root_seed"]}
     else:
         raise ValueError(f"{path} is neither a sweep output (sweep.json) nor a finished run (summary.json, config.json)")
     if found != env:
-        raise ValueError(f"{path} holds runs on {found!r}, not {env!r}: pass it with --{found}")
+        where = f"pass it with --{found}" if found in ENVS else f"its environment is {found!r}"
+        raise ValueError(f"{path} holds runs on {found!r}, not {env!r}: {where}")
     return rows, args
 
 
@@ -73,17 +98,35 @@ def named_level_entries(path: str, env: str) -> dict:
         named_file = pathlib.Path(path) / row["dir"] / "final_eval_named.json"
         if not named_file.is_file():
             raise ValueError(f"{named_file} is missing: {env} runs need --final-eval named")
-        named = json.loads(named_file.read_text())
+        named = _json(named_file)
+        _need(named, ("per_level",), named_file)
         levels = {r["label"]: {"return": r["mean"], "se": r["se"], "solved": r["solved_rate"]} for r in named["per_level"]}
+        summary_file = pathlib.Path(path) / row["dir"] / "summary.json"
+        summary = _json(summary_file) if summary_file.is_file() else {}
         six = [levels[name]["solved"] for name in DCD_TEST_LEVELS if name in levels]
         config_file = pathlib.Path(path) / row["dir"] / "config.json"  # the preset as resolved (a sweep's may say auto)
-        preset = json.loads(config_file.read_text())["experiment"]["preset"] if config_file.is_file() else args.get("preset")
-        out[row["method"]] = {"seeds": row["seeds"], "preset": preset, "set": args.get("set") or [], "levels": levels,
+        preset = _json(config_file).get("experiment", {}).get("preset") if config_file.is_file() else args.get("preset")
+        out[row["method"]] = {"seeds": row["seeds"], "preset": preset, "set": args.get("set", []), "levels": levels,
+                              "student_env_steps_per_seed": summary.get("student_env_steps_last_episode"),
                               "dcd_six_solved_mean": sum(six) / len(six) if len(six) == len(DCD_TEST_LEVELS) else None,
                               "test_set_b": {"mean": row["final_test_return_mean"], "se": row["final_test_return_se"]},
                               "all_named": named.get("overall"), "final_eval_command": named.get("command"),
                               "wall_time_s": row.get("group_wall_time_s"), "sweep_args": args}
     return out
+
+
+DCD_STEPS_PER_SEED = 3360 * 196_608  # the dcd preset's student steps per seed (DCD's 6.6e8)
+
+
+def dcd_problem(entry: dict) -> str | None:
+    """Why a named-level entry is not a run at DCD's budget as the preset has it, or None."""
+    if entry.get("preset") != "dcd":
+        return f"preset {entry.get('preset')}"
+    if entry.get("set") != []:
+        return f"settings apart from the preset: {entry.get('set')}"
+    if entry.get("student_env_steps_per_seed") != DCD_STEPS_PER_SEED:
+        return f"{entry.get('student_env_steps_per_seed')} student steps per seed, not {DCD_STEPS_PER_SEED:,}"
+    return None
 
 
 def entries(path: str, env: str) -> dict:
@@ -105,7 +148,7 @@ def main(argv=None) -> int:
     p.add_argument("--keep", action="store_true",
                    help="keep the entries of --out that these sweeps do not measure again (each entry names its run)")
     args = p.parse_args(argv)
-    command = "python -m experiments.baselines_record " + " ".join(sys.argv[1:] if argv is None else argv)
+    command = "python -m experiments.baselines_record " + shlex.join(sys.argv[1:] if argv is None else argv)
     out = pathlib.Path(args.out)
     old = json.loads(out.read_text()) if args.keep and out.exists() else {}
     runs = old.get("runs") or ([{k: old[k] for k in ("device", "date", "command", "note") if k in old}] if old else [])
@@ -117,7 +160,7 @@ def main(argv=None) -> int:
         for path in getattr(args, env):
             try:
                 kept.update({m: dict(e, run=run) for m, e in entries(path, env).items()})
-            except (ValueError, OSError, KeyError, json.JSONDecodeError) as err:
+            except (ValueError, OSError, KeyError, TypeError) as err:  # JSONDecodeError is a ValueError
                 p.error(f"--{env} {path}: {err}")
         if kept or env in ("lander", "walker"):
             record[env] = kept
@@ -126,18 +169,21 @@ def main(argv=None) -> int:
     record["note_runs"] = "run: index into runs, the run (device, date, command) that measured the entry"
     if args.dcd_into:
         dcd = {m: e for m, e in record.get("bipedal", {}).items() if e["run"] == run}
-        wrong = sorted(f"{m} ({e.get('preset')})" for m, e in dcd.items() if e.get("preset") != "dcd")
+        wrong = sorted(f"{m} ({dcd_problem(e)})" for m, e in dcd.items() if dcd_problem(e))
         if not dcd or wrong:
-            p.error(f"--dcd-into takes --bipedal runs at --preset dcd; got {', '.join(wrong) or 'none'}")
+            p.error(f"--dcd-into takes --bipedal runs at --preset dcd as it stands; got {', '.join(wrong) or 'none'}")
+        target = pathlib.Path(args.dcd_into)
+        try:
+            env_record = _json(target) if target.exists() else {}
+        except (ValueError, OSError) as err:
+            p.error(f"--dcd-into {target}: {err}")
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(record, indent=2) + "\n")
     print(f"wrote {out}")
-    if args.dcd_into:
-        target = pathlib.Path(args.dcd_into)
-        env_record = json.loads(target.read_text()) if target.exists() else {}
-        env_record["dcd"] = {m: e["levels"] for m, e in dcd.items()}
-        env_record["dcd_source"] = {"record": str(out), "device": args.device, "date": args.date,
-                                    "seeds": {m: e["seeds"] for m, e in dcd.items()}}
+    if args.dcd_into:  # methods recorded by earlier calls stay; one measured again is replaced
+        env_record["dcd"] = {**env_record.get("dcd", {}), **{m: e["levels"] for m, e in dcd.items()}}
+        env_record["dcd_source"] = {**env_record.get("dcd_source", {}), **{
+            m: {"record": str(out), "device": args.device, "date": args.date, "seeds": e["seeds"]} for m, e in dcd.items()}}
         target.write_text(json.dumps(env_record, indent=1) + "\n")
         print(f"wrote the 'dcd' block of {target}")
     return 0

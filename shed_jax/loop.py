@@ -49,7 +49,9 @@ class LoopSpec:
     num_episodes: int  # N_ep
     test_episodes: int = 10  # episodes per test level, per budget step
     test_max_steps: int | None = None  # None: the test levels' own time limit
-    test_every: int = 1  # evaluate on the test set every k budget steps (NaN in between)
+    # Evaluate on the test set at every k-th budget step of a tested episode and at its last step
+    # (NaN in between), so every tested episode has a final test return whatever T is.
+    test_every: int = 1
     # Test only in teacher episodes e with e % k == 0, and always in the last one (NaN in the
     # others). Reports need the first and last episodes' curves (docs/design.md §9.3); testing the students of
     # the episodes between costs a 500-step evaluation per budget step, about a fifth of a SHED step.
@@ -76,9 +78,10 @@ class LoopSpec:
         Works on Python ints, numpy arrays and (unbatched) JAX values alike, so the compiled loop
         and the host-side checks share one definition.
         """
-        episode = step // self.steps_per_episode
+        T = self.steps_per_episode
+        episode, in_step = step // T, step % T
         in_episode = (episode % self.test_episode_every == 0) | (episode == self.num_episodes - 1)
-        return ((step + 1) % self.test_every == 0) & in_episode
+        return (((in_step + 1) % self.test_every == 0) | (in_step == T - 1)) & in_episode
 
 
 def make_run(student, method, test_levels, spec: LoopSpec) -> tuple[Callable, Callable]:

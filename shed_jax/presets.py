@@ -93,7 +93,7 @@ class Preset:
     test_every: int = 1  # the baselines (one student, one episode): test every k-th budget step
     test_every_episodic: int = 1  # episodic methods: test every k-th budget step of a tested episode
     chunk: int | None = None  # budget steps per compiled chunk; None: one teacher episode
-    max_recorded_levels: int | None = 64  # generated levels kept per budget step in the record (LoopSpec)
+    max_recorded_levels: int | None = LoopSpec.max_recorded_levels  # generated levels kept per budget step
 
 
 # The table: (environment, preset) -> its budgets. ``paper`` is docs/design.md §10.3; ``quick`` is
@@ -135,8 +135,10 @@ TABLE: dict[tuple[str, str], Preset] = {
 # DCD's budget: 3,360 x 196,608 = 6.606e8 steps per seed (DCD's 6.6e8 to 0.1 %), one student and one
 # teacher episode for every method. Chunks of 8 budget steps keep the host's progress line and the
 # checkpoints about once a minute on the 2-D walker; the test set runs 20 times. The record keeps 8
-# generated levels per budget step (not 64), so 5 seeds' metrics.jsonl stays near 20 MB and the
-# checkpoint's history near 10 MB over 3,360 steps: small enough to carry between device machines.
+# generated levels per budget step (not 64), so 5 seeds' metrics.jsonl stays near 27 MB (DR's rows of
+# 2026-11-28, thinned) and the checkpoint's history near 10 MB over 3,360 steps: small enough to
+# carry between device machines. SHED and h-MDP at this preset are one teacher episode of 3,360
+# steps, not the paper's protocol: a budget comparison with DCD's baselines, not a SHED reproduction.
 TABLE[("walker", "dcd")] = dataclasses.replace(
     TABLE[("walker", "paper")], steps_per_episode=3360, teacher_episodes=1, test_every=168, test_every_episodic=168,
     test_episode_every=1, chunk=8, max_recorded_levels=8)
@@ -162,11 +164,14 @@ def preset_row(env: str, name: str) -> Preset:
 
 def default_chunk(exp: Experiment) -> int:
     """Budget steps per compiled chunk (progress line, checkpoint) when ``--chunk`` is not given: the
-    preset's ``chunk`` where it divides the episode length T, else T (so chunks never straddle two
-    episodes unevenly)."""
+    largest divisor of the episode length T not above the preset's ``chunk`` (so chunks never straddle
+    two episodes unevenly, and a T the preset did not plan for never becomes one long silent chunk);
+    T where the preset sets no chunk."""
     T = exp.loop.steps_per_episode
     chunk = TABLE[(exp.env, exp.preset)].chunk if (exp.env, exp.preset) in TABLE else None
-    return chunk if chunk and T % chunk == 0 else T
+    if not chunk:
+        return T
+    return max(d for d in range(1, min(chunk, T) + 1) if T % d == 0)
 
 
 def _fields_of(config, values: dict) -> dict:

@@ -142,7 +142,10 @@ def test_default_chunk_keeps_walker_progress_under_a_minute():
     # walker paper: 2 of the 50 budget steps per chunk (a SHED step costs ~15 s on an H200); else an episode
     assert default_chunk(build_experiment("walker", "shed", "paper")) == 2
     assert default_chunk(build_experiment("walker", "dr", "paper")) == 2
-    assert default_chunk(build_experiment("walker", "dr", "paper", steps_per_episode=15)) == 15
+    # a T the preset's chunk does not divide: its largest divisor not above the chunk, never one long chunk
+    assert default_chunk(build_experiment("walker", "dr", "paper", steps_per_episode=15)) == 1
+    assert default_chunk(build_experiment("walker", "dr", "dcd", steps_per_episode=1001)) == 7
+    assert default_chunk(build_experiment("walker", "dr", "dcd", steps_per_episode=3000)) == 8
     assert default_chunk(build_experiment("lander", "shed", "paper")) == 20
     assert default_chunk(build_experiment("walker", "shed", "quick")) == 4
     # runs and sweeps share the default (a walker sweep once ran its 50 budget steps as one chunk)
@@ -177,3 +180,21 @@ def test_dcd_preset_is_dcds_budget_with_the_paper_student_and_twenty_test_points
 def test_a_preset_an_env_lacks_names_the_env_s_presets():
     with pytest.raises(ValueError, match=r"environment 'lander' has no preset 'dcd'; its presets: quick, paper"):
         build_experiment("lander", "dr", "dcd")
+
+
+def test_every_tested_episode_tests_its_last_step_whatever_its_length():
+    import numpy as np
+
+    def tested(loop):
+        return list(np.flatnonzero(loop.tests_at(np.arange(loop.total_steps))))
+
+    # a shortened DCD-budget run: T = 100 is no multiple of 168, yet its last step is tested
+    assert tested(build_experiment("bipedal", "shed", "dcd", steps_per_episode=100).loop) == [99]
+    # two episodes of 3,000: each tests at the same steps of the episode, its last one among them
+    two = tested(build_experiment("bipedal", "shed", "dcd", steps_per_episode=3000, episodes=2).loop)
+    per_episode = list(range(167, 3000, 168)) + [2999]
+    assert two == per_episode + [3000 + t for t in per_episode]
+    # the walker's baselines at T = 12 (every 5th step): steps 4, 9 and the last, 11
+    assert tested(build_experiment("walker", "dr", "paper", steps_per_episode=12).loop) == [4, 9, 11]
+    # schedules whose T the period divides are unchanged
+    assert tested(build_experiment("walker", "dr", "paper").loop) == list(range(4, 50, 5))

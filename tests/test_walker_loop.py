@@ -162,30 +162,51 @@ def test_baselines_record_reads_one_run_directory_and_refuses_another_env(tmp_pa
     assert not (tmp_path / "x.json").exists()
 
 
-def test_dcd_budget_runs_fill_the_bipedal_records_dcd_block_and_other_presets_are_refused(tmp_path, capsys):
+def test_dcd_budget_runs_fill_the_bipedal_records_dcd_block_and_other_runs_are_refused(tmp_path, capsys):
     from experiments import baselines_record
     from shed_jax.presets import build_experiment
 
-    def run(name, method, preset, flat):
+    def run(name, method, preset, flat, steps=3360 * 196_608, **overrides):
         d = tmp_path / name
         d.mkdir()
-        (d / "config.json").write_text(json.dumps({"experiment": build_experiment("bipedal", method, preset).to_dict(),
-                                                   "seeds": 5, "root_seed": 0}))
+        exp = build_experiment("bipedal", method, preset, **overrides).to_dict()
+        (d / "config.json").write_text(json.dumps({"experiment": exp, "seeds": 5, "root_seed": 0}))
         (d / "summary.json").write_text(json.dumps({"method": method, "seeds": 5, "final_test_return_mean": 1.0,
-                                                    "final_test_return_se": 0.5}))
+                                                    "final_test_return_se": 0.5, "student_env_steps_last_episode": steps}))
         _named_eval(d / "final_eval_named.json", [("BipedalWalker", flat, 3.0, 0.9), ("Stump", -10.0, 2.0, 0.0)])
         return str(d)
 
+    def refused(args, words):
+        with pytest.raises(SystemExit) as e:
+            baselines_record.main(args)
+        assert e.value.code == 2 and words in capsys.readouterr().err
+
     target = tmp_path / "bipedal.json"
     target.write_text(json.dumps({"device": "cpu", "parity": {"flat": {"gym_mean": 1.0}}}))
-    common = ["--device", "H200", "--date", "2026-12-01", "--out", str(tmp_path / "dcd.json"), "--dcd-into", str(target)]
-    assert baselines_record.main(["--bipedal", run("dr", "dr", "dcd", 266.0), "--bipedal", run("accel", "accel", "dcd", 310.0),
-                                  *common]) == 0
+    out = tmp_path / "dcd.json"
+    common = ["--device", "H200", "--date", "2026-12-01", "--out", str(out), "--dcd-into", str(target)]
+    assert baselines_record.main(["--bipedal", run("dr", "dr", "dcd", 266.0), *common]) == 0
+    # a later call (another machine, another day) adds its method and keeps the first
+    assert baselines_record.main(["--keep", "--bipedal", run("accel", "accel", "dcd", 310.0), *common[:3], "2026-12-02",
+                                  *common[4:]]) == 0
     rec = json.loads(target.read_text())
     assert rec["parity"] == {"flat": {"gym_mean": 1.0}} and rec["device"] == "cpu"  # the record's other keys stay
     assert rec["dcd"]["dr"]["BipedalWalker"] == {"return": 266.0, "se": 3.0, "solved": 0.9}
-    assert rec["dcd"]["accel"]["Stump"]["solved"] == 0.0 and rec["dcd_source"]["seeds"] == {"dr": 5, "accel": 5}
-    with pytest.raises(SystemExit) as e:  # a paper-preset run is not DCD's budget
-        baselines_record.main(["--bipedal", run("paper", "plr", "paper", 50.0), *common])
-    assert e.value.code == 2 and "got plr (paper)" in capsys.readouterr().err
+    assert rec["dcd"]["accel"]["Stump"]["solved"] == 0.0
+    assert {m: (v["date"], v["seeds"]) for m, v in rec["dcd_source"].items()} == {"dr": ("2026-12-01", 5),
+                                                                                 "accel": ("2026-12-02", 5)}
+    # not DCD's budget as the preset has it: another preset, a changed setting, a stopped-short run
+    refused(["--bipedal", run("paper", "plr", "paper", 50.0), *common], "got plr (preset paper)")
+    refused(["--bipedal", run("short", "plr", "dcd", 50.0, steps_per_episode=16), *common], "settings apart from the preset")
+    refused(["--bipedal", run("cut", "plr", "dcd", 50.0, steps=1000), *common], "1000 student steps per seed")
     assert "plr" not in json.loads(target.read_text())["dcd"]
+    # a broken record to write into, or a summary without its fields: one line, and --out is not written
+    bad, out2 = tmp_path / "bad.json", tmp_path / "out2.json"
+    bad.write_text("{not json")
+    refused(["--bipedal", run("dr2", "dr", "dcd", 1.0), "--device", "H200", "--out", str(out2), "--dcd-into", str(bad)],
+            f"--dcd-into {bad}")
+    (tmp_path / "dr2" / "summary.json").write_text(json.dumps({"method": "dr"}))
+    refused(["--bipedal", str(tmp_path / "dr2"), "--device", "H200", "--out", str(out2)], "lacks seeds, final_test_return_mean")
+    (tmp_path / "dr2" / "summary.json").write_text("[]")
+    refused(["--bipedal", str(tmp_path / "dr2"), "--device", "H200", "--out", str(out2)], "holds a JSON list")
+    assert not out2.exists()

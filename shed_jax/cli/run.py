@@ -32,7 +32,7 @@ def add_arguments(p) -> None:
     p.add_argument("--preset", default=None, choices=("auto",) + PRESETS,
                    help="auto (default): 'paper' on a GPU, 'quick' on a CPU (the choice is printed); dcd: DCD's walker budget, "
                         "6.6e8 student steps per seed (walker and bipedal)")
-    p.add_argument("--seeds", type=count, default=None, help="number of vmapped seeds (default: quick 2, paper 5; the walker on a CPU 1)")
+    p.add_argument("--seeds", type=count, default=None, help="number of vmapped seeds (default: quick 2, paper and dcd 5)")
     p.add_argument("--seed", type=int, default=None,
                    help=f"root seed (default {DEFAULT_ROOT_SEED}); seed i of the batch uses fold_in(root, i)")
     p.add_argument("--episodes", type=count, default=None, help="override the number of teacher episodes N_ep")
