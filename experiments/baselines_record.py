@@ -59,9 +59,9 @@ def _rows(path: str, env: str) -> tuple[list[dict], dict]:
         rows = sweep["rows"]
         for row in rows:
             _need(row, ("method", "seeds", "dir", "final_test_return_mean", "final_test_return_se"), d / "sweep.json")
-        found = args.get("env")
-        if found is None and rows and (d / rows[0]["dir"] / "config.json").is_file():  # older sweeps: the point says
-            found = _json(d / rows[0]["dir"] / "config.json").get("experiment", {}).get("env")
+        from experiments.teacher_runs import sweep_env
+
+        found = sweep_env(d, d / rows[0]["dir"]) if rows else args.get("env")  # older sweeps: the point says
     elif (d / "summary.json").is_file() and (d / "config.json").is_file():
         from experiments.teacher_runs import run_settings
 
@@ -115,17 +115,23 @@ def named_level_entries(path: str, env: str) -> dict:
     return out
 
 
-DCD_STEPS_PER_SEED = 3360 * 196_608  # the dcd preset's student steps per seed (DCD's 6.6e8)
+def dcd_steps_per_seed() -> int:
+    """The dcd preset's student steps per seed (DCD's 6.6e8), read from the preset table."""
+    from shed_jax.presets import build_experiment
+
+    exp = build_experiment("bipedal", "dr", "dcd")
+    return exp.env_steps_per_budget_step * exp.loop.total_steps
 
 
 def dcd_problem(entry: dict) -> str | None:
     """Why a named-level entry is not a run at DCD's budget as the preset has it, or None."""
+    steps = dcd_steps_per_seed()
     if entry.get("preset") != "dcd":
         return f"preset {entry.get('preset')}"
     if entry.get("set") != []:
         return f"settings apart from the preset: {entry.get('set')}"
-    if entry.get("student_env_steps_per_seed") != DCD_STEPS_PER_SEED:
-        return f"{entry.get('student_env_steps_per_seed')} student steps per seed, not {DCD_STEPS_PER_SEED:,}"
+    if entry.get("student_env_steps_per_seed") != steps:
+        return f"{entry.get('student_env_steps_per_seed')} student steps per seed, not {steps:,}"
     return None
 
 

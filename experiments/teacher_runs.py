@@ -482,7 +482,7 @@ def late_box(point_dirs, from_episode: int) -> dict:
             "low_sd": lo.std(0).tolist(), "high_sd": hi.std(0).tolist()}
 
 
-def _sweep_env(d: pathlib.Path, point: pathlib.Path) -> str | None:
+def sweep_env(d: pathlib.Path, point: pathlib.Path) -> str | None:
     """A sweep's environment: its saved arguments, else its point's config; None where neither says."""
     for f, get in ((d / "sweep_args.json", lambda c: c.get("env")),
                    (point / "config.json", lambda c: c.get("experiment", {}).get("env"))):
@@ -510,7 +510,7 @@ def _finals(sweep_dirs) -> dict:
                 # sweeps from before sweep.json kept the root seed have it in the point's config
                 root = sweep["root_seed"] if "root_seed" in sweep else json.loads((point / "config.json").read_text())["root_seed"]
                 meta = {k: sweep.get(k) for k in ("device", "command", "date", "wall_time_s")}
-                meta["env"] = _sweep_env(d, point)
+                meta["env"] = sweep_env(d, point)
             summary = json.loads((point / "summary.json").read_text())
             per_seed = summary.get("final_test_return_per_seed")
             meta.setdefault("wall_time_s", summary.get("wall_time_s"))  # a run's own wall time

@@ -171,7 +171,12 @@ def seed_keys(root_seed: int, num_seeds: int):
 def default_seeds(exp) -> int:
     """Seeds when --seeds is not given: quick 2, the GPU presets (paper, dcd) 5 (on any backend: the walker's CPU deadlock
     with two seeds was the batched-LAPACK one of shed_jax/xla_cpu.py, which the student init avoids)."""
-    return 2 if exp.preset == "quick" else 5
+    return preset_default_seeds(exp.preset)
+
+
+def preset_default_seeds(preset: str) -> int:
+    """:func:`default_seeds` by the preset's name (a sweep resolves its preset before its experiments)."""
+    return 2 if preset == "quick" else 5
 
 
 # ---------------------------------------------------------------------------------------------

@@ -631,7 +631,7 @@ def sweep(opts: SweepOptions) -> int:
 
     from shed_jax import sharding
     from shed_jax.checkpoint import CheckpointError
-    from shed_jax.experiment import build
+    from shed_jax.experiment import build, preset_default_seeds
     from shed_jax.methods.registry import METHODS
 
     resume = opts.resume is not None
@@ -651,7 +651,7 @@ def sweep(opts: SweepOptions) -> int:
         raise UsageError(f"--methods: unknown method(s) {', '.join(map(repr, unknown))}; known: {', '.join(METHODS)}")
     if len(set(methods)) != len(methods):
         raise UsageError(f"--methods lists a method twice: {opts.methods}")
-    num_seeds = opts.seeds or (2 if preset == "quick" else 5)
+    num_seeds = opts.seeds or preset_default_seeds(preset)
     devices = jax.devices()
     if opts.devices is not None:
         if not 1 <= opts.devices <= len(devices):
