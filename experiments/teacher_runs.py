@@ -341,19 +341,22 @@ def _finite(o):
     return None if isinstance(o, float) and not math.isfinite(o) else o
 
 
-def control_entries(path, env: str = "lander") -> dict:
+def control_entries(path, env: str = "lander", known=()) -> dict:
     """A ``paired`` comparison file -> one DR-like entry per set (no teacher: null teacher fields),
-    named by the set's group with its seed count, e.g. ``dr[level_switch=episode] (40 seeds)``. A file
-    that compares runs on another environment than ``env`` is refused (files written before ``paired``
-    recorded the environment say none, and are taken as they are)."""
+    named by the set's group with its seed count, e.g. ``dr[level_switch=episode] (40 seeds)``. A set
+    whose group is in ``known`` (the record's own run entries, e.g. the teacher a control was paired
+    with) is left out: the record has it already, with its teacher fields. A file that compares runs
+    on another environment than ``env`` is refused (files written before ``paired`` recorded the
+    environment say none, and are taken as they are)."""
     c = json.loads(pathlib.Path(path).read_text())
     if c.get("env") not in (None, env):
         raise SystemExit(f"record: --control {path} compares runs on {c['env']}, the record is on {env}; give --env to match")
-    names = {k: f"{' + '.join(sorted({s.get('group') or '?' for s in c[k]['sweeps']}))} ({c[k]['seeds']} seeds)"
-             for k in ("a", "b")}
+    groups = {k: " + ".join(sorted({s.get("group") or "?" for s in c[k]["sweeps"]})) for k in ("a", "b")}
+    names = {k: f"{g} ({c[k]['seeds']} seeds)" for k, g in groups.items()}
     if names["a"] == names["b"]:  # the same group on both sides: tell them apart by side
         names = {k: f"{n} [{'first' if k == 'a' else 'second'} set of {path}]" for k, n in names.items()}
-    return {names[k]: _no_teacher_entry(c[k]["seeds"], c[k]["mean"], c[k]["se"], path) for k in ("a", "b")}
+    return {names[k]: _no_teacher_entry(c[k]["seeds"], c[k]["mean"], c[k]["se"], path)
+            for k in ("a", "b") if groups[k] not in known}
 
 
 TARGET_SE = 2.0  # a difference counts as shown when it exceeds this many standard errors
@@ -398,7 +401,8 @@ def record(files, out, device, command, date, notes=(), paper_csv=None, dr=None,
     others = sorted({r["env"] for r in runs if r.get("env") not in (None, env)})
     if others:
         raise SystemExit(f"record: the runs are on {', '.join(others)}, the record on {env}; give --env to match")
-    parts = [{"dr": dr_entry(dr, env)} if dr else {}, *(control_entries(c, env) for c in controls), aggregate(runs)]
+    own = aggregate(runs)
+    parts = [{"dr": dr_entry(dr, env)} if dr else {}, *(control_entries(c, env, own) for c in controls), own]
     entries = {}
     for part in parts:
         for k, v in part.items():

@@ -364,6 +364,23 @@ def test_a_walker_record_keeps_its_runs_under_walker_with_the_walker_dr(tmp_path
     assert (tmp_path / "docs/results/teacher_walker.json").exists() and not (tmp_path / "docs/results/teacher.json").exists()
 
 
+def test_a_control_paired_with_the_records_own_teacher_adds_only_the_other_set(tmp_path):
+    _write_sweep(tmp_path / "t", 0, [10.0, 20.0, 30.0])
+    sweep = json.loads((tmp_path / "t" / "sweep.json").read_text())
+    sweep["rows"][0]["group"] = "hmdp-x"  # the teacher's sweep, paired against DR's
+    (tmp_path / "t" / "sweep.json").write_text(json.dumps(sweep))
+    _write_sweep(tmp_path / "d", 0, [12.0, 18.0, 24.0])
+    c = tmp_path / "c.json"
+    teacher_runs.main(["paired", str(tmp_path / "t"), "--vs", str(tmp_path / "d"), "--out", str(c)])
+    p = tmp_path / "runs" / "hmdp-x" / "default"  # the same teacher's compact summary, group hmdp-x
+    _write_point(p, "hmdp-x", "default", _rows(0, [10.0, 14.0], [[0.0, 0.2], [0.1, 0.3]]), [14.0])
+    (tmp_path / "s.json").write_text(json.dumps([summarise_point(p)]))
+    record([tmp_path / "s.json"], tmp_path / "r.json", "cpu", "cmd", "2026-01-01", controls=[c])
+    lander = json.loads((tmp_path / "r.json").read_text())["lander"]
+    assert sorted(lander) == ["dr (3 seeds)", "hmdp-x"]  # no teacher-less copy of hmdp-x from the control
+    assert lander["hmdp-x"]["episode0_mean"] == pytest.approx(10.0) and lander["dr (3 seeds)"]["final_mean"] == pytest.approx(18.0)
+
+
 def test_paired_records_the_environment_and_a_record_refuses_a_control_of_another(tmp_path):
     rows = _rows(0, [10.0, 14.0], [[0.0, 0.2], [0.1, 0.3]]) + _rows(1, [20.0, 30.0], [[0.0, 0.0], [0.0, 0.0]])
     _write_run(tmp_path / "run", 0, rows, finals=[14.0, 30.0])  # a walker run
