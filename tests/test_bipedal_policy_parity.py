@@ -5,6 +5,7 @@ import json
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from envs.bipedal import BipedalWalker, parity
 from shed_jax.student import PPOConfig, make_student
@@ -75,3 +76,16 @@ def test_gait_rows_replace_the_header_and_keep_the_rest(tmp_path):
     row = rec["parity"]["flat"]
     assert "old" not in row and row["episodes"] == 1 and np.isfinite(row["gym_mean"])
     assert row["command"] == rec["command"] and row["date"] == rec["date"]
+
+
+def test_terrain_resolution_option_is_checked_and_recorded(tmp_path, capsys):
+    with pytest.raises(SystemExit) as err:
+        parity.main(["--terrain-resolution", "0", "--gym-only"])
+    assert err.value.code == 2 and "terrain_resolution must be an int in [1, 32], got 0" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        parity.main(["--policy", str(tmp_path / "p.msgpack"), "--terrain-resolution", "2"])
+    out = tmp_path / "r.json"
+    assert parity.main(["--episodes", "1", "--settings", "flat", "--gym-only", "--terrain-resolution", "2",
+                        "--iterations", "90/30", "--out", str(out)]) == 0
+    rec = json.loads(out.read_text())
+    assert rec["ours_options"] == {"velocity_iterations": 90, "position_iterations": 30, "terrain_resolution": 2}

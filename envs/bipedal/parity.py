@@ -30,7 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from envs.bipedal.env import BipedalWalker
+from envs.bipedal.env import BipedalOptions, BipedalWalker
 from envs.bipedal.heuristic import heuristic, heuristic_init
 from envs.walker.levels import LEVELS
 from shed_jax.runtime import provenance
@@ -182,6 +182,9 @@ def main(argv=None) -> int:
     p.add_argument("--gym-chain", action="store_true",
                    help="diagnostic: Gymnasium's grass as one chain shape (no contacts at edge junctions)")
     p.add_argument("--iterations", default=None, metavar="V/P", help="our solver passes (default Box2D's 180/60)")
+    p.add_argument("--terrain-resolution", type=int, default=None, metavar="R",
+                   help="diagnostic: our terrain profile samples per terrain step (default 4): an obstacle's face "
+                        "is 0.467/R m wide and its columns have a contact edge every 0.467/R m")
     p.add_argument("--policy", default=None, metavar="FILE",
                    help="a policy.msgpack of 'python -m shed_jax ppo --env bipedal' instead of the gait; "
                         "--episodes per saved seed; the rows are named <tag>_<setting> and --out keeps the others")
@@ -190,8 +193,9 @@ def main(argv=None) -> int:
     p.add_argument("--out", default=None, help="write the JSON record here (e.g. docs/results/bipedal.json)")
     args = p.parse_args(argv)
     if args.policy is not None:
-        if args.gym_chain or args.iterations:
-            p.error("--policy runs with Gymnasium's edges and Box2D's 180/60 passes; drop --gym-chain/--iterations")
+        if args.gym_chain or args.iterations or args.terrain_resolution is not None:
+            p.error("--policy runs with Gymnasium's edges, Box2D's 180/60 passes and our default terrain; "
+                    "drop --gym-chain/--iterations/--terrain-resolution")
         if not pathlib.Path(args.policy).is_file():
             p.error(f"--policy {args.policy}: no such file")
     if not re.fullmatch(r"[a-z0-9_]+", args.tag):
@@ -209,9 +213,15 @@ def main(argv=None) -> int:
         except ValueError:
             p.error(f"--iterations must be V/P, e.g. 180/60; got {args.iterations!r}")
         opts = dict(velocity_iterations=v, position_iterations=q)
+    if args.terrain_resolution is not None:
+        opts["terrain_resolution"] = args.terrain_resolution
+    try:
+        BipedalOptions(**opts)
+    except ValueError as err:
+        p.error(str(err))
     record = {**provenance("envs.bipedal.parity", argv),
               "device": jax.devices()[0].device_kind if not args.gym_only else "cpu",
-              "seed": args.seed, "gym_terrain": "chain" if args.gym_chain else "edges", "parity": {}}
+              "seed": args.seed, "gym_terrain": "chain" if args.gym_chain else "edges", "ours_options": opts, "parity": {}}
     if args.policy is not None:
         return policy_main(args, names, record)
     for name in names:
