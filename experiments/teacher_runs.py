@@ -51,6 +51,7 @@ import argparse
 import datetime
 import json
 import math
+import os
 import pathlib
 
 import numpy as np
@@ -341,22 +342,31 @@ def _finite(o):
     return None if isinstance(o, float) and not math.isfinite(o) else o
 
 
-def control_entries(path, env: str = "lander", known=()) -> dict:
+def control_entries(path, env: str = "lander", known: dict | None = None) -> dict:
     """A ``paired`` comparison file -> one DR-like entry per set (no teacher: null teacher fields),
     named by the set's group with its seed count, e.g. ``dr[level_switch=episode] (40 seeds)``. A set
-    whose group is in ``known`` (the record's own run entries, e.g. the teacher a control was paired
-    with) is left out: the record has it already, with its teacher fields. A file that compares runs
-    on another environment than ``env`` is refused (files written before ``paired`` recorded the
-    environment say none, and are taken as they are)."""
+    whose sweeps all feed the record's own entries ``known`` (e.g. the teacher a control was paired
+    with; matched by sweep directory, not by name) is left out, with a line saying so: the record has
+    those runs already, with their teacher fields. A file that compares runs on another environment
+    than ``env`` is refused (files written before ``paired`` recorded the environment say none, and
+    are taken as they are)."""
     c = json.loads(pathlib.Path(path).read_text())
     if c.get("env") not in (None, env):
         raise SystemExit(f"record: --control {path} compares runs on {c['env']}, the record is on {env}; give --env to match")
-    groups = {k: " + ".join(sorted({s.get("group") or "?" for s in c[k]["sweeps"]})) for k in ("a", "b")}
-    names = {k: f"{g} ({c[k]['seeds']} seeds)" for k, g in groups.items()}
+    names = {k: f"{' + '.join(sorted({s.get('group') or '?' for s in c[k]['sweeps']}))} ({c[k]['seeds']} seeds)"
+             for k in ("a", "b")}
     if names["a"] == names["b"]:  # the same group on both sides: tell them apart by side
         names = {k: f"{n} [{'first' if k == 'a' else 'second'} set of {path}]" for k, n in names.items()}
-    return {names[k]: _no_teacher_entry(c[k]["seeds"], c[k]["mean"], c[k]["se"], path)
-            for k in ("a", "b") if groups[k] not in known}
+    own = {os.path.normpath(r["sweep"]) for e in (known or {}).values() for r in e.get("runs") or () if r.get("sweep")}
+    out = {}
+    for k in ("a", "b"):
+        sweeps = {os.path.normpath(s["sweep"]) for s in c[k]["sweeps"] if s.get("sweep")}
+        if sweeps and sweeps <= own:
+            print(f"record: --control {path}: its {'first' if k == 'a' else 'second'} set ({names[k]}) is "
+                  "already in the record from its runs; left out")
+            continue
+        out[names[k]] = _no_teacher_entry(c[k]["seeds"], c[k]["mean"], c[k]["se"], path)
+    return out
 
 
 TARGET_SE = 2.0  # a difference counts as shown when it exceeds this many standard errors

@@ -78,14 +78,25 @@ def test_gait_rows_replace_the_header_and_keep_the_rest(tmp_path):
     assert row["command"] == rec["command"] and row["date"] == rec["date"]
 
 
-def test_terrain_resolution_option_is_checked_and_recorded(tmp_path, capsys):
+def test_terrain_resolution_option_is_checked_recorded_and_reaches_our_env(tmp_path, capsys, monkeypatch):
     with pytest.raises(SystemExit) as err:
         parity.main(["--terrain-resolution", "0", "--gym-only"])
     assert err.value.code == 2 and "terrain_resolution must be an int in [1, 32], got 0" in capsys.readouterr().err
-    with pytest.raises(SystemExit):
-        parity.main(["--policy", str(tmp_path / "p.msgpack"), "--terrain-resolution", "2"])
+    policy = tmp_path / "p.msgpack"
+    policy.write_bytes(b"")
+    with pytest.raises(SystemExit):  # the policy check plays our default terrain only
+        parity.main(["--policy", str(policy), "--terrain-resolution", "2"])
+    assert "drop --gym-chain/--iterations/--terrain-resolution" in capsys.readouterr().err
+    seen = {}
+
+    def fake_episodes(level, episodes, seed=0, chunk=100, **options):  # records what our env would be made with
+        seen.update(level=level, **options)
+        return [dict(ret=np.zeros(episodes), length=np.ones(episodes, int), fall=np.zeros(episodes, bool))]
+
+    monkeypatch.setattr(parity, "jax_episodes", fake_episodes)
     out = tmp_path / "r.json"
-    assert parity.main(["--episodes", "1", "--settings", "flat", "--gym-only", "--terrain-resolution", "2",
+    assert parity.main(["--episodes", "2", "--settings", "hardcore", "--jax-only", "--terrain-resolution", "2",
                         "--iterations", "90/30", "--out", str(out)]) == 0
-    rec = json.loads(out.read_text())
-    assert rec["ours_options"] == {"velocity_iterations": 90, "position_iterations": 30, "terrain_resolution": 2}
+    options = {"velocity_iterations": 90, "position_iterations": 30, "terrain_resolution": 2}
+    assert seen == {"level": "Hardcore", **options}
+    assert json.loads(out.read_text())["ours_options"] == options

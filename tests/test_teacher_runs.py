@@ -364,21 +364,29 @@ def test_a_walker_record_keeps_its_runs_under_walker_with_the_walker_dr(tmp_path
     assert (tmp_path / "docs/results/teacher_walker.json").exists() and not (tmp_path / "docs/results/teacher.json").exists()
 
 
-def test_a_control_paired_with_the_records_own_teacher_adds_only_the_other_set(tmp_path):
-    _write_sweep(tmp_path / "t", 0, [10.0, 20.0, 30.0])
-    sweep = json.loads((tmp_path / "t" / "sweep.json").read_text())
-    sweep["rows"][0]["group"] = "hmdp-x"  # the teacher's sweep, paired against DR's
-    (tmp_path / "t" / "sweep.json").write_text(json.dumps(sweep))
+def test_a_control_paired_with_the_records_own_teacher_adds_only_the_other_set(tmp_path, capsys):
+    for name in ("t", "t2"):  # two teacher sweeps of the same group: only the one in the record is left out
+        _write_sweep(tmp_path / name, 0, [10.0, 20.0, 30.0])
+        sweep = json.loads((tmp_path / name / "sweep.json").read_text())
+        sweep["rows"][0]["group"] = "hmdp-x"
+        (tmp_path / name / "sweep.json").write_text(json.dumps(sweep))
     _write_sweep(tmp_path / "d", 0, [12.0, 18.0, 24.0])
-    c = tmp_path / "c.json"
+    c, c2 = tmp_path / "c.json", tmp_path / "c2.json"
     teacher_runs.main(["paired", str(tmp_path / "t"), "--vs", str(tmp_path / "d"), "--out", str(c)])
-    p = tmp_path / "runs" / "hmdp-x" / "default"  # the same teacher's compact summary, group hmdp-x
+    teacher_runs.main(["paired", str(tmp_path / "t2"), "--vs", str(tmp_path / "d"), "--out", str(c2)])
+    p = tmp_path / "runs" / "hmdp-x" / "default"  # sweep t's teacher as `summarise` writes it
     _write_point(p, "hmdp-x", "default", _rows(0, [10.0, 14.0], [[0.0, 0.2], [0.1, 0.3]]), [14.0])
-    (tmp_path / "s.json").write_text(json.dumps([summarise_point(p)]))
+    (tmp_path / "s.json").write_text(json.dumps([{"sweep": str(tmp_path / "t"), **summarise_point(p)}]))
+    capsys.readouterr()
     record([tmp_path / "s.json"], tmp_path / "r.json", "cpu", "cmd", "2026-01-01", controls=[c])
+    assert "its first set (hmdp-x (3 seeds)) is already in the record from its runs; left out" in capsys.readouterr().out
     lander = json.loads((tmp_path / "r.json").read_text())["lander"]
     assert sorted(lander) == ["dr (3 seeds)", "hmdp-x"]  # no teacher-less copy of hmdp-x from the control
     assert lander["hmdp-x"]["episode0_mean"] == pytest.approx(10.0) and lander["dr (3 seeds)"]["final_mean"] == pytest.approx(18.0)
+    record([tmp_path / "s.json"], tmp_path / "r2.json", "cpu", "cmd", "2026-01-01", controls=[c2])
+    lander = json.loads((tmp_path / "r2.json").read_text())["lander"]  # t2 is other runs of the same group: kept
+    assert sorted(lander) == ["dr (3 seeds)", "hmdp-x", "hmdp-x (3 seeds)"]
+    assert lander["hmdp-x (3 seeds)"]["final_mean"] == pytest.approx(20.0) and lander["hmdp-x (3 seeds)"]["episode0_mean"] is None
 
 
 def test_paired_records_the_environment_and_a_record_refuses_a_control_of_another(tmp_path):
