@@ -17,7 +17,8 @@ exported to (a row per seed, teacher episode and budget step, tested episodes on
 compact run as ``summarise`` would make it (its at-bound fraction was not logged then: null).
 ``--dr`` adds domain randomisation's final test return from the baselines record (DR has no
 teacher episodes: its episode-0 and gain fields are null). ``--control FILE`` adds the two sets of a
-``paired`` file (below) the same way. The record's ``targets`` says, per teacher, whether each of
+``paired`` file (below) the same way, except a set made of the record's own runs (a teacher paired
+against its control), which the record has already. The record's ``targets`` says, per teacher, whether each of
 issue #26's targets is shown, against the entry ``--dr-reference`` names (:func:`targets`).
 
     # the mean box of the levels a teacher generated from teacher episode 30 on: a fixed-box DR control
@@ -607,7 +608,8 @@ def main(argv=None):
     r.add_argument("--paper-csv", default=None, help="the paper teachers' (SHED, h-MDP) long-form CSV")
     r.add_argument("--dr", default=None, help="the baselines record whose lander DR entry to add")
     r.add_argument("--control", action="append", default=[],
-                   help="a `paired` comparison file whose two sets join the record as DR entries (repeatable)")
+                   help="a `paired` comparison file whose two sets join the record as DR entries, but for a set "
+                        "of the record's own runs (repeatable)")
     r.add_argument("--dr-reference", default=None, help="the entry the targets compare each teacher with (default: dr)")
     r.add_argument("--env", default="lander", help="the environment the runs are on: the record's block (default lander)")
     q = sub.add_parser("plot")
