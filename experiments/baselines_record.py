@@ -20,6 +20,7 @@ entry then names the run that measured it by index into ``runs`` (device, date, 
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import pathlib
 import shlex
@@ -115,6 +116,7 @@ def named_level_entries(path: str, env: str) -> dict:
     return out
 
 
+@functools.cache
 def dcd_steps_per_seed() -> int:
     """The dcd preset's student steps per seed (DCD's 6.6e8), read from the preset table."""
     from shed_jax.presets import build_experiment
@@ -175,7 +177,8 @@ def main(argv=None) -> int:
     record["note_runs"] = "run: index into runs, the run (device, date, command) that measured the entry"
     if args.dcd_into:
         dcd = {m: e for m, e in record.get("bipedal", {}).items() if e["run"] == run}
-        wrong = sorted(f"{m} ({dcd_problem(e)})" for m, e in dcd.items() if dcd_problem(e))
+        problems = {m: dcd_problem(e) for m, e in dcd.items()}
+        wrong = sorted(f"{m} ({why})" for m, why in problems.items() if why)
         if not dcd or wrong:
             p.error(f"--dcd-into takes --bipedal runs at --preset dcd as it stands; got {', '.join(wrong) or 'none'}")
         target = pathlib.Path(args.dcd_into)
