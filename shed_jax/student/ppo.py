@@ -266,9 +266,18 @@ class PPOStudent:
         n = cfg.num_envs
         drawn = drawn_next = None
         if ahead:  # keys folded from `key`, so the scan's own keys are those of "per_step"
-            drawn = jax.vmap(self.env.reset)(jax.random.split(jax.random.fold_in(key, 1), n), state.levels)
+            keys = jax.random.split(jax.random.fold_in(key, 1), n)
             if switching:
-                drawn_next = jax.vmap(self.env.reset)(jax.random.split(jax.random.fold_in(key, 2), n), next_levels)
+                # both draws in one vmapped reset of 2n rows: one copy of reset_env in the compiled
+                # program instead of two (the 2-D walker's reset holds a whole physics step)
+                keys = jnp.concatenate([keys, jax.random.split(jax.random.fold_in(key, 2), n)])
+                both = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([jnp.asarray(a), jnp.asarray(b)]),
+                                              state.levels, next_levels)
+                drawn_both = jax.vmap(self.env.reset)(keys, both)
+                drawn = jax.tree_util.tree_map(lambda x: x[:n], drawn_both)
+                drawn_next = jax.tree_util.tree_map(lambda x: x[n:], drawn_both)
+            else:
+                drawn = jax.vmap(self.env.reset)(keys, state.levels)
 
         def swap(moved, key, next_level, level, env_state, obs, drawn_next):
             """One slot: if ``moved``, a new episode on ``next_level`` replaces the auto-reset one."""
