@@ -237,6 +237,25 @@ def commit() -> str:
         return "unknown"
 
 
+def record_header(module: str, argv) -> dict:
+    """A measurement record's provenance: device, UTC date, the command (``python -m module ...``), commit, jax."""
+    import jax
+
+    return {"device": device_line(), "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
+            "command": f"python -m {module} " + " ".join(argv if argv is not None else sys.argv[1:]),
+            "commit": commit(), "jax": jax.__version__}
+
+
+def merge_labelled(path: str, label: str, record: dict) -> None:
+    """Write ``record`` under ``label`` into the JSON file at ``path``, keeping its other labels."""
+    out = pathlib.Path(path)
+    doc = json.loads(out.read_text()) if out.exists() else {}
+    doc[label] = record
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(doc, indent=1) + "\n")
+    print(f"wrote {out} [{label}]")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--env", default="walker")
@@ -285,9 +304,7 @@ def main(argv=None) -> int:
     print(f"{_mb(per_step * steps):9.3f} {'':9}  history ({steps} budget steps; largest per step: "
           + ", ".join(f"{k} {v} B" for k, v in sorted(step_leaves.items(), key=lambda kv: -kv[1])[:3]) + ")")
     record = {
-        "device": device_line(), "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
-        "command": "python -m experiments.checkpoint_size " + " ".join(argv if argv is not None else sys.argv[1:]),
-        "commit": commit(), "jax": jax.__version__,
+        **record_header("experiments.checkpoint_size", argv),
         "experiment": {"env": args.env, "method": args.method, "preset": args.preset, "seeds": args.seeds},
         "state_raw_mb": _mb(sum(state_leaves.values())), "subtree_raw_mb": table,
         "history_bytes_per_step": per_step, "history_steps": steps, "history_raw_mb": _mb(per_step * steps),
@@ -304,12 +321,7 @@ def main(argv=None) -> int:
               f"largest file {disk['largest_file_mb']} MB; save {disk['save_s']} s, restore {disk['restore_s']} s; "
               f"restored bitwise: {disk['restored_bitwise']}")
     if args.out:
-        out = pathlib.Path(args.out)
-        doc = json.loads(out.read_text()) if out.exists() else {}
-        doc[args.label] = record
-        out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text(json.dumps(doc, indent=1) + "\n")
-        print(f"wrote {out} [{args.label}]")
+        merge_labelled(args.out, args.label, record)
     return 0
 
 

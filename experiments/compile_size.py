@@ -16,9 +16,6 @@ change) holds the device, date, command, commit and the measurements.
 from __future__ import annotations
 
 import argparse
-import datetime
-import json
-import pathlib
 import sys
 import time
 
@@ -52,7 +49,7 @@ def measure(batch) -> dict:
 
 
 def main(argv=None) -> int:
-    from experiments.checkpoint_size import build_batch, commit, device_line
+    from experiments import checkpoint_size as cs
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--env", default="bipedal")
@@ -61,30 +58,20 @@ def main(argv=None) -> int:
     ap.add_argument("--label", default="after", help="key of this measurement in the record")
     ap.add_argument("--out", default=None, help="JSON record to merge this measurement into")
     args = ap.parse_args(argv)
-
-    import jax
-
     try:
-        exp, batch = build_batch(args.env, args.method, args.preset, 1)
+        _, batch = cs.build_batch(args.env, args.method, args.preset, 1)
     except ValueError as err:
         print(f"compile_size: {err}", file=sys.stderr)
         return 2
     sizes = measure(batch)
     print(" ".join(f"{k}={v}" for k, v in sizes.items()))
     record = {
-        "device": device_line(), "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
-        "command": "python -m experiments.compile_size " + " ".join(argv if argv is not None else sys.argv[1:]),
-        "commit": commit(), "jax": jax.__version__,
+        **cs.record_header("experiments.compile_size", argv),
         "experiment": {"env": args.env, "method": args.method, "preset": args.preset, "seeds": 1},
         **sizes,
     }
     if args.out:
-        out = pathlib.Path(args.out)
-        doc = json.loads(out.read_text()) if out.exists() else {}
-        doc[args.label] = record
-        out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text(json.dumps(doc, indent=1) + "\n")
-        print(f"wrote {out} [{args.label}]")
+        cs.merge_labelled(args.out, args.label, record)
     return 0
 
 
