@@ -253,7 +253,7 @@ class PPOStudent:
         own auto-reset).
 
         ``config.reset_draw``: with "per_step" the resets are the env's own, drawn at the step that
-        needs them; with "per_rollout" each slot's reset (on its level, and on its next level when
+        needs them; with "per_rollout" each slot's reset (on its level, or on its next level when
         switching) is drawn once before the scan, so the scan never computes ``reset_env``, and a
         slot whose episode ends twice on one level in a rollout restarts from the same drawn state
         twice (after a switch, from the state drawn on its new level).
@@ -266,18 +266,14 @@ class PPOStudent:
         n = cfg.num_envs
         drawn = drawn_next = None
         if ahead:  # keys folded from `key`, so the scan's own keys are those of "per_step"
-            keys = jax.random.split(jax.random.fold_in(key, 1), n)
             if switching:
-                # both draws in one vmapped reset of 2n rows: one copy of reset_env in the compiled
-                # program instead of two (the 2-D walker's reset holds a whole physics step)
-                keys = jnp.concatenate([keys, jax.random.split(jax.random.fold_in(key, 2), n)])
-                both = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([jnp.asarray(a), jnp.asarray(b)]),
-                                              state.levels, next_levels)
-                drawn_both = jax.vmap(self.env.reset)(keys, both)
-                drawn = jax.tree_util.tree_map(lambda x: x[:n], drawn_both)
-                drawn_next = jax.tree_util.tree_map(lambda x: x[n:], drawn_both)
+                # every slot's first episode end moves it (`pending` starts True), so a draw on its
+                # current level would never be played: only the next levels are drawn (one reset call
+                # site in the program; the 2-D walker's reset holds a whole physics step)
+                drawn_next = jax.vmap(self.env.reset)(jax.random.split(jax.random.fold_in(key, 2), n), next_levels)
+                drawn = drawn_next
             else:
-                drawn = jax.vmap(self.env.reset)(keys, state.levels)
+                drawn = jax.vmap(self.env.reset)(jax.random.split(jax.random.fold_in(key, 1), n), state.levels)
 
         def swap(moved, key, next_level, level, env_state, obs, drawn_next):
             """One slot: if ``moved``, a new episode on ``next_level`` replaces the auto-reset one."""
