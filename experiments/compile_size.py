@@ -4,11 +4,13 @@
                                        [--out docs/results/bipedal_compile_cpu_2026-11-28.json]
 
 Builds the batch as ``shed_jax run`` does (one seed: vmapping over seeds leaves the program's size
-alone), then lowers and compiles, for the backend JAX runs on, the vmapped ``init`` and a chunk of one
-budget step (the chunk's ``lax.scan`` body is the same program at any chunk length). Nothing is run.
-It prints and records the seconds to lower (trace to StableHLO) and to compile, and the StableHLO's
-size in characters: every call site of an environment's ``reset`` or ``step`` puts another copy of it
-into the program, and on the 2-D walker one copy of its physics step is about 1.7 MB of StableHLO.
+alone), then lowers and compiles, for the backend JAX runs on, the vmapped ``init`` and one budget
+step (``run(state, 1, 0)``). Nothing is run. It prints and records the seconds to lower (trace to
+StableHLO) and to compile, and the StableHLO's size in characters: every call site of an
+environment's ``reset`` or ``step`` puts another copy of it into the program (on the 2-D walker a
+physics step is 1.6-2.1 MB of StableHLO). ``run``'s own chunks start at a traced step and scan several
+steps; here the start step is a constant, so XLA may fold the budget step's episode-start and test
+branches: the compile seconds can be lower than a run's, the StableHLO is the same step's.
 
 The record (``--out``, merged by ``--label``: one entry per label, e.g. ``before`` and ``after`` a
 change) holds the device, date, command, commit and the measurements.
