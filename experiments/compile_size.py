@@ -1,4 +1,4 @@
-"""How big and how slow to compile a run's two programs are: ``init`` and one chunk of budget steps.
+"""How big and how slow to compile a run's two programs are: ``init`` and one budget step.
 
     python -m experiments.compile_size [--env bipedal] [--method dr] [--preset paper] [--label after]
                                        [--out docs/results/bipedal_compile_cpu_2026-11-28.json]

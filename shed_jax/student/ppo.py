@@ -300,9 +300,7 @@ class PPOStudent:
                 moved = done & pending
                 levels, env_state2, obs2 = jax.vmap(swap)(moved, jax.random.split(k_swap, n), next_levels,
                                                            levels, env_state2, obs2, drawn_next)
-                if ahead:  # the slot's later episode ends restart on its new level too
-                    drawn = jax.vmap(restart_where)(moved, drawn_next, drawn)
-                pending = pending & ~moved
+                pending = pending & ~moved  # (per_rollout: `drawn` is already the next levels' draw)
             return ((env_state2, obs2.astype(jnp.float32), obs_norm, ret_norm), (levels, pending, drawn)), tr
 
         carry0 = ((state.env_state, state.obs, state.obs_norm, state.ret_norm),
