@@ -259,6 +259,34 @@ def test_time_of_impact_position_passes_leave_box2ds_resting_distance():
     assert 0.0075 - 1e-4 <= out[1] <= 0.015 + 1e-4, out
 
 
+def test_time_of_impact_moves_each_body_as_if_alone():
+    """The time of impact runs on all bodies at once (slots padded to the largest polygon): in one world,
+    a box that hits the ground within the step and a triangle that does not (fewer slots, so padded)
+    end exactly where each ends alone in its own world, in either body order; the box is stopped by
+    its time of impact, the triangle falls freely."""
+    cfg = physics2d.SolverConfig(dt=DT, toi_position_iterations=20, toi_loop=True)
+    tri = ((-0.4, -0.2), (0.4, -0.2), (0.0, 0.3))
+    shapes = {"box": (BOX, [2.0, 1.35], [0.0, -10.0], 0.0), "tri": (tri, [12.0, 4.0], [0.5, -3.0], 0.2)}
+
+    def end(names):
+        polys = [physics2d.Polygon(i, shapes[n][0], density=2.0, friction=0.4) for i, n in enumerate(names)]
+        m = physics2d.make_model(len(names), polys, (), cfg)
+        b = physics2d.bodies_from_origin(m, [shapes[n][1] for n in names], [shapes[n][3] for n in names],
+                                         vel=[shapes[n][2] for n in names])
+        w, info = jax.jit(lambda w: physics2d.step(m, w, FLAT, -10.0))(physics2d.init_world(m, b))
+        rows = {n: np.concatenate([w.bodies.com[i], w.bodies.vel[i], w.bodies.angle[i:i + 1], w.bodies.omega[i:i + 1]])
+                for i, n in enumerate(names)}
+        return rows, np.asarray(info["polygon_touching"])
+
+    alone = {n: end([n])[0][n] for n in shapes}
+    for names in (["box", "tri"], ["tri", "box"]):
+        rows, touching = end(names)
+        assert touching.tolist() == [n == "box" for n in names]
+        for n in names:
+            np.testing.assert_allclose(rows[n], alone[n], rtol=0, atol=1e-6)
+    assert abs(alone["box"][3]) < 0.1  # from -10 m/s: stopped by the time of impact
+    np.testing.assert_allclose(alone["tri"][2:4], [0.5, -3.0 - 10.0 * DT], atol=1e-5)  # free fall, no contact
+
 def test_tilted_box_landing_on_its_corner_follows_box2d():
     """A walker shin (Gymnasium's lower-leg box) tilted 0.3 rad, 2 mm above the ground, sliding at
     1 m/s: with Box2D's time-of-impact rules (touching at t = 0 within the target, the TOI position

@@ -31,11 +31,10 @@ from envs.physics2d.vec import V2, cross, cross_sv, cross_sv2, dot, rotate, rota
 
 def slot_points(model: Model, bodies: BodyState):
     """World positions (V, 2) of every contact slot (polygon vertex) and their arms from the COM."""
-    b = list(model.slot_body)
-    lc = jnp.asarray(model.local_com, jnp.float32)
-    local = jnp.asarray(model.slot_vertex, jnp.float32) - jnp.stack([lc[i] for i in b])
-    angle = jnp.stack([bodies.angle[i] for i in b])
-    com = jnp.stack([bodies.com[i] for i in b])
+    b = np.asarray(model.slot_body, np.int32)
+    local = jnp.asarray(np.asarray(model.slot_vertex, np.float32) - np.asarray(model.local_com, np.float32)[b])
+    angle = bodies.angle[b]
+    com = bodies.com[b]
     arm = rotate(angle, local)
     return com + arm, arm
 
@@ -324,73 +323,9 @@ def step(model: Model, world: WorldState, ground, gravity, force=None, torque=No
         alpha_slot = jnp.clip((d0 - target) / jnp.maximum(d0 - d1, 1e-9), 0.0, 1.0)
         if cfg.toi_from_touching:
             alpha_slot = jnp.where(early, 0.0, alpha_slot)
+        com, ang, vel, omg = _time_of_impact(model, slots, b, jnp.stack(com), jnp.stack(ang), jnp.stack(vel),
+                                             jnp.stack(omg), crossing, alpha_slot, plane_q, plane_n, mu)
         com, ang, vel, omg = list(com), list(ang), list(vel), list(omg)
-        for i in range(nb):
-            ks = [k for k in slots if sb[k] == i]
-            if not ks:
-                continue
-            hit = jnp.any(jnp.stack([crossing[k] for k in ks]))
-            alpha = jnp.min(jnp.stack([jnp.where(crossing[k], alpha_slot[k], 1.0) for k in ks]))
-            c_t = b.com[i] + alpha * (com[i] - b.com[i])
-            a_t = b.angle[i] + alpha * (ang[i] - b.angle[i])
-            v_t, w_t = vel[i], omg[i]
-            arms = [rotate(a_t, local_v[k] - lc[i]) for k in ks]
-            on = [hit & (dot(c_t + r - plane_q[k], plane_n[k]) <= cfg.contact_radius) for r, k in zip(arms, ks)]
-            if cfg.toi_position_iterations > 0:
-                def toi_position(_, carry, i=i, ks=ks, on=on):
-                    c_, a_, done = carry
-                    c0, a0 = c_, a_
-                    min_sep = jnp.zeros((), jnp.float32)
-                    for s, k in enumerate(ks):
-                        r = rotate(a_, local_v[k] - lc[i])
-                        sep = dot(c_ + r - plane_q[k], plane_n[k]) - cfg.contact_radius
-                        min_sep = jnp.where(on[s], jnp.minimum(min_sep, sep), min_sep)
-                        corr = jnp.clip(cfg.toi_baumgarte * (sep + cfg.linear_slop), -cfg.max_linear_correction, 0.0)
-                        rn_ = cross(r, plane_n[k])
-                        kk = inv_m[i] + inv_i[i] * rn_ * rn_
-                        p = jnp.where(on[s] & (kk > 0), -corr / kk, 0.0) * plane_n[k]
-                        c_ = c_ + inv_m[i] * p
-                        a_ = a_ + inv_i[i] * cross(r, p)
-                    c_ = jnp.where(done, c0, c_)
-                    a_ = jnp.where(done, a0, a_)
-                    return c_, a_, done | (min_sep >= -1.5 * cfg.linear_slop)
-
-                c_t, a_t, _ = jax.lax.fori_loop(0, cfg.toi_position_iterations, toi_position,
-                                                (c_t, a_t, jnp.zeros((), bool)))
-                arms = [rotate(a_t, local_v[k] - lc[i]) for k in ks]
-            lnn = [jnp.zeros((), jnp.float32) for _ in ks]
-            ltt = [jnp.zeros((), jnp.float32) for _ in ks]
-
-            def toi_pass(v_t, w_t, lnn, ltt, i=i, ks=ks, arms=arms, on=on):
-                lnn, ltt = list(lnn), list(ltt)
-                for s, (r, k) in enumerate(zip(arms, ks)):
-                    n, t = plane_n[k], jnp.stack([plane_n[k][1], -plane_n[k][0]])
-                    rn_, rt_ = cross(r, n), cross(r, t)
-                    dv = v_t + cross_sv(w_t, r)
-                    new_t = jnp.clip(ltt[s] - dot(dv, t) / (inv_m[i] + inv_i[i] * rt_ * rt_), -mu[k] * lnn[s], mu[k] * lnn[s])
-                    new_t = jnp.where(on[s], new_t, 0.0)
-                    pt = (new_t - ltt[s]) * t
-                    ltt[s] = new_t
-                    v_t, w_t = v_t + inv_m[i] * pt, w_t + inv_i[i] * cross(r, pt)
-                    dv = v_t + cross_sv(w_t, r)
-                    new_n = jnp.maximum(lnn[s] - dot(dv, n) / (inv_m[i] + inv_i[i] * rn_ * rn_), 0.0)
-                    new_n = jnp.where(on[s], new_n, 0.0)
-                    pn = (new_n - lnn[s]) * n
-                    lnn[s] = new_n
-                    v_t, w_t = v_t + inv_m[i] * pn, w_t + inv_i[i] * cross(r, pn)
-                return v_t, w_t, tuple(lnn), tuple(ltt)
-
-            if cfg.toi_loop:  # one traced pass in a loop: a smaller program, much less compile time
-                v_t, w_t, _, _ = jax.lax.fori_loop(0, cfg.toi_iterations, lambda _, c: toi_pass(*c),
-                                                   (v_t, w_t, tuple(lnn), tuple(ltt)))
-            else:
-                for _ in range(cfg.toi_iterations):
-                    v_t, w_t, lnn, ltt = toi_pass(v_t, w_t, lnn, ltt)
-            rest = (1.0 - alpha) * dt
-            com[i] = jnp.where(hit, c_t + rest * v_t, com[i])
-            ang[i] = jnp.where(hit, a_t + rest * w_t, ang[i])
-            vel[i] = jnp.where(hit, v_t, vel[i])
-            omg[i] = jnp.where(hit, w_t, omg[i])
 
     # 8. sleep
     vel_a = jnp.stack(vel)
@@ -443,6 +378,95 @@ def step(model: Model, world: WorldState, ground, gravity, force=None, torque=No
     info = dict(touching=touching | toi_touch, polygon_touching=poly_touch, pair_touching=pairs,
                 position_solved=solved, asleep=asleep)
     return new_world, info
+
+
+def _time_of_impact(model: Model, slots, b: BodyState, com, ang, vel, omg, crossing, alpha_slot, plane_q,
+                    plane_n, mu):
+    """Box2D's SolveTOI, simplified, for every body at once -> (com, angle, vel, omega) at the step's end.
+
+    A body whose solid slot crosses the target separation during the step (``crossing`` (V,), at
+    fraction ``alpha_slot`` (V,)) moves back to its earliest time of impact, its slots there are solved
+    alone (``toi_position_iterations`` position passes, ``toi_iterations`` velocity passes; joints are
+    not part of Box2D's TOI islands) and it moves on for the rest of the step. ``com`` (B, 2), ``ang``
+    (B,), ``vel`` (B, 2), ``omg`` (B,) are the ends of the regular solve; ``b`` the start of the step.
+    Bodies are independent here, so the passes run on (B,) arrays: each body's slots in model order,
+    padded to the largest count with slots that are never on (they change nothing).
+    """
+    cfg = model.config
+    f32 = jnp.float32
+    per_body = [[k for k in slots if model.slot_body[k] == i] for i in range(model.num_bodies)]
+    width = max(len(ks) for ks in per_body)
+    if width == 0:
+        return com, ang, vel, omg
+    idx = np.asarray([ks + [0] * (width - len(ks)) for ks in per_body], np.int32)  # (B, W) slot per position
+    real = jnp.asarray([[s < len(ks) for s in range(width)] for ks in per_body])
+    lv = (np.asarray(model.slot_vertex, np.float32)[idx]
+          - np.asarray(model.local_com, np.float32)[:, None])  # (B, W, 2) slot vertex from the centre
+    inv_m = jnp.asarray([float(x) for x in model.inv_mass], f32)
+    inv_i = jnp.asarray([float(x) for x in model.inv_inertia], f32)
+    q, n = plane_q[idx], plane_n[idx]  # (B, W, 2)
+    t = jnp.stack([n[..., 1], -n[..., 0]], -1)
+    mu = mu[idx]
+    cross_k = crossing[idx] & real
+    hit = jnp.any(cross_k, 1)
+    alpha = jnp.min(jnp.where(cross_k, alpha_slot[idx], 1.0), 1)
+    c_t = b.com + alpha[:, None] * (com - b.com)
+    a_t = b.angle + alpha * (ang - b.angle)
+    arms = rotate(a_t[:, None], lv)
+    on = hit[:, None] & real & (dot(c_t[:, None] + arms - q, n) <= cfg.contact_radius)
+    if cfg.toi_position_iterations > 0:
+        def toi_position(_, carry):
+            c_, a_, done = carry
+            c0, a0 = c_, a_
+            min_sep = jnp.zeros_like(a_)
+            for s in range(width):
+                r = rotate(a_, lv[:, s])
+                sep = dot(c_ + r - q[:, s], n[:, s]) - cfg.contact_radius
+                min_sep = jnp.where(on[:, s], jnp.minimum(min_sep, sep), min_sep)
+                corr = jnp.clip(cfg.toi_baumgarte * (sep + cfg.linear_slop), -cfg.max_linear_correction, 0.0)
+                rn_ = cross(r, n[:, s])
+                kk = inv_m + inv_i * rn_ * rn_
+                p = jnp.where(on[:, s] & (kk > 0), -corr / kk, 0.0)[:, None] * n[:, s]
+                c_ = c_ + inv_m[:, None] * p
+                a_ = a_ + inv_i * cross(r, p)
+            c_ = jnp.where(done[:, None], c0, c_)
+            a_ = jnp.where(done, a0, a_)
+            return c_, a_, done | (min_sep >= -1.5 * cfg.linear_slop)
+
+        c_t, a_t, _ = jax.lax.fori_loop(0, cfg.toi_position_iterations, toi_position,
+                                        (c_t, a_t, jnp.zeros(a_t.shape, bool)))
+        arms = rotate(a_t[:, None], lv)
+
+    def toi_pass(v_t, w_t, lnn, ltt):
+        lnn, ltt = list(lnn), list(ltt)
+        for s in range(width):
+            r, n_s, t_s, on_s = arms[:, s], n[:, s], t[:, s], on[:, s]
+            rn_, rt_ = cross(r, n_s), cross(r, t_s)
+            dv = v_t + cross_sv(w_t, r)
+            new_t = jnp.clip(ltt[s] - dot(dv, t_s) / (inv_m + inv_i * rt_ * rt_), -mu[:, s] * lnn[s], mu[:, s] * lnn[s])
+            new_t = jnp.where(on_s, new_t, 0.0)
+            pt = (new_t - ltt[s])[:, None] * t_s
+            ltt[s] = new_t
+            v_t, w_t = v_t + inv_m[:, None] * pt, w_t + inv_i * cross(r, pt)
+            dv = v_t + cross_sv(w_t, r)
+            new_n = jnp.maximum(lnn[s] - dot(dv, n_s) / (inv_m + inv_i * rn_ * rn_), 0.0)
+            new_n = jnp.where(on_s, new_n, 0.0)
+            pn = (new_n - lnn[s])[:, None] * n_s
+            lnn[s] = new_n
+            v_t, w_t = v_t + inv_m[:, None] * pn, w_t + inv_i * cross(r, pn)
+        return v_t, w_t, tuple(lnn), tuple(ltt)
+
+    zeros = tuple(jnp.zeros(a_t.shape, f32) for _ in range(width))
+    v_t, w_t = vel, omg
+    if cfg.toi_loop:  # one traced pass in a loop: a smaller program, much less compile time
+        v_t, w_t, _, _ = jax.lax.fori_loop(0, cfg.toi_iterations, lambda _, c: toi_pass(*c), (v_t, w_t, zeros, zeros))
+    else:
+        lnn, ltt = zeros, zeros
+        for _ in range(cfg.toi_iterations):
+            v_t, w_t, lnn, ltt = toi_pass(v_t, w_t, lnn, ltt)
+    rest = (1.0 - alpha) * model.config.dt
+    return (jnp.where(hit[:, None], c_t + rest[:, None] * v_t, com), jnp.where(hit, a_t + rest * w_t, ang),
+            jnp.where(hit[:, None], v_t, vel), jnp.where(hit, w_t, omg))
 
 
 def _masses(model: Model, joint):
@@ -545,7 +569,7 @@ def _edge_velocity_constants(model: Model, bodies: BodyState, ec):
     inv_m, inv_i = model.inv_mass, model.inv_inertia
     body = ec["body"]
     ne = len(body)
-    com = jnp.stack([bodies.com[i] for i in body])
+    com = bodies.com[np.asarray(body, np.int32)]
     arm = ec["point"] - com
     n = ec["normal"]
     t = jnp.stack([n[:, 1], -n[:, 0]], -1)
@@ -585,8 +609,8 @@ def _edge_position_constants(model: Model, bodies: BodyState, ec):
     (``pt``, from the body's centre); face B: the polygon face's point and normal in the body frame
     (``a``, ``nrm``) and the clip point on the edge (world ``pt``). Per-world scalars."""
     body = ec["body"]
-    com = jnp.stack([bodies.com[i] for i in body])
-    ang = jnp.stack([bodies.angle[i] for i in body])
+    com = bodies.com[np.asarray(body, np.int32)]
+    ang = bodies.angle[np.asarray(body, np.int32)]
     fb = ec["face_b"]
     to_body = lambda v: rotate(-ang, v)
     a = jnp.where(fb[:, None], to_body(ec["ref_point"] - com), ec["ref_point"])
