@@ -276,7 +276,6 @@ def step(model: Model, world: WorldState, ground, gravity, force=None, torque=No
         ang.append(b.angle[i] + dt * omg[i])
 
     # 6. position iterations (non-linear Gauss-Seidel); stop changing once solved
-    local_v = jnp.asarray(model.slot_vertex, jnp.float32)
     plane_n = normal
     # plane point: start of the ground segment under the vertex at the start pose (fixed for the step)
     if free_flight:
@@ -382,11 +381,12 @@ def step(model: Model, world: WorldState, ground, gravity, force=None, torque=No
 
 def _time_of_impact(model: Model, slots, b: BodyState, com, ang, vel, omg, crossing, alpha_slot, plane_q,
                     plane_n, mu):
-    """Box2D's SolveTOI, simplified, for every body at once -> (com, angle, vel, omega) at the step's end.
+    """Box2D's SolveTOI, simplified, for every body at once -> (com (B, 2), angle (B,), vel (B, 2),
+    omega (B,)) at the step's end.
 
     A body whose solid slot crosses the target separation during the step (``crossing`` (V,), at
-    fraction ``alpha_slot`` (V,)) moves back to its earliest time of impact, its slots there are solved
-    alone (``toi_position_iterations`` position passes, ``toi_iterations`` velocity passes; joints are
+    fraction ``alpha_slot`` (V,)) moves back to its earliest time of impact, its slots within
+    ``contact_radius`` there are solved alone (``toi_position_iterations`` position passes, ``toi_iterations`` velocity passes; joints are
     not part of Box2D's TOI islands) and it moves on for the rest of the step. ``com`` (B, 2), ``ang``
     (B,), ``vel`` (B, 2), ``omg`` (B,) are the ends of the regular solve; ``b`` the start of the step.
     Bodies are independent here, so the passes run on (B,) arrays: each body's slots in model order,
@@ -395,7 +395,7 @@ def _time_of_impact(model: Model, slots, b: BodyState, com, ang, vel, omg, cross
     cfg = model.config
     f32 = jnp.float32
     per_body = [[k for k in slots if model.slot_body[k] == i] for i in range(model.num_bodies)]
-    width = max(len(ks) for ks in per_body)
+    width = max((len(ks) for ks in per_body), default=0)
     if width == 0:
         return com, ang, vel, omg
     idx = np.asarray([ks + [0] * (width - len(ks)) for ks in per_body], np.int32)  # (B, W) slot per position
@@ -464,7 +464,7 @@ def _time_of_impact(model: Model, slots, b: BodyState, com, ang, vel, omg, cross
         lnn, ltt = zeros, zeros
         for _ in range(cfg.toi_iterations):
             v_t, w_t, lnn, ltt = toi_pass(v_t, w_t, lnn, ltt)
-    rest = (1.0 - alpha) * model.config.dt
+    rest = (1.0 - alpha) * cfg.dt
     return (jnp.where(hit[:, None], c_t + rest[:, None] * v_t, com), jnp.where(hit, a_t + rest * w_t, ang),
             jnp.where(hit[:, None], v_t, vel), jnp.where(hit, w_t, omg))
 
