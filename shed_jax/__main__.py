@@ -30,6 +30,12 @@ DEBUG_HELP = "print the traceback of every error, user errors included (or set S
 
 def main(argv=None) -> int:
     from shed_jax.cli import errors
+    from shed_jax.runtime import missing_packages, missing_packages_line
+
+    missing = missing_packages()
+    if missing:  # before the commands' imports and any compile: not a traceback minutes into a run
+        print(missing_packages_line(missing), file=sys.stderr)
+        return errors.EXIT_USAGE
 
     parser = errors.Parser(prog="python -m shed_jax", description=__doc__.splitlines()[0])
     parser.add_argument("--debug", action="store_true", help=DEBUG_HELP)

@@ -5,6 +5,9 @@
   compile. A cache the caller configured already (``JAX_COMPILATION_CACHE_DIR``, or
   ``jax.config`` as tests/conftest.py sets it) is left as it is; ``JAX_ENABLE_COMPILATION_CACHE=false``
   turns caching off.
+* Refuses to start, in one line naming them, when packages the project depends on are missing
+  (:func:`missing_packages`): otherwise a missing one (say ``orjson``, first imported when the first
+  chunk's metrics are written) would stop a run with a traceback after minutes of compiling.
 * Prints one line naming the JAX version, backend and devices, and warns in one line when
   ``nvidia-smi`` sees an NVIDIA GPU but JAX runs on the CPU, naming the ``make setup`` that fixes it.
 """
@@ -16,6 +19,43 @@ import sys
 from collections import Counter
 
 CACHE_VARIABLE = "SHED_JAX_CACHE"
+
+# pyproject.toml's `dependencies` -> the module each provides (tests/test_runtime.py keeps them in step).
+REQUIRED_MODULES = {
+    "jax": "jax", "jaxlib": "jaxlib", "flax": "flax", "optax": "optax", "chex": "chex",
+    "orbax-checkpoint": "orbax.checkpoint", "brax": "brax", "mujoco": "mujoco", "mujoco-mjx": "mujoco.mjx",
+    "numpy": "numpy", "orjson": "orjson", "matplotlib": "matplotlib", "pillow": "PIL", "tqdm": "tqdm",
+}
+
+
+def _module_found(name: str) -> bool:
+    """Whether ``name`` can be imported, without importing it (a dotted name's parent is not run either)."""
+    import importlib.util
+
+    top, _, rest = name.partition(".")
+    spec = importlib.util.find_spec(top)
+    if spec is None or not rest:
+        return spec is not None
+    here = [pathlib.Path(p) for p in (spec.submodule_search_locations or [])]
+    for part in rest.split("."):
+        found = [p / part for p in here if (p / part).is_dir()]
+        if not found:  # a plain module ends the path: the last part as a file
+            return part == rest.split(".")[-1] and any(
+                f.is_file() for p in here for f in p.glob(part + ".*") if f.suffix in (".py", ".so", ".pyd"))
+        here = found
+    return True
+
+
+def missing_packages(modules: dict[str, str] | None = None) -> list[str]:
+    """The distributions (keys of ``modules``, default :data:`REQUIRED_MODULES`) whose module (value)
+    cannot be found, in order."""
+    modules = REQUIRED_MODULES if modules is None else modules
+    return [dist for dist, module in modules.items() if not _module_found(module)]
+
+
+def missing_packages_line(missing: list[str]) -> str:
+    return (f"[shed_jax] missing package(s): {', '.join(missing)}; `make setup` installs the project's "
+            "dependencies (or, in an environment of your own: pip install -e .)")
 
 
 def cache_root() -> pathlib.Path:

@@ -88,3 +88,32 @@ def test_provenance_names_device_command_and_date():
     assert p["command"] == "python -m experiments.x --a 1"
     assert p["device"].startswith(f"{jax.default_backend()}: ") and " x " in p["device"]
     assert re.fullmatch(r"\d{4}-\d\d-\d\d \d\d:\d\d UTC", p["date"])
+
+
+def test_required_modules_name_every_pyproject_dependency():
+    import re
+    import tomllib
+
+    deps = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["dependencies"]
+    assert list(runtime.REQUIRED_MODULES) == [re.split(r"[<>=!~\[; ]", d, maxsplit=1)[0].lower() for d in deps]
+
+
+def test_missing_packages_finds_modules_without_importing_them():
+    modules = {"absent": "shed_jax_no_such_module", "numpy": "numpy", "package-dir": "numpy.linalg",
+               "module-file": "json.decoder", "absent-sub": "json.no_such", "absent-deep": "numpy.linalg.no_such",
+               "file-is-no-package": "json.decoder.no_such"}
+    assert runtime.missing_packages(modules) == ["absent", "absent-sub", "absent-deep", "file-is-no-package"]
+    assert runtime.missing_packages() == []  # this environment has every dependency
+    out = _python("import sys; from shed_jax import runtime; assert runtime.missing_packages() == []; "
+                  "print([m for m in ('mujoco', 'orbax', 'orjson', 'brax', 'flax') if m in sys.modules])")
+    assert out.returncode == 0 and out.stdout.strip() == "[]", out.stderr
+
+
+def test_a_missing_dependency_stops_the_cli_in_one_line_before_any_work(monkeypatch, capsys, tmp_path):
+    from shed_jax.__main__ import main
+
+    monkeypatch.setitem(runtime.REQUIRED_MODULES, "orjson-gone", "shed_jax_no_such_module")
+    assert main(["run", "--env", "lander", "--method", "dr", "--out", str(tmp_path / "run")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "missing package(s): orjson-gone;" in err and "make setup" in err
+    assert not (tmp_path / "run").exists()
