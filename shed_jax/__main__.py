@@ -81,9 +81,12 @@ def main(argv=None) -> int:
 
 
 def _exit(code: int) -> None:
-    """Exit; at once (``os._exit``) while a compile of ``run`` still runs in its worker thread, which a
-    normal interpreter shutdown would race (``shed_jax/driver.py``, start-up interruptions)."""
-    if any(t.name.startswith("shed_jax-") and t.is_alive() for t in threading.enumerate()):
+    """Exit; at once (``os._exit``) after a signal stopped a start-up or while a compile of ``run`` still
+    runs in its worker thread: XLA's threads may still be at work, and a normal interpreter shutdown
+    would race them (``shed_jax/driver.py``, ``EXIT_AT_ONCE``)."""
+    driver = sys.modules.get("shed_jax.driver")
+    if (driver is not None and driver.EXIT_AT_ONCE.is_set()) or any(
+            t.name.startswith("shed_jax-") and t.is_alive() for t in threading.enumerate()):
         sys.stdout.flush()
         sys.stderr.flush()
         os._exit(code)

@@ -158,8 +158,16 @@ def in_worker(fn, name: str = "compile", heartbeat: float | None = None, what: s
     return box["value"]
 
 
+# Set once a signal has stopped a start-up. XLA may still be compiling, or running the initial state,
+# in threads of its own (not the compile worker's: that one may have returned already); an interpreter
+# shutdown under them aborts ("terminate called ...", exit 134), so ``python -m shed_jax`` then ends
+# the process at once (shed_jax/__main__.py, ``_exit``).
+EXIT_AT_ONCE = threading.Event()
+
+
 def startup_interrupted(signum: int, resume: str | None, made: list) -> int:
     """The line for a signal during start-up: how to continue (``resume``), or what was removed; 128 + signum."""
+    EXIT_AT_ONCE.set()
     name = signal.Signals(signum).name
     if resume is not None:
         what = f"continue it with: {resume}"

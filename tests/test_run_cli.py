@@ -256,11 +256,38 @@ def test_signal_during_startup_stops_at_once_and_keeps_nothing(patched, tmp_path
     e = tmp_path / "E"
     before = signal.getsignal(signum)
     monkeypatch.setattr(driver, "in_worker", signal_during_compile(signum))
+    monkeypatch.setattr(driver, "EXIT_AT_ONCE", threading.Event())
     code, out, err = run(["--out", str(e), *BASE])
     assert code == 128 + signum
+    assert driver.EXIT_AT_ONCE.is_set()  # XLA may still work in its threads: python -m shed_jax exits at once
     assert f"[shed_jax] {signal.Signals(signum).name} during start-up, before the first budget step: stopped; nothing was kept" in err
     assert "Traceback" not in err and not e.exists()  # the command can simply be run again
     assert signal.getsignal(signum) == before
+
+
+@pytest.mark.parametrize("at_once", [False, True])
+def test_exit_skips_the_interpreter_shutdown_after_an_interrupted_start_up(monkeypatch, at_once):
+    """A shutdown under XLA's compile or execution threads aborts the process ("terminate called ...",
+    exit 134, seen on a 2-D walker run interrupted 160 s into its compile); os._exit does not."""
+    import shed_jax.__main__ as cli_main
+
+    event = threading.Event()
+    if at_once:
+        event.set()
+    monkeypatch.setattr(driver, "EXIT_AT_ONCE", event)
+    ended = []
+
+    def ending(how):
+        def end(code):
+            ended.append((how, code))
+            raise SystemExit(code)  # neither returns
+        return end
+
+    monkeypatch.setattr(cli_main.os, "_exit", ending("os._exit"))
+    monkeypatch.setattr(cli_main.sys, "exit", ending("sys.exit"))
+    with pytest.raises(SystemExit):
+        cli_main._exit(130)
+    assert ended == [("os._exit" if at_once else "sys.exit", 130)]
 
 
 def test_signal_during_resume_startup_names_the_resume(finished, patched, tmp_path, monkeypatch):
