@@ -29,7 +29,10 @@ REQUIRED_MODULES = {
 
 
 def _module_found(name: str) -> bool:
-    """Whether ``name`` can be imported, without importing it (a dotted name's parent is not run either)."""
+    """Whether ``name`` can be imported, without importing it (a dotted name's parent is not run either).
+
+    A dotted name is looked for in its parent's folder and in that parent's folder under every
+    ``sys.path`` entry (a package split across entries, as ``pkgutil.extend_path`` joins them)."""
     import importlib.util
 
     top, _, rest = name.partition(".")
@@ -37,20 +40,32 @@ def _module_found(name: str) -> bool:
     if spec is None or not rest:
         return spec is not None
     here = [pathlib.Path(p) for p in (spec.submodule_search_locations or [])]
-    for part in rest.split("."):
+    here += [pathlib.Path(entry or ".") / top for entry in sys.path if isinstance(entry, str)]
+    parts = rest.split(".")
+    for i, part in enumerate(parts):
         found = [p / part for p in here if (p / part).is_dir()]
         if not found:  # a plain module ends the path: the last part as a file
-            return part == rest.split(".")[-1] and any(
-                f.is_file() for p in here for f in p.glob(part + ".*") if f.suffix in (".py", ".so", ".pyd"))
+            return i == len(parts) - 1 and any(
+                f.is_file() for p in here if p.is_dir() for f in p.glob(part + ".*") if f.suffix in (".py", ".so", ".pyd"))
         here = found
     return True
 
 
+def _distribution_found(dist: str) -> bool:
+    from importlib import metadata
+
+    try:
+        metadata.distribution(dist)
+        return True
+    except metadata.PackageNotFoundError:
+        return False
+
+
 def missing_packages(modules: dict[str, str] | None = None) -> list[str]:
-    """The distributions (keys of ``modules``, default :data:`REQUIRED_MODULES`) whose module (value)
-    cannot be found, in order."""
+    """The distributions (keys of ``modules``, default :data:`REQUIRED_MODULES`) found neither as their
+    module (value) nor as installed metadata, in order: a false "missing" would block every command."""
     modules = REQUIRED_MODULES if modules is None else modules
-    return [dist for dist, module in modules.items() if not _module_found(module)]
+    return [dist for dist, module in modules.items() if not _module_found(module) and not _distribution_found(dist)]
 
 
 def missing_packages_line(missing: list[str]) -> str:

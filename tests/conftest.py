@@ -1,6 +1,9 @@
 """Shared test set-up: CPU only, float32, a persistent compilation cache under .cache/."""
 import os
 import pathlib
+import sys
+
+import pytest
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
 os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
@@ -16,3 +19,12 @@ _cache = pathlib.Path(__file__).resolve().parents[1] / ".cache" / "jax"
 _cache.mkdir(parents=True, exist_ok=True)
 jax.config.update("jax_compilation_cache_dir", str(_cache))
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
+
+
+@pytest.fixture(autouse=True)
+def _exit_at_once_cleared():
+    """A test that interrupts a start-up sets shed_jax.driver.EXIT_AT_ONCE; later tests in the worker start clear."""
+    yield
+    driver = sys.modules.get("shed_jax.driver")
+    if driver is not None:
+        driver.EXIT_AT_ONCE.clear()

@@ -103,6 +103,21 @@ def test_missing_packages_finds_modules_without_importing_them():
                "module-file": "json.decoder", "absent-sub": "json.no_such", "absent-deep": "numpy.linalg.no_such",
                "file-is-no-package": "json.decoder.no_such"}
     assert runtime.missing_packages(modules) == ["absent", "absent-sub", "absent-deep", "file-is-no-package"]
+    assert runtime.missing_packages({"numpy": "shed_jax_no_such_module"}) == []  # its metadata is installed
+
+
+def test_missing_packages_finds_a_package_split_across_path_entries(tmp_path, monkeypatch):
+    first, second = tmp_path / "a" / "splitpkg", tmp_path / "b" / "splitpkg"
+    first.mkdir(parents=True)
+    (second / "inner").mkdir(parents=True)
+    (first / "__init__.py").write_text("__path__ = __import__('pkgutil').extend_path(__path__, __name__)\n")
+    (second / "part.py").write_text("")
+    (second / "inner" / "__init__.py").write_text("")
+    monkeypatch.syspath_prepend(str(tmp_path / "b"))
+    monkeypatch.syspath_prepend(str(tmp_path / "a"))
+    modules = {"x-part": "splitpkg.part", "x-inner": "splitpkg.inner", "x-none": "splitpkg.none"}
+    assert runtime.missing_packages(modules) == ["x-none"]
+    assert "splitpkg" not in sys.modules  # looked up, not imported
     assert runtime.missing_packages() == []  # this environment has every dependency
     out = _python("import sys; from shed_jax import runtime; assert runtime.missing_packages() == []; "
                   "print([m for m in ('mujoco', 'orbax', 'orjson', 'brax', 'flax') if m in sys.modules])")
