@@ -104,6 +104,10 @@ def test_missing_packages_finds_modules_without_importing_them():
                "file-is-no-package": "json.decoder.no_such"}
     assert runtime.missing_packages(modules) == ["absent", "absent-sub", "absent-deep", "file-is-no-package"]
     assert runtime.missing_packages({"numpy": "shed_jax_no_such_module"}) == []  # its metadata is installed
+    assert runtime.missing_packages() == []  # this environment has every dependency
+    out = _python("import sys; from shed_jax import runtime; assert runtime.missing_packages() == []; "
+                  "print([m for m in ('mujoco', 'orbax', 'orjson', 'brax', 'flax') if m in sys.modules])")
+    assert out.returncode == 0 and out.stdout.strip() == "[]", out.stderr
 
 
 def test_missing_packages_finds_a_package_split_across_path_entries(tmp_path, monkeypatch):
@@ -118,10 +122,6 @@ def test_missing_packages_finds_a_package_split_across_path_entries(tmp_path, mo
     modules = {"x-part": "splitpkg.part", "x-inner": "splitpkg.inner", "x-none": "splitpkg.none"}
     assert runtime.missing_packages(modules) == ["x-none"]
     assert "splitpkg" not in sys.modules  # looked up, not imported
-    assert runtime.missing_packages() == []  # this environment has every dependency
-    out = _python("import sys; from shed_jax import runtime; assert runtime.missing_packages() == []; "
-                  "print([m for m in ('mujoco', 'orbax', 'orjson', 'brax', 'flax') if m in sys.modules])")
-    assert out.returncode == 0 and out.stdout.strip() == "[]", out.stderr
 
 
 def test_a_missing_dependency_stops_the_cli_in_one_line_before_any_work(monkeypatch, capsys, tmp_path):
