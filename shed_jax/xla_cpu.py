@@ -62,13 +62,9 @@ FLAGS = (FLAG, "--xla_cpu_use_xnnpack=false")
 #: expensive optimisation passes. Compiling dominates the suite (a lander evaluation program: 52 s
 #: of XLA compile with the passes, 24 s without, 2-core CPU, 2026-11-25), while its programs run
 #: briefly; even the run-bound PPO tests got faster (62 s -> 51 s). The suite passed with it.
-#: The second, LLVM's optimisation level 0, cut the five compile-bound tests that are the suite's slowest
-#: (the 2-D walker's reset, the lander's early-stop evaluation, the fused loop evaluation twice, SHED vs
-#: h-MDP) from 184 s to 122 s on two workers (2-core Intel Xeon, 2026-11-29, one run each); XNNPACK on
-#: instead of off changed nothing there (196 s).
 #: Not used by the CLI: LLVM's options may also reach GPU code generation (not checked), and long CPU runs
 #: would pay at run time.
-TEST_FLAGS = ("--xla_llvm_disable_expensive_passes=true", "--xla_backend_optimization_level=0")
+TEST_FLAGS = ("--xla_llvm_disable_expensive_passes=true",)
 
 
 def apply_cpu_guard(extra: tuple[str, ...] = ()) -> None:

@@ -10,8 +10,7 @@ os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
 from shed_jax.xla_cpu import TEST_FLAGS, apply_cpu_guard  # noqa: E402
 
 # XLA:CPU hang guard (see shed_jax/xla_cpu.py); two xdist workers on two cores lose nothing. TEST_FLAGS:
-# LLVM at optimisation level 0 without its expensive passes: the compiles that dominate the suite's time
-# take a fraction of their default time (numbers in shed_jax/xla_cpu.py).
+# no expensive LLVM passes, which roughly halves the compiles that dominate the suite's time.
 apply_cpu_guard(extra=TEST_FLAGS)
 
 import jax  # noqa: E402
