@@ -58,11 +58,11 @@ FLAG = "--xla_cpu_multi_thread_eigen=false"
 FLAGS = (FLAG, "--xla_cpu_use_xnnpack=false")
 
 
-#: The test suite's compile-time flag (tests/conftest.py), for CPU-only processes: LLVM skips its
-#: expensive optimisation passes. Compiling dominates the suite (a lander evaluation program: 52 s
+#: The test suite's compile-time flags (tests/conftest.py), for CPU-only processes. The first: LLVM skips
+#: its expensive optimisation passes. Compiling dominates the suite (a lander evaluation program: 52 s
 #: of XLA compile with the passes, 24 s without, 2-core CPU, 2026-11-25), while its programs run
 #: briefly; even the run-bound PPO tests got faster (62 s -> 51 s). The suite passed with it.
-#: The second, LLVM's optimisation level 1 instead of 2 (2-core Intel Xeon, 2026-11-29, two workers, one run
+#: The second: LLVM's optimisation level 1 instead of 2 (2-core Intel Xeon, 2026-11-29, two workers, one run
 #: each, an empty cache): the five slowest compile-bound tests (the 2-D walker's reset, the lander's early-stop
 #: evaluation, the fused loop evaluation twice, SHED vs h-MDP) took 293 s in all against 344 s, and the
 #: run-bound lander parity tests 77 s and 81 s, as before. Level 0 compiled faster still (215 s) but ran
