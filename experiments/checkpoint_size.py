@@ -30,12 +30,13 @@ import json
 import os
 import pathlib
 import platform
-import subprocess
 import sys
 import tempfile
 import time
 
 import numpy as np
+
+from shed_jax.runtime import source_commit
 
 
 def _mb(n: int | float) -> float:
@@ -229,22 +230,13 @@ def device_line() -> str:
     return f"{jax.default_backend()} ({os.cpu_count()} cores, {cpu})"
 
 
-def commit() -> str:
-    try:
-        # "-dirty" when tracked files differ from the commit (the measured code is not that commit's)
-        return subprocess.run(["git", "describe", "--always", "--dirty"], capture_output=True, text=True,
-                              cwd=pathlib.Path(__file__).parent, check=True).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
-
-
 def record_header(module: str, argv) -> dict:
     """A measurement record's provenance: device, UTC date, the command (``python -m module ...``), commit, jax."""
     import jax
 
     return {"device": device_line(), "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
             "command": f"python -m {module} " + " ".join(argv if argv is not None else sys.argv[1:]),
-            "commit": commit(), "jax": jax.__version__}
+            "commit": source_commit() or "unknown", "jax": jax.__version__}
 
 
 def merge_labelled(path: str, label: str, record: dict) -> None:

@@ -666,6 +666,7 @@ def write_results(batch: Batch, progress: Progress, out: Output, w: Writes, *, w
 def summarize(exp, hist: dict, wall: float, num_seeds: int) -> dict:
     """``summary.json`` of one run (``hist``: its flat metrics history [seeds, steps, ...])."""
     from shed_jax import reporting
+    from shed_jax.runtime import source_commit
 
     T = exp.loop.steps_per_episode
     last = hist["test_return"][:, -1]
@@ -683,6 +684,7 @@ def summarize(exp, hist: dict, wall: float, num_seeds: int) -> dict:
         "eval_env_steps_total": float(hist["info/env_steps_eval"].astype(np.float64).sum(axis=1).mean()),
         "wall_time_s": wall,
         "wall_time_per_seed_s": wall / num_seeds,
+        "commit": source_commit(),  # the code that finished the run (config.json names the one that started it)
     }
 
 
@@ -883,6 +885,8 @@ def _start_run(opts: RunOptions, plan: rundir.RunPlan, made: list):
             return None
         rundir.discard_newer(plan)
         print(f"[shed_jax] resuming {out} from budget step {progress.done}/{total}")
+        if (note := rundir.commit_note(plan.config)) is not None:
+            print(f"[shed_jax] note: {note}")
         print(f"[shed_jax] {rundir.reconcile_metrics_jsonl(out / 'metrics.jsonl', progress.history, progress.done, plan.num_seeds)}")
     else:
         rundir.create_run_dir(plan, made)

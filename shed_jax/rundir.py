@@ -25,6 +25,7 @@ import numpy as np
 
 from shed_jax import experiment as xp
 from shed_jax.errors import UsageError
+from shed_jax.runtime import source_commit
 
 #: what a run writes into its directory; ``--restart`` removes these (and nothing else)
 RUN_FILES = ("config.json", "metrics.jsonl", "metrics.jsonl.tmp", "nonfinite_chunk.jsonl", "checkpoints")
@@ -66,8 +67,18 @@ def plan_fresh(opts, backend: str) -> RunPlan:
     clear = check_out(out, opts.restart)
     chunk = opts.chunk or default_chunk(exp)
     config = {"experiment": exp.to_dict(), "seeds": num_seeds, "root_seed": root_seed, "backend": backend,
-              "devices": [str(d) for d in jax.devices()], "chunk": chunk, "jax": jax.__version__}
+              "devices": [str(d) for d in jax.devices()], "chunk": chunk, "jax": jax.__version__,
+              "commit": source_commit()}
     return RunPlan(out, exp, num_seeds, root_seed, chunk, config, clear=clear)
+
+
+def commit_note(config: dict) -> str | None:
+    """One line when a resumed run continues at another commit than the one it started at (None if the
+    same, or either is unknown): its numbers then come from two versions of the code."""
+    started, now = config.get("commit"), source_commit()
+    if started and now and started != now:
+        return f"this run started at commit {started} and continues at {now}"
+    return None
 
 
 def check_out(out: pathlib.Path, restart: bool) -> bool:

@@ -113,9 +113,27 @@ def describe_devices(devices) -> str:
     return ", ".join(f"{n} x {kind}" for kind, n in kinds.items())
 
 
+def source_commit(repo: pathlib.Path | None = None) -> str | None:
+    """The commit of this project's checkout, or of ``repo``: ``git describe --always --dirty``, whose
+    ``-dirty`` suffix says tracked files differ from that commit. None outside a git checkout of the
+    project itself (an installed wheel, a copied tree, no git)."""
+    import subprocess
+
+    repo = pathlib.Path(__file__).resolve().parents[1] if repo is None else pathlib.Path(repo)
+    if not (repo / ".git").exists():  # not a checkout of its own (never the git repository of a folder above)
+        return None
+    try:
+        out = subprocess.run(["git", "describe", "--always", "--dirty"], cwd=repo, capture_output=True, text=True,
+                             timeout=10, check=True)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return out.stdout.strip() or None
+
+
 def provenance(module: str, argv=None) -> dict:
     """Where, how and when a record was measured: ``device`` (backend and devices), ``command``
-    (``python -m module`` and its arguments, ``argv`` or the process's) and ``date`` (UTC, minutes)."""
+    (``python -m module`` and its arguments, ``argv`` or the process's), ``date`` (UTC, minutes) and
+    ``commit`` (:func:`source_commit`)."""
     import time
 
     import jax
@@ -123,7 +141,7 @@ def provenance(module: str, argv=None) -> dict:
     args = sys.argv[1:] if argv is None else list(argv)
     return {"device": f"{jax.default_backend()}: {describe_devices(jax.devices())}",
             "command": f"python -m {module} " + " ".join(args),
-            "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())}
+            "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "commit": source_commit()}
 
 
 def gpu_unused_warning(backend: str, platforms: str, probe=None) -> str | None:

@@ -45,6 +45,7 @@ import numpy as np
 
 from shed_jax import driver
 from shed_jax.errors import EXIT_NONFINITE, EXIT_STOPPED, UsageError
+from shed_jax.runtime import source_commit
 
 KINDS = ("method_hparam", "student_hparam", "method_config", "student_config")
 STUDENT_PREFIX = "ppo."
@@ -352,7 +353,7 @@ def run_group(built: BuiltGroup, *, out: pathlib.Path, mesh, pad: bool = True, p
                 made is not None and made.append(path)
         config = {"experiment": exp.to_dict(), "seeds": S, "root_seed": batch.root_seed, "backend": jax.default_backend(),
                   "devices": [str(x) for x in mesh.devices.flat], "chunk": batch.chunk, "jax": jax.__version__,
-                  "sweep_point": {"name": p.name, "values": p.values, "group": group.label,
+                  "commit": source_commit(), "sweep_point": {"name": p.name, "values": p.values, "group": group.label,
                                   "method_hparams": p.method_hparams, "student_hparams": p.student_hparams}}
         (d / "config.json").write_text(json.dumps(config, indent=2, default=str))
         made is not None and made.append(d / "config.json")

@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 
 from shed_jax import checkpoint as ck
-from shed_jax import driver, errors
+from shed_jax import driver, errors, runtime
 from shed_jax import experiment as xp
 from shed_jax.cli import run as run_cli
 from shed_jax.loop import LoopSpec, RunState, make_run
@@ -110,6 +110,7 @@ def test_straight_run_writes_run_dir(run_a):
         assert (a / name).exists(), name
     config = json.loads((a / "config.json").read_text())
     assert config["seeds"] == SEEDS and config["root_seed"] == 0 and config["chunk"] == 1
+    assert config["commit"] == runtime.source_commit()  # the code the run started with (None in a copied tree)
     assert config["experiment"]["method_config"]["sampler"]["capacity"] == 4
     records = [json.loads(line) for line in (a / "metrics.jsonl").read_text().splitlines()]
     assert [(r["step"], r["seed"]) for r in records] == [(t, s) for t in range(4) for s in range(SEEDS)]

@@ -88,6 +88,31 @@ def test_provenance_names_device_command_and_date():
     assert p["command"] == "python -m experiments.x --a 1"
     assert p["device"].startswith(f"{jax.default_backend()}: ") and " x " in p["device"]
     assert re.fullmatch(r"\d{4}-\d\d-\d\d \d\d:\d\d UTC", p["date"])
+    assert p["commit"] == runtime.source_commit()  # this checkout's commit (None in a copied tree)
+
+
+def test_source_commit_names_the_checkouts_commit_and_marks_edits(tmp_path, monkeypatch):
+    from shed_jax import rundir
+
+    def git(*args):
+        return subprocess.run(["git", "-c", "user.name=t", "-c", "user.email=t@t", *args], cwd=tmp_path,
+                              capture_output=True, text=True, check=True).stdout.strip()
+
+    assert runtime.source_commit(tmp_path) is None  # no .git of its own (a repository above does not count)
+    git("init", "-q")
+    (tmp_path / "a.py").write_text("x = 1\n")
+    git("add", "a.py")
+    git("commit", "-q", "-m", "one")
+    sha = git("rev-parse", "HEAD")
+    first = runtime.source_commit(tmp_path)
+    assert first and sha.startswith(first)
+    (tmp_path / "a.py").write_text("x = 2\n")
+    assert runtime.source_commit(tmp_path) == first + "-dirty"
+    # a resumed run names the commit it started at when the code has moved on, and nothing otherwise
+    monkeypatch.setattr(rundir, "source_commit", lambda: first + "-dirty")
+    assert rundir.commit_note({"commit": first}) == f"this run started at commit {first} and continues at {first}-dirty"
+    assert rundir.commit_note({"commit": first + "-dirty"}) is None
+    assert rundir.commit_note({}) is None  # a run saved before runs recorded their commit
 
 
 def test_required_modules_name_every_pyproject_dependency():

@@ -25,6 +25,7 @@ from shed_jax.loop import LoopSpec
 from shed_jax.methods.hierarchical import HMDPConfig, TeacherHyperparams, make_hmdp
 from shed_jax.methods.shed import SHEDConfig, SHEDHyperparams, make_shed
 from shed_jax.presets import Experiment
+from shed_jax.runtime import source_commit
 from shed_jax.student.config import PPOConfig, PPOHyperparams
 from shed_jax.teacher.buffers import Transition, buffer_add_many, buffer_init, make_transition, sample_mixed
 from shed_jax.teacher.reward import coefficient_of_variation, zscore_mixed
@@ -323,6 +324,7 @@ def test_end_to_end_sweep_writes_run_files(tmp_path):
         assert r["final_test_return_mean"] == pytest.approx(records[-1]["test_return"])
         config = json.loads((d / "config.json").read_text())
         assert config["sweep_point"]["method_hparams"] == summary["values"] and config["root_seed"] == 3
+        assert config["commit"] == source_commit() and summary["commit"] == source_commit()
         recs[r["point"]] = records
         # --final-eval: this point's final student on the test set. The stub's return is
         # 100 - 30 |level - skill|_1 + N(0, 1), and the last budget step tested the same student with
