@@ -783,15 +783,15 @@ class RunOptions:
     set: list = dataclasses.field(default_factory=list)
     ppo: list = dataclasses.field(default_factory=list)
     out: str | None = None
-    no_gif: bool = False
+    no_gif: bool | None = None  # None: the resumed run's choice, else False (OUTPUT_DEFAULTS)
     final_eval: str | None = None
     final_eval_episodes: int = 10
     resume: str | None = None
     from_step: int | None = None
     restart: bool = False
-    keep: int = 3
+    keep: int | None = None  # None: the resumed run's, else 3
     no_checkpoint: bool = False
-    checkpoint_every: float = 0.0
+    checkpoint_every: float | None = None  # None: the resumed run's, else 0.0
     stop_after: int | None = None
     time_limit: float | None = None
 
@@ -799,9 +799,23 @@ class RunOptions:
     COUNTS = ("seeds", "episodes", "steps_per_episode", "test_episode_every", "chunk", "keep", "final_eval_episodes",
               "stop_after", "from_step")
 
+    #: how a run keeps its outputs: saved with the run (config.json's ``output``), so ``--resume`` goes on
+    #: as the run started unless the flag is given again (the last one given is saved in turn)
+    OUTPUT_DEFAULTS = {"keep": 3, "checkpoint_every": 0.0, "no_gif": False}
+
     @classmethod
     def from_args(cls, args) -> "RunOptions":
         return cls(**{f.name: getattr(args, f.name) for f in dataclasses.fields(cls) if hasattr(args, f.name)})
+
+    def with_output(self, saved: dict | None) -> "RunOptions":
+        """Each output setting not given: the ``saved`` run's (a resumed run), else its default."""
+        saved = saved or {}
+        return dataclasses.replace(self, **{k: saved.get(k, default) if getattr(self, k) is None else getattr(self, k)
+                                            for k, default in self.OUTPUT_DEFAULTS.items()})
+
+    def output(self) -> dict:
+        """The output settings saved with the run."""
+        return {k: getattr(self, k) for k in self.OUTPUT_DEFAULTS}
 
     def check(self) -> None:
         """UsageError for a count < 1, a bad time limit or flags that do not go together."""
@@ -811,7 +825,8 @@ class RunOptions:
                 raise UsageError(f"--{name.replace('_', '-')} must be an integer >= 1, got {value!r}")
         if self.time_limit is not None and not 0 <= self.time_limit < math.inf:
             raise UsageError(f"--time-limit must be a finite number of seconds >= 0, got {self.time_limit!r}")
-        check_checkpoint_every(self.checkpoint_every, self.no_checkpoint)
+        if self.checkpoint_every is not None:
+            check_checkpoint_every(self.checkpoint_every, self.no_checkpoint)
         if self.from_step is not None and not self.resume:
             raise UsageError("--from-step N chooses the checkpoint that --resume DIR continues from; give --resume DIR as well")
         if self.restart:
@@ -845,6 +860,8 @@ def run(opts: RunOptions) -> int:
     with StopRequest() as signals:
         try:
             plan = rundir.plan_resume(opts, backend) if opts.resume else rundir.plan_fresh(opts, backend)
+            opts = opts.with_output(plan.config.get("output"))
+            plan.config["output"] = opts.output()  # saved with every checkpoint from here on
             started = _start_run(opts, plan, made)
             if started is None:
                 return 0

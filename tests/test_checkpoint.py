@@ -130,7 +130,8 @@ def test_resume_is_bitwise_exact(runs, capsys):
         f.writelines(lines[2 * SEEDS: 3 * SEEDS])
         f.write('{"seed": 0, "step": 3, "test_ret')
     capsys.readouterr()
-    assert run_cli.main(parse(["--resume", str(b), "--no-gif", "--keep", "2"])) == 0
+    # no output flags: the run's own --keep 2 and --no-gif carry over from its start
+    assert run_cli.main(parse(["--resume", str(b)])) == 0
     out = capsys.readouterr().out
     assert "resuming" in out and "from budget step 2/4" in out
     # the same records, nothing duplicated, earlier lines untouched
@@ -165,6 +166,16 @@ def test_resume_is_bitwise_exact(runs, capsys):
     assert steps_of(b) == [3, 4]
     for name in ("test_return.png", "test_return_per_level.png", "generated_levels.png"):
         assert (b / name).exists()
+    assert not (b / "final_student.gif").exists()
+    with ck.RunCheckpointer(b, create=False) as reader:
+        assert reader.read_config()["output"] == {"keep": 2, "checkpoint_every": 0.0, "no_gif": True}
+
+
+def test_output_settings_come_from_the_flag_then_the_saved_run_then_the_default():
+    opts = driver.RunOptions(keep=5).with_output({"keep": 1, "no_gif": True})
+    assert (opts.keep, opts.checkpoint_every, opts.no_gif) == (5, 0.0, True)
+    assert driver.RunOptions().with_output(None).output() == {"keep": 3, "checkpoint_every": 0.0, "no_gif": False}
+    assert driver.RunOptions(no_gif=False).with_output({"no_gif": True}).no_gif is False
 
 
 def test_config_mismatch_names_the_keys(runs, patched, capsys):

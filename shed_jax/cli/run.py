@@ -50,7 +50,8 @@ def add_arguments(p) -> None:
                    help="override a field of the student's PPOConfig or PPOHyperparams (repeatable), "
                         "e.g. --ppo num_envs=8 --ppo num_steps=640")
     p.add_argument("--out", default=None, help="run directory (default runs/<env>-<method>-<preset>-<time>)")
-    p.add_argument("--no-gif", action="store_true", help="skip the GIF of the final student")
+    p.add_argument("--no-gif", action="store_true", default=None,
+                   help="skip the GIF of the final student (saved with the run: --resume keeps it)")
     p.add_argument("--final-eval", default=None, metavar="LEVELS",
                    help="after the last budget step, evaluate the final students on level sets as `eval --levels` "
                         "does (test | named | FILE.json, comma-separated, or none) and write final_eval_<set>.json; "
@@ -67,11 +68,13 @@ def add_arguments(p) -> None:
     g.add_argument("--restart", action="store_true",
                    help="with --out DIR: clear a run in DIR that stopped before its first checkpoint and start it "
                         "over (refused when DIR holds a checkpoint or a finished run)")
-    g.add_argument("--keep", type=count, default=3, metavar="K", help="keep the last K checkpoints (default 3)")
+    g.add_argument("--keep", type=count, default=None, metavar="K",
+                   help="keep the last K checkpoints (default 3; saved with the run, so --resume keeps it unless given again)")
     g.add_argument("--no-checkpoint", action="store_true", help="do not save checkpoints (the run cannot be resumed)")
-    g.add_argument("--checkpoint-every", type=errors.non_negative_float, default=0.0, metavar="SECONDS",
-                   help="save a checkpoint at most this often (default 0: after every chunk); the last chunk and a "
-                        "stop always save. For states of gigabytes (SHED sweeps of hundreds of seeds)")
+    g.add_argument("--checkpoint-every", type=errors.non_negative_float, default=None, metavar="SECONDS",
+                   help="save a checkpoint at most this often (default 0: after every chunk; saved with the run like "
+                        "--keep); the last chunk and a stop always save. For states of gigabytes (SHED sweeps of "
+                        "hundreds of seeds)")
     g.add_argument("--stop-after", type=count, default=None, metavar="STEPS",
                    help="stop at the first chunk boundary at or after this many budget steps, save, exit 75")
     g.add_argument("--time-limit", type=errors.non_negative_float, default=None, metavar="SECONDS",
