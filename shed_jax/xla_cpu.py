@@ -67,19 +67,54 @@ FLAGS = (FLAG, "--xla_cpu_use_xnnpack=false")
 #: evaluation, the fused loop evaluation twice, SHED vs h-MDP) took 293 s in all against 344 s, and the
 #: run-bound lander parity tests 77 s and 81 s, as before. Level 0 compiled faster still (215 s) but ran
 #: slower: those parity tests took 344 s and 306 s, the whole suite 26.0 min against 28.
+#: The third: XLA:CPU's older fusion emitters instead of its newer (MLIR) ones (same machine, same five
+#: tests plus the lander parity pair and a DDPG test, two workers, an empty cache, 2026-11-29): 193 s
+#: instead of 236 s wall, every test faster, the run-bound parity tests too (67 s and 63 s against 77 s
+#: and 81 s); the 2-D walker's step compiled in 41 s against 52-58 s alone and ran as fast (14 ms).
+#: Results differ from the newer emitters' in the last float bits (the walker's observations by 1e-7).
 #: Not used by the CLI: LLVM's options may also reach GPU code generation (not checked), and long CPU runs
 #: would pay at run time.
-TEST_FLAGS = ("--xla_llvm_disable_expensive_passes=true", "--xla_backend_optimization_level=1")
+TEST_FLAGS = ("--xla_llvm_disable_expensive_passes=true", "--xla_backend_optimization_level=1",
+              "--xla_cpu_use_fusion_emitters=false")
 
 
 def apply_cpu_guard(extra: tuple[str, ...] = ()) -> None:
-    """Add each of ``FLAGS`` (then ``extra``) to ``XLA_FLAGS`` unless the user already set that option either way.
+    """Add each of ``FLAGS`` (then those of ``extra`` this jaxlib knows, :func:`xla_knows`) to ``XLA_FLAGS``
+    unless the user already set that option either way.
 
     Call it before the first JAX computation; once the backend exists it has no effect.
     """
     flags = os.environ.get("XLA_FLAGS", "")
-    for flag in (*FLAGS, *extra):
+    known = xla_knows([flag[2:].split("=")[0] for flag in extra])
+    for flag in (*FLAGS, *(f for f, k in zip(extra, known) if k)):
         option = flag[2:].split("=")[0]
         if option not in flags:
             flags = f"{flags} {flag}".strip()
     os.environ["XLA_FLAGS"] = flags
+
+
+def xla_knows(options: list[str]) -> list[bool]:
+    """Whether the installed jaxlib's XLA names each flag ``option`` (its shared library holds the name).
+
+    An unknown flag in ``XLA_FLAGS`` aborts the process when the backend starts, so the tuning flags of
+    ``extra`` (which a newer jaxlib may drop) are passed only when named; looking does not import jaxlib
+    and takes about 0.2 s (a 334 MB library, from the page cache). False for all when the library is not
+    where jaxlib 0.10-0.11 keep it.
+    """
+    import importlib.util
+    import mmap
+    import pathlib
+
+    found = [False] * len(options)
+    if not options:
+        return found
+    spec = importlib.util.find_spec("jaxlib")
+    if spec is None or not spec.origin:
+        return found
+    for lib in sorted(pathlib.Path(spec.origin).parent.glob("libjax_common*.so*")):
+        try:
+            with open(lib, "rb") as f, mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as m:
+                found = [k or m.find(o.encode()) >= 0 for k, o in zip(found, options)]
+        except (OSError, ValueError):
+            continue
+    return found

@@ -32,6 +32,14 @@ def test_guard_adds_missing_flags_and_respects_the_users(monkeypatch):
                                                "--xla_llvm_disable_expensive_passes=true"]
 
 
+def test_only_flags_this_jaxlib_knows_are_added(monkeypatch):
+    """An unknown flag would abort the process when JAX starts: extra flags the library does not name are dropped."""
+    assert xla_cpu.xla_knows(["xla_backend_optimization_level", "xla_cpu_no_such_flag_anywhere"]) == [True, False]
+    monkeypatch.setenv("XLA_FLAGS", "")
+    xla_cpu.apply_cpu_guard(extra=("--xla_cpu_no_such_flag_anywhere=1", "--xla_backend_optimization_level=1"))
+    assert os.environ["XLA_FLAGS"].split() == [*xla_cpu.FLAGS, "--xla_backend_optimization_level=1"]
+
+
 def test_the_suite_runs_with_its_compile_flag():
     """conftest applied TEST_FLAGS before JAX started (the suite's time depends on it)."""
     for flag in xla_cpu.TEST_FLAGS:
