@@ -66,10 +66,16 @@ def plan_fresh(opts, backend: str) -> RunPlan:
     out = pathlib.Path(opts.out or f"runs/{exp.env}-{exp.method}-{exp.preset}-{time.strftime('%Y%m%d-%H%M%S')}")
     clear = check_out(out, opts.restart)
     chunk = opts.chunk or default_chunk(exp)
-    config = {"experiment": exp.to_dict(), "seeds": num_seeds, "root_seed": root_seed, "backend": backend,
-              "devices": [str(d) for d in jax.devices()], "chunk": chunk, "jax": jax.__version__,
-              "commit": source_commit()}
+    config = run_config(exp, num_seeds, root_seed, backend, jax.devices(), chunk)
     return RunPlan(out, exp, num_seeds, root_seed, chunk, config, clear=clear)
+
+
+def run_config(exp, seeds: int, root_seed: int, backend: str, devices, chunk: int) -> dict:
+    """A run's configuration as config.json and its checkpoints hold it (a sweep point's adds ``sweep_point``)."""
+    import jax
+
+    return {"experiment": exp.to_dict(), "seeds": seeds, "root_seed": root_seed, "backend": backend,
+            "devices": [str(d) for d in devices], "chunk": chunk, "jax": jax.__version__, "commit": source_commit()}
 
 
 def commit_note(config: dict) -> str | None:

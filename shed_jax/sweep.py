@@ -43,9 +43,8 @@ from typing import Any, Callable
 
 import numpy as np
 
-from shed_jax import driver
+from shed_jax import driver, rundir
 from shed_jax.errors import EXIT_NONFINITE, EXIT_STOPPED, UsageError
-from shed_jax.runtime import source_commit
 
 KINDS = ("method_hparam", "student_hparam", "method_config", "student_config")
 STUDENT_PREFIX = "ppo."
@@ -351,9 +350,8 @@ def run_group(built: BuiltGroup, *, out: pathlib.Path, mesh, pad: bool = True, p
             if not path.exists():
                 path.mkdir(parents=True)
                 made is not None and made.append(path)
-        config = {"experiment": exp.to_dict(), "seeds": S, "root_seed": batch.root_seed, "backend": jax.default_backend(),
-                  "devices": [str(x) for x in mesh.devices.flat], "chunk": batch.chunk, "jax": jax.__version__,
-                  "commit": source_commit(), "sweep_point": {"name": p.name, "values": p.values, "group": group.label,
+        config = {**rundir.run_config(exp, S, batch.root_seed, jax.default_backend(), mesh.devices.flat, batch.chunk),
+                  "sweep_point": {"name": p.name, "values": p.values, "group": group.label,
                                   "method_hparams": p.method_hparams, "student_hparams": p.student_hparams}}
         (d / "config.json").write_text(json.dumps(config, indent=2, default=str))
         made is not None and made.append(d / "config.json")
