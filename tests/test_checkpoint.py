@@ -411,3 +411,23 @@ def test_config_differences_and_tree_helpers():
     assert ck.tree_digest(x) == ck.tree_digest({"a": np.arange(3, dtype=np.int32)})
     assert ck.tree_digest(x) != ck.tree_digest({"a": np.arange(3, dtype=np.int64)})
     assert ck.tree_digest(x) != ck.tree_digest({"b": np.arange(3, dtype=np.int32)})
+
+
+def test_no_initial_state_holds_a_weak_typed_leaf():
+    # A restored checkpoint's arrays are strongly typed. A weakly typed leaf in the fresh state (e.g.
+    # jnp.full(n, -jnp.inf)) would make every resume lower a different program from the fresh run's,
+    # which misses the compilation cache: 390 s of recompiling on an H200 for PLR at DCD's budget.
+    from shed_jax import sharding
+    from shed_jax.methods.registry import METHODS
+    from shed_jax.presets import build_experiment
+
+    mesh = sharding.batch_mesh(jax.devices()[:1])
+    weak = {}
+    for method in METHODS:
+        exp = build_experiment("lander", method, "quick")
+        batch = driver.make_batch(exp, xp.build(exp), [({}, {})], num_seeds=2, root_seed=0, chunk=2)
+        target = driver.state_target(batch, driver.place(batch, mesh))
+        leaves = jax.tree_util.tree_leaves_with_path(target)
+        assert len(leaves) > 10
+        weak[method] = [jax.tree_util.keystr(p) for p, x in leaves if x.weak_type]
+    assert weak == {m: [] for m in METHODS}

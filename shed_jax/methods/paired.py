@@ -238,7 +238,7 @@ class PAIRED:
         zeros, off = jnp.zeros((n,), jnp.float32), jnp.zeros((n,), bool)
         return PairedSlots(vecs=self.codec.space.from_unit(unit), seeds=new_seeds(k_seed, n), z=z, x=x, log_prob=logp,
                            value=value, pro_on=off, ant_on=off, pro_sum=zeros, pro_count=zeros,
-                           ant_max=jnp.full((n,), -jnp.inf), ant_count=zeros)
+                           ant_max=jnp.full((n,), -jnp.inf, jnp.float32), ant_count=zeros)
 
     def begin_episode(self, key: jax.Array, mstate: PAIREDState, sstate):
         k_init, k_assign = (jax.random.split(key) if self.config.level_switch == "episode" else (key, None))

@@ -159,7 +159,7 @@ class PLR:
         n = self.student.config.num_envs
         zeros = jnp.zeros((n,), jnp.float32)
         slots = Slots(vecs=jnp.zeros((n, self.codec.dim), jnp.float32), seeds=jnp.zeros((n,), jnp.int32),
-                      idx=jnp.full((n,), -1, jnp.int32), total=zeros, count=zeros, max_return=jnp.full((n,), -jnp.inf))
+                      idx=jnp.full((n,), -1, jnp.int32), total=zeros, count=zeros, max_return=jnp.full((n,), -jnp.inf, jnp.float32))
         return PLRState(buffer=buffer, slots=slots)  # begin_episode puts the slots on their first levels
 
     def begin_episode(self, key: jax.Array, mstate: PLRState, sstate):
