@@ -248,15 +248,28 @@ def _floats(values: dict, method: str, prefix: str = "") -> dict:
 
 
 def batch_init(init: Callable, method) -> Callable:
-    """``(key, student_hparams, method_hparams) -> RunState``: the loop's init, then the method's hparams."""
+    """``(key, student_hparams, method_hparams) -> RunState``: the loop's init, then the method's hparams,
+    with every leaf strongly typed (:func:`strongly_typed`)."""
 
     def init_point(key, student_hp, method_hp):
         state = init(key, student_hp)
         if method_hp is not None:
             state = state.replace(method=method.with_hparams(state.method, method_hp))
-        return state
+        return strongly_typed(state)
 
     return init_point
+
+
+def strongly_typed(tree):
+    """``tree`` with each weakly typed leaf (e.g. ``jnp.full(n, -jnp.inf)``) made strong, same dtype and values.
+
+    A restored checkpoint's arrays are strongly typed; a fresh state must be too, or a resumed run lowers
+    another program than the fresh run's and misses the compilation cache (minutes on the walkers).
+    """
+    import jax
+    from jax import lax
+
+    return jax.tree.map(lambda x: lax.convert_element_type(x, x.dtype) if jax.typeof(x).weak_type else x, tree)
 
 
 def batch_inputs(batch: Batch):

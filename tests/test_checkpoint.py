@@ -422,12 +422,22 @@ def test_no_initial_state_holds_a_weak_typed_leaf():
     from shed_jax.presets import build_experiment
 
     mesh = sharding.batch_mesh(jax.devices()[:1])
-    weak = {}
-    for method in METHODS:
+    for method in METHODS:  # the methods' own states (whole-episode slots included) are strong
         exp = build_experiment("lander", method, "quick")
-        batch = driver.make_batch(exp, xp.build(exp), [({}, {})], num_seeds=2, root_seed=0, chunk=2)
-        target = driver.state_target(batch, driver.place(batch, mesh))
-        leaves = jax.tree_util.tree_leaves_with_path(target)
+        _, student, m, tests = xp.build(exp)
+        init, _ = make_run(student, m, tests, exp.loop)
+        leaves = jax.tree_util.tree_leaves_with_path(jax.eval_shape(init, jax.random.PRNGKey(0)))
         assert len(leaves) > 10
-        weak[method] = [jax.tree_util.keystr(p) for p, x in leaves if x.weak_type]
-    assert weak == {m: [] for m in METHODS}
+        assert [jax.tree_util.keystr(p) for p, x in leaves if x.weak_type] == [], method
+    # and the driver makes any state strong, values and dtypes kept
+    weak = {"a": jnp.full((3,), -jnp.inf), "b": jnp.float32(2.0) * 1.0, "n": jnp.arange(2) + 1, "k": jax.random.key(1)}
+    assert jax.eval_shape(lambda: weak["a"]).weak_type
+    strong = jax.jit(driver.strongly_typed)(weak)
+    assert not any(jax.typeof(x).weak_type for x in jax.tree.leaves(strong))
+    for k in ("a", "b", "n"):
+        assert strong[k].dtype == weak[k].dtype
+        np.testing.assert_array_equal(strong[k], weak[k])
+    assert jax.random.key_impl(strong["k"]) == jax.random.key_impl(weak["k"])
+    batch = driver.make_batch(exp, xp.build(exp), [({}, {})], num_seeds=2, root_seed=0, chunk=2)
+    target = driver.state_target(batch, driver.place(batch, mesh))
+    assert not any(x.weak_type for x in jax.tree.leaves(target))
