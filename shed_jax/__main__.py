@@ -32,10 +32,12 @@ def main(argv=None) -> int:
     from shed_jax.cli import errors
     from shed_jax.runtime import missing_packages, missing_packages_line
 
+    args_given = sys.argv[1:] if argv is None else list(argv)
     missing = missing_packages()
     if missing:  # before the commands' imports and any compile: not a traceback minutes into a run
         print(missing_packages_line(missing), file=sys.stderr)
-        return errors.EXIT_USAGE
+        if not any(a in ("-h", "--help") for a in args_given):
+            return errors.EXIT_USAGE  # help is still shown, for the commands that import without them
 
     parser = errors.Parser(prog="python -m shed_jax", description=__doc__.splitlines()[0])
     parser.add_argument("--debug", action="store_true", help=DEBUG_HELP)
@@ -45,7 +47,7 @@ def main(argv=None) -> int:
         try:
             module = importlib.import_module(f"shed_jax.cli.{name}")
         except ModuleNotFoundError as err:
-            if err.name != f"shed_jax.cli.{name}":
+            if err.name != f"shed_jax.cli.{name}" and not missing:
                 raise
             continue
         p = sub.add_parser(name, help=help_text, description=help_text)
@@ -54,7 +56,7 @@ def main(argv=None) -> int:
         p.add_argument("--debug", action="store_true", default=argparse.SUPPRESS, help=DEBUG_HELP)
         available[name] = module
     try:
-        args = parser.parse_args(argv)
+        args = parser.parse_args(args_given)
     except SystemExit as err:  # --help (0) or a usage error argparse has printed as one line (2)
         return err.code if isinstance(err.code, int) else errors.EXIT_USAGE
     if args.command is None:

@@ -157,3 +157,8 @@ def test_a_missing_dependency_stops_the_cli_in_one_line_before_any_work(monkeypa
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "missing package(s): orjson-gone;" in err and "make setup" in err
     assert not (tmp_path / "run").exists()
+    # --help still helps, after the same line
+    assert main(["run", "--help"]) == 0
+    out, err = capsys.readouterr()
+    assert "missing package(s): orjson-gone;" in err and "--resume DIR" in out
+    assert main(["--help"]) == 0 and "COMMAND" in capsys.readouterr().out
