@@ -73,14 +73,10 @@ FLAGS = (FLAG, "--xla_cpu_use_xnnpack=false")
 #: and 81 s); the 2-D walker's step compiled in 41 s against 52-58 s alone and ran as fast (14 ms).
 #: Results differ from the newer emitters' in the last float bits (a sum of 30.79 over the walker's
 #: observations by 2e-6).
-#: The fourth: no YNNPACK fusions (XLA:CPU hands some fused dots and reductions to that library; the XNNPACK
-#: guard above does not cover it). Same machine, 2026-11-29: the lander parity program (600 heuristic
-#: episodes of 1,000 steps) ran in 41.7 s against 44.8-46.1 s and compiled a few seconds faster; its
-#: statistics differ in the last digits (mean return 239.77 against 239.52 over 100 episodes).
 #: Not used by the CLI: LLVM's options may also reach GPU code generation (not checked), and long CPU runs
 #: would pay at run time.
 TEST_FLAGS = ("--xla_llvm_disable_expensive_passes=true", "--xla_backend_optimization_level=1",
-              "--xla_cpu_use_fusion_emitters=false", "--xla_cpu_experimental_ynn_fusion_type=")
+              "--xla_cpu_use_fusion_emitters=false")
 
 
 def apply_cpu_guard(extra: tuple[str, ...] = ()) -> None:

@@ -10,9 +10,8 @@ os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
 from shed_jax.xla_cpu import TEST_FLAGS, apply_cpu_guard  # noqa: E402
 
 # XLA:CPU hang guard (see shed_jax/xla_cpu.py); two xdist workers on two cores lose nothing. TEST_FLAGS:
-# LLVM at optimisation level 1 without its expensive passes, XLA:CPU's older fusion emitters and no
-# YNNPACK fusions, for the compiles and runs that dominate the suite's time (measurements in
-# shed_jax/xla_cpu.py).
+# LLVM at optimisation level 1 without its expensive passes, and XLA:CPU's older fusion emitters, for the
+# compiles that dominate the suite's time (measurements in shed_jax/xla_cpu.py).
 apply_cpu_guard(extra=TEST_FLAGS)
 
 import jax  # noqa: E402
