@@ -125,8 +125,9 @@ def test_solver_kernel_inside_per_device_shard_map_equals_xla():
     """The full step with the kernel (Pallas' interpreter) on 2 virtual devices through the sweep's
     sharded path (``sharding.per_device``): each device vmaps its runs x worlds (nested vmap) into its
     own kernel calls, and gets the numbers of the unsharded XLA loops."""
-    env = {**os.environ, "XLA_FLAGS": "--xla_force_host_platform_device_count=2", "JAX_PLATFORMS": "cpu",
-           "PYTHONPATH": str(ROOT)}
+    # the suite's XLA:CPU guard and compile flags (tests/conftest.py), as this process has, plus two devices
+    env = {**os.environ, "XLA_FLAGS": os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2",
+           "JAX_PLATFORMS": "cpu", "PYTHONPATH": str(ROOT)}
     proc = subprocess.Popen([sys.executable, "-c", _SHARDED], cwd=ROOT, env=env, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
     ref = jax.jit(jax.vmap(runs_of_worlds("xla")))(RUN_SPEEDS)  # meanwhile, in this process

@@ -130,7 +130,9 @@ _SCRIPT = textwrap.dedent(
 
 
 def test_sharded_loop_on_four_devices_equals_unsharded():
-    env = {**os.environ, "XLA_FLAGS": "--xla_force_host_platform_device_count=4", "JAX_PLATFORMS": "cpu",
+    # the suite's XLA:CPU guard and compile flags (tests/conftest.py), plus four virtual devices
+    env = {**os.environ, "XLA_FLAGS": os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=4",
+           "JAX_PLATFORMS": "cpu",
            "PYTHONPATH": str(ROOT), "XLA_PYTHON_CLIENT_PREALLOCATE": "false",
            # the suite's persistent compilation cache (tests/conftest.py), so reruns skip the two compiles
            "JAX_COMPILATION_CACHE_DIR": str(ROOT / ".cache" / "jax"), "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "1"}
