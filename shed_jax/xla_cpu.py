@@ -73,9 +73,16 @@ FLAGS = (FLAG, "--xla_cpu_use_xnnpack=false")
 #: and 81 s); the 2-D walker's step compiled in 41 s against 52-58 s alone and ran as fast (14 ms).
 #: Results differ from the newer emitters' in the last float bits (a sum of 30.79 over the walker's
 #: observations by 2e-6).
+#: Since 2026-11-29 the level is 0 (same machine, two workers, an empty cache, one run each): the whole
+#: suite took 927 s against 1,152 s at level 1, the sum of its test times 1,791 s against 2,244 s. Two
+#: kinds of test compile at level 1 instead (marked ``optimized``, tests/conftest.py): those whose
+#: programs run long (level 0 ran them up to 4x slower: 200 QRs 15 -> 56 s, a DDPG bandit 13 -> 33 s),
+#: and those that compare two different programs bit for bit: level 0 failed six of them (last-bit
+#: differences, 2e-10 to 6e-6 relative; the lander's 1,000-step episodes drifted by 2e-5). One of the
+#: six, whose programs come from a module-scoped fixture, compares within 1e-5 instead.
 #: Not used by the CLI: LLVM's options may also reach GPU code generation (not checked), and long CPU runs
 #: would pay at run time.
-TEST_FLAGS = ("--xla_llvm_disable_expensive_passes=true", "--xla_backend_optimization_level=1",
+TEST_FLAGS = ("--xla_llvm_disable_expensive_passes=true", "--xla_backend_optimization_level=0",
               "--xla_cpu_use_fusion_emitters=false")
 
 

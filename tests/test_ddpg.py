@@ -215,6 +215,7 @@ def _bandit_errors(seed=0, **td3):
     return np.asarray(err0), np.asarray(err), np.asarray(critic_loss), np.asarray(s_test)
 
 
+@pytest.mark.optimized  # a training run
 def test_solves_one_step_quadratic_bandit():
     """r(s, u) = -||u - c(s)||^2 with c(s) = 0.5 * tanh(s W): the actor must output the argmax c(s).
 
@@ -235,6 +236,7 @@ def test_solves_one_step_quadratic_bandit():
     assert critic_loss.max() < 0.02, critic_loss
 
 
+@pytest.mark.optimized  # a training run
 def test_td3_switches_still_solve_the_bandit():
     """Twin critics and a delayed actor (half the actor steps): the bandit is still solved. The
     critic loss is the sum of the two critics' losses. Measured over 5 root keys x 8 seeds, default and

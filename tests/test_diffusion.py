@@ -184,6 +184,7 @@ def _train(noise, key):
     return f, (s, a, sn), model, st, s0, a0
 
 
+@pytest.mark.optimized  # a training run
 def test_noise_one_matches_real_within_twice_the_floor():
     f, _, model, st, s0, a0 = _train("gaussian", jax.random.PRNGKey(0))
     stats, _, _ = dc.compare_at_point(jax.random.PRNGKey(1), model, st, f, s0, a0, 1.0, repeats=5)
@@ -191,6 +192,7 @@ def test_noise_one_matches_real_within_twice_the_floor():
     assert stats["w1"] <= 2.0 * stats["w1_floor"], stats
 
 
+@pytest.mark.optimized  # a training run
 def test_captures_bimodal_conditional_where_gaussian_fails():
     f, (s, a, sn), model, st, s0, a0 = _train("bimodal", jax.random.PRNGKey(2))
     n = 400

@@ -171,6 +171,7 @@ def test_vmapped_seeds_run_until_the_last_one_is_done(cart):
         assert int(info["steps_run"][i]) == 16 * -(-int(np.max(L_ref)) // 16)  # each seed's own count
 
 
+@pytest.mark.optimized  # bitwise: two programs
 @pytest.mark.slow
 def test_lander_early_stop_equals_the_full_scan():
     """Early stopping on the lander (a real physics step) equals the full-length scan. Fusion is
@@ -222,6 +223,7 @@ def _shed_loop(fused: bool, spec):
     return jax.jit(jax.vmap(init))(jax.random.split(jax.random.PRNGKey(3), 2)), run
 
 
+@pytest.mark.optimized  # bitwise: two programs
 @pytest.mark.parametrize("test_episode_every", [1, 2])  # 1: static "always test"; 2: a traced schedule
 def test_loop_fused_test_set_equals_separate_evaluation(test_episode_every):
     from shed_jax.loop import LoopSpec

@@ -27,6 +27,7 @@ def check(ours, ref, name):
     assert abs(ours["length"] - ref["length"]) <= 0.20 * ref["length"], (name, ours, ref)
 
 
+@pytest.mark.optimized  # 600 episodes of 1,000 steps in one program
 @pytest.mark.parametrize("continuous", [False, True], ids=["discrete", "continuous"])
 def test_heuristic_parity_with_gymnasium(continuous):
     mode = "continuous" if continuous else "discrete"

@@ -151,6 +151,7 @@ def test_vertex_segment_touching_ignores_far_points_below_steep_segment_lines():
     np.testing.assert_array_equal(t, [[True, False], [False, False], [False, False], [False, True]])
 
 
+@pytest.mark.optimized  # bitwise: two programs
 def test_free_flight_step_equals_full_step_for_the_landers_reset():
     """The lander's reset step skips collision (free_flight); it must give exactly the full step's result.
 

@@ -160,6 +160,7 @@ def test_box_at_rest_on_an_edge_shares_its_weight_between_two_points():
     assert abs(float(w.bodies.com[0, 1]) - 0.25 - 1.0 - 0.015) < 1e-3  # Box2D's resting gap (radius - slop)
 
 
+@pytest.mark.optimized  # bitwise: two programs
 def test_edge_contacts_run_in_the_fused_kernel_bitwise():
     """The edge solver's passes keep the fused loop's contract (per-world scalars, elementwise ops):
     through the Pallas kernel's interpreter a vmapped batch ends bitwise where plain XLA does."""

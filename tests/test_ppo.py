@@ -196,6 +196,7 @@ def test_rollout_moves_a_slot_to_its_next_level_when_its_episode_ends(cart):
     np.testing.assert_array_equal(s3.levels.max_steps, [5, 5, 1000, 1000])
 
 
+@pytest.mark.optimized  # bitwise: two programs
 def test_per_rollout_resets_restart_from_one_drawn_state_and_leave_earlier_steps_unchanged():
     """reset_draw="per_rollout": every episode end of a slot in a rollout restarts from one reset drawn
     before the rollout (on the slot's level, or on its next level once it moves), and each slot's steps
@@ -208,7 +209,7 @@ def test_per_rollout_resets_restart_from_one_drawn_state_and_leave_earlier_steps
     _, t_fresh = jax.jit(fresh.rollout)(s, key)
     _, t_ahead = jax.jit(ahead.rollout)(s, key)
     done = np.asarray(t_ahead.dones)
-    drawn_obs, _ = jax.vmap(env.reset)(jax.random.split(jax.random.fold_in(key, 1), 4), s.levels)
+    drawn_obs, _ = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.fold_in(key, 1), 4), s.levels)
     for j in range(4):
         ends = np.nonzero(done[:, j])[0]
         assert len(ends) >= 3, j

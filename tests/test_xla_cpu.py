@@ -62,6 +62,7 @@ def test_orthogonal_matches_the_library_without_lapack(shape):
         orthogonal()(key, (2, 3, 4))
 
 
+@pytest.mark.optimized  # 200 QRs of up to 300 x 256
 @pytest.mark.parametrize("shape", [(64, 64), (300, 256), (4, 64)])
 def test_orthogonal_matches_numpy_lapack_and_is_haar(shape):
     """Against a JAX-free float64 reference (NumPy's LAPACK QR of the same Gaussian draw, signs fixed
@@ -98,6 +99,7 @@ def test_householder_q_on_a_hand_case():
     np.testing.assert_allclose(q[:, 1], [-0.8, 0.6, 0.0], atol=1e-6)  # R[1, 1] = 3 > 0
 
 
+@pytest.mark.optimized  # 300 calls in a child process
 def test_vmapped_student_inits_finish_on_a_two_thread_pool():
     # 16 vmapped students, six QRs each, 300 times on a pool forced to two threads (as on a 2-core
     # machine); `python -m experiments.cpu_deadlock --init library` shows the library init hanging
@@ -111,3 +113,17 @@ def test_the_library_swap_reaches_the_student():
     assert "networks.orthogonal" not in cpu_deadlock.child_source("ours", 5)
     with pytest.raises(ValueError, match="--init"):
         cpu_deadlock.child_source("lapack", 5)
+
+
+@pytest.mark.optimized
+def test_optimized_tests_compile_at_level_1_in_process_and_in_child_processes():
+    levels = [f for f in os.environ["XLA_FLAGS"].split() if f.startswith("--xla_backend_optimization_level")]
+    assert levels == ["--xla_backend_optimization_level=1"]  # what a child process reads
+    # this test's jits carry the level merged with their own options: an unknown one still reaches XLA
+    with pytest.raises(Exception, match="No such compile option: 'xla_no_such_option'"):
+        jax.jit(lambda x: x + 1, compiler_options={"xla_no_such_option": 1})(1.0)
+
+
+def test_other_tests_compile_at_the_suites_level_0():
+    assert "--xla_backend_optimization_level=0" in os.environ["XLA_FLAGS"].split()
+    assert jax.jit.__module__.startswith("jax")  # the library's own jit, not the optimized wrapper
