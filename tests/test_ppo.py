@@ -227,7 +227,7 @@ def test_per_rollout_resets_restart_from_one_drawn_state_and_leave_earlier_steps
     # switching: a slot that moves starts its next episode from the reset drawn on its next level
     nxt = _levels(env, max_steps=[9, 9, 9, 9], gravity=[5.0, 6.0, 7.0, 8.0])
     s1, t1 = jax.jit(ahead.rollout)(s, key, nxt)
-    drawn_next, _ = jax.vmap(env.reset)(jax.random.split(jax.random.fold_in(key, 2), 4), nxt)
+    drawn_next, _ = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.fold_in(key, 2), 4), nxt)
     first = np.argmax(np.asarray(t1.dones), axis=0)
     np.testing.assert_array_equal(np.asarray(t1.obs)[first + 1, np.arange(4)], np.asarray(drawn_next))
     # and so does every later episode of a moved slot: slot 0 ends at 4 (old level), 13, 22, 31
