@@ -438,6 +438,16 @@ def test_no_initial_state_holds_a_weak_typed_leaf():
         assert strong[k].dtype == weak[k].dtype
         np.testing.assert_array_equal(strong[k], weak[k])
     assert jax.random.key_impl(strong["k"]) == jax.random.key_impl(weak["k"])
+    # the PPO trainer's student states (`python -m shed_jax ppo`, its resume included) hold none either
+    import envs
+    from shed_jax.student import make_student
+
+    for name in envs.registered():
+        env = envs.make(name)
+        student = make_student(env, PPOConfig.for_env(name).replace(num_envs=2))
+        levels = env.param_space.sample(jax.random.PRNGKey(0), (1,))
+        state = jax.eval_shape(lambda k: student.assign_levels(student.init(k), k, levels), jax.random.PRNGKey(0))
+        assert [jax.tree_util.keystr(p) for p, x in jax.tree_util.tree_leaves_with_path(state) if x.weak_type] == [], name
     batch = driver.make_batch(exp, xp.build(exp), [({}, {})], num_seeds=2, root_seed=0, chunk=2)
     target = driver.state_target(batch, driver.place(batch, mesh))
     assert not any(x.weak_type for x in jax.tree.leaves(target))
