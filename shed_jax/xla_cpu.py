@@ -101,6 +101,14 @@ def apply_cpu_guard(extra: tuple[str, ...] = ()) -> None:
     os.environ["XLA_FLAGS"] = flags
 
 
+def with_flag(flags: str, flag: str) -> str:
+    """``flags`` (an ``XLA_FLAGS`` string) with ``flag`` (``--option=value``) in place of any setting of its
+    option: for a child process or a test that needs one option changed and the rest kept."""
+    option = flag.split("=")[0]
+    kept = [f for f in flags.split() if f.split("=")[0] != option]
+    return " ".join([*kept, flag])
+
+
 def xla_knows(options: list[str]) -> list[bool]:
     """Whether the installed jaxlib's XLA names each flag ``option`` (its shared library holds the name).
 

@@ -1,14 +1,13 @@
 """Shared test set-up: CPU only, float32, a persistent compilation cache under .cache/."""
 import os
 import pathlib
-import re
 import sys
 
 import pytest
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
 os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
-from shed_jax.xla_cpu import TEST_FLAGS, apply_cpu_guard  # noqa: E402
+from shed_jax.xla_cpu import TEST_FLAGS, apply_cpu_guard, with_flag  # noqa: E402
 
 # XLA:CPU hang guard (see shed_jax/xla_cpu.py); two xdist workers on two cores lose nothing. TEST_FLAGS:
 # LLVM at optimisation level 0 without its expensive passes (level 1 in tests marked `optimized`, below),
@@ -44,8 +43,8 @@ def _optimized_programs(request, monkeypatch):
             return jit(fun, *args, compiler_options={**option, **(compiler_options or {})}, **kwargs)
 
         monkeypatch.setattr(jax, "jit", optimized_jit)
-        flags = re.sub(r"\s*--xla_backend_optimization_level=\S+", "", os.environ.get("XLA_FLAGS", ""))
-        monkeypatch.setenv("XLA_FLAGS", f"{flags} --xla_backend_optimization_level={OPTIMIZED_LEVEL}".strip())
+        monkeypatch.setenv("XLA_FLAGS", with_flag(os.environ.get("XLA_FLAGS", ""),
+                                                  f"--xla_backend_optimization_level={OPTIMIZED_LEVEL}"))
     yield
 
 

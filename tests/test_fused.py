@@ -19,6 +19,7 @@ import pytest
 from envs import physics2d
 from envs.physics2d import fused
 from envs.physics2d.vec import V2
+from shed_jax.xla_cpu import with_flag
 
 DT = 1.0 / 50.0
 BOX = ((-0.5, -0.25), (0.5, -0.25), (0.5, 0.25), (-0.5, 0.25))
@@ -126,7 +127,7 @@ def test_solver_kernel_inside_per_device_shard_map_equals_xla():
     sharded path (``sharding.per_device``): each device vmaps its runs x worlds (nested vmap) into its
     own kernel calls, and gets the numbers of the unsharded XLA loops."""
     # the suite's XLA:CPU guard and compile flags (tests/conftest.py), as this process has, plus two devices
-    env = {**os.environ, "XLA_FLAGS": os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2",
+    env = {**os.environ, "XLA_FLAGS": with_flag(os.environ.get("XLA_FLAGS", ""), "--xla_force_host_platform_device_count=2"),
            "JAX_PLATFORMS": "cpu", "PYTHONPATH": str(ROOT)}
     proc = subprocess.Popen([sys.executable, "-c", _SHARDED], cwd=ROOT, env=env, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)

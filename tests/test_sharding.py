@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from shed_jax import sharding
+from shed_jax.xla_cpu import with_flag
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
@@ -131,7 +132,7 @@ _SCRIPT = textwrap.dedent(
 
 def test_sharded_loop_on_four_devices_equals_unsharded():
     # the suite's XLA:CPU guard and compile flags (tests/conftest.py), plus four virtual devices
-    env = {**os.environ, "XLA_FLAGS": os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=4",
+    env = {**os.environ, "XLA_FLAGS": with_flag(os.environ.get("XLA_FLAGS", ""), "--xla_force_host_platform_device_count=4"),
            "JAX_PLATFORMS": "cpu",
            "PYTHONPATH": str(ROOT), "XLA_PYTHON_CLIENT_PREALLOCATE": "false",
            # the suite's persistent compilation cache (tests/conftest.py), so reruns skip the two compiles

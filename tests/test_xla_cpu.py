@@ -115,6 +115,15 @@ def test_the_library_swap_reaches_the_student():
         cpu_deadlock.child_source("lapack", 5)
 
 
+def test_with_flag_replaces_the_option_and_keeps_the_rest():
+    flags = "--xla_cpu_use_xnnpack=false --xla_backend_optimization_level=0 --xla_foo=1"
+    assert xla_cpu.with_flag(flags, "--xla_backend_optimization_level=1") == \
+        "--xla_cpu_use_xnnpack=false --xla_foo=1 --xla_backend_optimization_level=1"
+    assert xla_cpu.with_flag("", "--xla_force_host_platform_device_count=4") == "--xla_force_host_platform_device_count=4"
+    # a prefix of another option's name is another option
+    assert xla_cpu.with_flag("--xla_foo_bar=2", "--xla_foo=3") == "--xla_foo_bar=2 --xla_foo=3"
+
+
 @pytest.mark.optimized
 def test_optimized_tests_compile_at_level_1_in_process_and_in_child_processes():
     levels = [f for f in os.environ["XLA_FLAGS"].split() if f.startswith("--xla_backend_optimization_level")]
