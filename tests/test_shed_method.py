@@ -2,6 +2,8 @@
 compile; the lander/walker evaluation sets are tested in test_eval_sets.py), checking the official
 schedule (buffer growth, diffusion/synthesis threshold, DDPG branch), rewards and accounting, and
 the composition (h-MDP: the DDPG teacher alone; SHED: plus the diffusion synthesiser)."""
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -36,6 +38,7 @@ def _cartpole():
     return env, student, eval_levels
 
 
+@functools.lru_cache(maxsize=None)  # one compile per configuration in a worker; tests only read the results
 def _run(name, steps=4, **overrides):
     env, student, eval_levels = _cartpole()
     method = _build(name, env, student, eval_levels, **overrides)
@@ -102,19 +105,22 @@ def test_hmdp_has_no_diffusion_and_two_real_updates():
 
 
 def test_shed_and_hmdp_are_one_process_until_the_teacher_learns():
-    """With the thresholds out of reach (no DDPG update, no diffusion), SHED and h-MDP must draw the
-    same keys for the same things: equal levels, teacher states, rewards and students, bit for bit
-    on one backend. Paired seeds across the two methods rely on this."""
-    _, (m_a, s0_a, info_a, student_a) = _run("shed", ddpg_threshold=100, diffusion_threshold=100, syn_threshold=100)
-    _, (m_b, s0_b, info_b, student_b) = _run("hmdp", ddpg_threshold=100)
-    np.testing.assert_array_equal(info_a.extras["ddpg_branch"], [0, 0, 0, 0])
-    np.testing.assert_array_equal(info_a.extras["syn_size"], [0, 0, 0, 0])
+    """Until the teacher's first update (at the end of step 2, once |B_real| > 1) SHED and h-MDP must
+    draw the same keys for the same things: equal levels, teacher states (the students'
+    evaluations), rewards and accounting, bit for bit on one backend; SHED's first synthesis (also
+    at the end of step 2) changes nothing before it. Paired seeds across the two methods rely on
+    this. The runs are the two tests' above (cached), so this test compiles nothing."""
+    _, (_, s0_a, info_a, _) = _run("shed")
+    _, (_, s0_b, info_b, _) = _run("hmdp")
+    np.testing.assert_array_equal(info_a.extras["ddpg_branch"][:2], [0, 1])  # the first update: step 2
+    np.testing.assert_array_equal(info_b.extras["ddpg_branch"][:2], [0, 1])
     np.testing.assert_array_equal(s0_a, s0_b)
     for field in ("levels", "teacher_reward", "env_steps_train", "env_steps_eval"):
-        np.testing.assert_array_equal(getattr(info_a, field), getattr(info_b, field), err_msg=field)
-    np.testing.assert_array_equal(info_a.extras["teacher_state"], info_b.extras["teacher_state"])
-    jax.tree.map(np.testing.assert_array_equal, student_a.params, student_b.params)
-    assert len(np.unique(np.asarray(info_a.levels).reshape(4, -1), axis=0)) == 4  # the levels do change per step
+        np.testing.assert_array_equal(getattr(info_a, field)[:2], getattr(info_b, field)[:2], err_msg=field)
+    np.testing.assert_array_equal(info_a.extras["teacher_state"][:2], info_b.extras["teacher_state"][:2])
+    assert len(np.unique(np.asarray(info_a.levels)[:2].reshape(2, -1), axis=0)) == 2  # the levels change per step
+    # after the update they part: SHED ran three real updates at step 2, h-MDP two
+    assert not np.array_equal(info_a.levels[2], info_b.levels[2])
 
 
 def test_config_errors():

@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from test_shed_method import _run  # noqa: E402
+from test_shed_method import _build, _cartpole, _run  # noqa: E402
 
 from envs.core import ParamSpace
 from shed_jax.methods.hierarchical import HMDPConfig, at_bound_fraction, buffer_zscore, noise_sd
@@ -46,8 +46,10 @@ def test_time_in_state_off_keeps_the_state_m_wide():
 def test_reward_norm_none_gives_the_critic_raw_rewards():
     """Done transitions with reward 5 everywhere: the target is r~, 0 when z-scored per batch, 5 raw."""
     targets = {}
+    env, student, eval_levels = _cartpole()
     for norm in ("batch", "none"):
-        method, (m, _, _, _) = _run("hmdp", steps=1, reward_norm=norm)
+        method = _build("hmdp", env, student, eval_levels, reward_norm=norm)
+        m = method.init(jax.random.PRNGKey(0))  # the critic's target needs the update alone, not a run
         assert method.teacher.ddpg.config.reward_norm is (norm == "batch")
         b = 4
         batch = Transition(s=jnp.ones((b, 10)), u=jnp.zeros((b, 15)), r=jnp.full((b,), 5.0), s_next=jnp.ones((b, 10)),
