@@ -49,7 +49,8 @@ def jax_episodes(continuous: bool, levels, key, max_steps: int = 1000, lanes: in
     ``key`` is one key, split into one per episode, or already an (n, 2) array of per-episode keys
     (to repeat one row of a larger run with the keys it had there). Episode ``i`` resets with the
     first half of its key and takes its step keys, one per step, from the second half split
-    ``max_steps`` ways, so its result does not depend on ``lanes`` or on the other episodes.
+    ``max_steps`` ways, so its result does not depend on the lane that runs it or on the other
+    episodes (across lane counts, up to XLA's rounding, which the lander's contacts amplify).
 
     The episodes run as a queue on ``lanes`` vmapped lanes: a lane whose episode ends takes the
     next episode from the queue, and the program stops when the queue is empty and every lane is
