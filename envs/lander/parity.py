@@ -20,6 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from envs.core import restart_where
 from envs.lander.env import LunarLander, make_params
 from envs.lander.heuristic import heuristic
 
@@ -94,13 +95,9 @@ def jax_episodes(continuous: bool, levels, key, max_steps: int = 1000, lanes: in
             fresh = moves & (episode < n)
 
             def restart(args):
-                obs, state, params = args
                 row = jnp.minimum(episode, n - 1)
                 new_params = take(levels, row)
-                new = reset(reset_keys[row], new_params)
-                pick = lambda a, b: jax.tree_util.tree_map(  # noqa: E731
-                    lambda x, y: jnp.where(fresh.reshape(fresh.shape + (1,) * (x.ndim - 1)), x, y), a, b)
-                return pick(new[0], obs), pick(new[1], state), pick(new_params, params)
+                return jax.vmap(restart_where)(fresh, (*reset(reset_keys[row], new_params), new_params), args)
 
             obs, state, params = jax.lax.cond(fresh.any(), restart, lambda a: a, (obs, state, params))
             t = jnp.where(moves, 0, jnp.minimum(t + 1, max_steps - 1))
