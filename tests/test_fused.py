@@ -60,6 +60,30 @@ def test_loop_matches_closed_form_unbatched_vmapped_and_nested(mode):
     np.testing.assert_allclose(np.asarray(x.x), closed_form(np.asarray(a2), 0.25, np.asarray(x2), n), rtol=1e-5)
 
 
+def test_when_skips_per_kernel_block_and_never_on_the_xla_path():
+    """``fused.when``: on the XLA path ``fn`` always runs; in the kernel it runs in a block of worlds
+    only if some world of that block has its flag set. The ``fn`` here breaks ``when``'s contract on
+    purpose (it changes every world it runs for), which shows the granularity: 130 worlds are two
+    kernel blocks (128 + 2), and a flag set in world 129 alone changes worlds 128 and 129 only."""
+    def body(c, x):
+        return fused.when(c["flag"], lambda v: v + 1.0, x, c["enabled"])
+
+    def run(mode, flags, enabled=True):
+        one = lambda f, x: fused.per_world_fori_loop(  # noqa: E731
+            3, lambda c, s: body(dict(c, enabled=enabled), s), dict(flag=fused.BlockAny(f)), x, mode=mode)
+        return np.asarray(jax.vmap(one)(flags, jnp.zeros(130, jnp.float32)))
+
+    flags = jnp.zeros(130, jnp.float32).at[129].set(1.0)
+    np.testing.assert_array_equal(run("xla", flags), np.full(130, 3.0))
+    expect = np.zeros(130)
+    expect[128:] = 3.0
+    np.testing.assert_array_equal(run("interpret", flags), expect)
+    np.testing.assert_array_equal(run("interpret", jnp.zeros(130, jnp.float32)), np.zeros(130))
+    np.testing.assert_array_equal(run("interpret", jnp.zeros(130, jnp.float32), enabled=False), np.full(130, 3.0))
+    with pytest.raises(TypeError, match="BlockAny"):
+        fused.when(jnp.float32(1.0), lambda v: v, jnp.float32(0.0))
+
+
 def test_bad_leaves_and_modes_raise():
     with pytest.raises(ValueError, match="solver kernel"):
         fused.resolve_mode("cuda")

@@ -167,7 +167,8 @@ class BipedalWalker(WalkerInterface, Environment):
             ang[0], spd[0] / C.SPEED_HIP, ang[1] + 1.0, spd[1] / C.SPEED_KNEE, c[0],
             ang[2], spd[2] / C.SPEED_HIP, ang[3] + 1.0, spd[3] / C.SPEED_KNEE, c[1],
         ]
-        return jnp.concatenate([jnp.stack(head), L.lidar(profile, self.grid, pos)]).astype(jnp.float32)
+        with jax.named_scope("observation"):
+            return jnp.concatenate([jnp.stack(head), L.lidar(profile, self.grid, pos)]).astype(jnp.float32)
 
     def shaping(self, world: physics2d.WorldState) -> jax.Array:
         """Gymnasium's potential: 130 x / SCALE - 5 |hull angle| (x of the hull's body origin)."""

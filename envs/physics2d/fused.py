@@ -17,6 +17,12 @@ captured from outside; Python / numpy scalars are fine). The same body then runs
 
 Nested vmaps (seeds x environments) are flattened into one world axis by ``custom_vmap`` rules, so
 the kernel always sees a flat (fields, worlds) array.
+
+Skipping work no world needs: a const leaf wrapped in ``BlockAny`` (a per-world 0/1 flag, e.g. "this
+contact touches") and ``when(flag, fn, operand)`` in the body. On the XLA paths ``when`` is plain
+``fn(operand)``; in the kernel the flag is reduced once over the block's worlds before the loop and
+``fn`` runs only in blocks where some world has it set. The caller guarantees that ``fn`` leaves the
+operand of a world whose flag is 0 unchanged (up to the sign of zero), so the paths agree.
 """
 from __future__ import annotations
 
@@ -25,6 +31,7 @@ import jax.numpy as jnp
 from jax import lax
 
 MODES = ("auto", "xla", "pallas", "interpret")
+_IN_KERNEL = [False]  # True while a kernel body is traced (``when`` then branches per block)
 BLOCK = 128  # worlds per kernel instance (one per thread with 4 warps)
 NUM_WARPS = 4  # Triton warps per kernel instance (32 threads each)
 
@@ -36,6 +43,37 @@ def resolve_mode(mode: str) -> str:
     if mode == "auto":
         return "pallas" if jax.default_backend() == "gpu" else "xla"
     return mode
+
+
+@jax.tree_util.register_pytree_node_class
+class BlockAny:
+    """A per-world 0/1 flag among a loop's consts; in the kernel the body sees its maximum over the block."""
+
+    __slots__ = ("flag",)
+
+    def __init__(self, flag):
+        self.flag = flag
+
+    def tree_flatten(self):
+        return (self.flag,), None
+
+    @classmethod
+    def tree_unflatten(cls, _, children):
+        return cls(*children)
+
+
+def when(flag: BlockAny, fn, operand, enabled: bool = True):
+    """``fn(operand)``, skipped in kernel blocks where ``flag`` is 0 for every world (see the module
+    docstring: ``fn`` must leave a world whose flag is 0 unchanged). ``enabled=False`` never skips."""
+    if not isinstance(flag, BlockAny):
+        raise TypeError(f"fused.when needs a BlockAny flag from the loop's consts, got {type(flag).__name__}")
+    if not (_IN_KERNEL[0] and enabled):
+        return fn(operand)
+    return lax.cond(flag.flag > 0.5, fn, lambda x: x, operand)
+
+
+def _is_flag(x) -> bool:
+    return isinstance(x, BlockAny)
 
 
 def per_world_fori_loop(n: int, body, consts, carry, *, mode: str = "auto", unroll: int = 1):
@@ -106,8 +144,14 @@ def _kernel(n, body, c_tree, s_tree, nc, leaves, interpret):
     def kernel(x_ref, o_ref):
         rows = [x_ref[f, :] for f in range(f_in)]
         c = jax.tree_util.tree_unflatten(c_tree, rows[:nc])
+        # block-uniform flags: reduced once, before the loop
+        c = jax.tree_util.tree_map(lambda x: BlockAny(jnp.max(x.flag)) if _is_flag(x) else x, c, is_leaf=_is_flag)
         s = jax.tree_util.tree_unflatten(s_tree, rows[nc:])
-        s = lax.fori_loop(0, n, lambda _, v: body(c, v), s)
+        _IN_KERNEL[0] = True
+        try:
+            s = lax.fori_loop(0, n, lambda _, v: body(c, v), s)
+        finally:
+            _IN_KERNEL[0] = False
         for g, v in enumerate(jax.tree_util.tree_leaves(s)):
             o_ref[g, :] = jnp.broadcast_to(jnp.asarray(v, jnp.float32), (BLOCK,))
         for g in range(f_out, rows_out):

@@ -80,8 +80,9 @@ class SolverConfig:
     warm_start: bool = True
     continuous: bool = True  # Box2D-style time of impact for solid slots hitting the ground
     toi_iterations: int = 4  # velocity passes of the per-body time-of-impact solve
-    # run those passes in a lax.fori_loop instead of unrolled (same arithmetic; a much smaller program
-    # for models with many solid bodies: the walker's step compiles ~3x faster on CPU)
+    # run the time-of-impact passes as fused.per_world_fori_loops (one GPU kernel each, XLA loops on a
+    # CPU) instead of unrolled (same arithmetic; a much smaller program for models with many solid
+    # bodies: the walker's step compiles ~3x faster on CPU)
     toi_loop: bool = False
     # Box2D's TOI sub-step first pushes the body out at the time of impact (b2Island::SolveTOI: up to
     # 20 passes with b2_toiBaugarte 0.75, stopping at separation >= -1.5 slop), so it moves on from
@@ -98,6 +99,9 @@ class SolverConfig:
     # (no ghost vertices), the first k touching edges per polygon solved (Box2D's 2-point block solver)
     edge_contacts: int = 0
     unroll: int = 1  # unroll factor of the solver-iteration loops (speed knob, no effect on results)
+    # in the fused kernel, skip an edge contact point's position correction, and a body's time-of-impact
+    # passes, in blocks of worlds none of which needs them (speed knob; results equal up to the sign of zero)
+    skip_untouched: bool = True
     # how the iteration loops run: "auto" (one fused Pallas kernel per loop on GPU, XLA elsewhere),
     # "xla", "pallas" or "interpret" (the kernel through Pallas' interpreter); see physics2d/fused.py
     kernel: str = "auto"

@@ -85,5 +85,9 @@ def cross_sv2(s, v: V2) -> V2:
 
 def rotate2(angle, v: V2) -> V2:
     """R(angle) @ v for a V2."""
-    c, s = jnp.cos(angle), jnp.sin(angle)
+    return rotate_cs(jnp.cos(angle), jnp.sin(angle), v)
+
+
+def rotate_cs(c, s, v: V2) -> V2:
+    """R @ v for a V2, R given by its cosine and sine (to rotate several vectors by one angle)."""
     return V2(c * v.x - s * v.y, s * v.x + c * v.y)

@@ -26,7 +26,7 @@ from envs.physics2d import edge as edg
 from envs.physics2d.collision import polyline_points_in_polygon, vertex_segment_touching, vertex_vs_polyline
 from envs.physics2d.mass import polygon_mass
 from envs.physics2d.model import BodyState, Model, WorldState
-from envs.physics2d.vec import V2, cross, cross_sv, cross_sv2, dot, rotate, rotate2
+from envs.physics2d.vec import V2, cross, cross_sv2, dot, rotate, rotate2, rotate_cs
 
 
 def slot_points(model: Model, bodies: BodyState):
@@ -157,7 +157,8 @@ def step(model: Model, world: WorldState, ground, gravity, force=None, torque=No
         poly_touch = jnp.zeros((len(model.polygons),), bool)
         normal = jnp.zeros((model.num_slots, 2), jnp.float32)
     else:
-        touching, poly_touch, normal, _, arm = collide(model, b, ground)
+        with jax.named_scope("collide"):
+            touching, poly_touch, normal, _, arm = collide(model, b, ground)
     solid = jnp.asarray([(not s) and projector is None for s in model.slot_sensor])
     active = touching & solid
     edge_mode = bool(cfg.edge_contacts) and projector is None
@@ -166,7 +167,8 @@ def step(model: Model, world: WorldState, ground, gravity, force=None, torque=No
         valid = jnp.ones((edges.shape[0],), bool) if edge_valid is None else jnp.asarray(edge_valid, bool)
         if free_flight:
             valid = jnp.zeros_like(valid)
-        ec = edge_constraints(model, b, edges, valid)
+        with jax.named_scope("edge_manifolds"):
+            ec = edge_constraints(model, b, edges, valid)
         e_on = ec["on"]
         keep = e_on & world.touching & jnp.all(ec["key"] == world.contact_key, -1) & cfg.warm_start
         lam_n = jnp.where(keep, world.normal_impulse, 0.0)
@@ -190,7 +192,6 @@ def step(model: Model, world: WorldState, ground, gravity, force=None, torque=No
     islot = jnp.asarray([inv_i[sb[k]] for k in range(model.num_slots)], jnp.float32)
     normal_mass = 1.0 / (mslot + islot * rn**2)
     tangent_mass = 1.0 / (mslot + islot * rt**2)
-    mu = jnp.asarray(model.slot_friction, jnp.float32)
     if edge_mode:
         econ = _edge_velocity_constants(model, b, ec)
         ebody = ec["body"]
@@ -249,9 +250,10 @@ def step(model: Model, world: WorldState, ground, gravity, force=None, torque=No
     else:
         vpass = functools.partial(_velocity_pass, model, slots)
     if projector is None:
-        vel, omg, jimp, jmot, ln, lt = fused.per_world_fori_loop(
-            cfg.velocity_iterations, vpass, vconsts, carry,
-            mode=cfg.kernel, unroll=cfg.unroll)
+        with jax.named_scope("velocity_passes"):
+            vel, omg, jimp, jmot, ln, lt = fused.per_world_fori_loop(
+                cfg.velocity_iterations, vpass, vconsts, carry,
+                mode=cfg.kernel, unroll=cfg.unroll)
         vel, omg = [v.array() for v in vel], list(omg)
         jimp = [jnp.stack(list(i)) for i in jimp]
     else:  # exact locked-joint solve from the integrated (not warm-started) velocities
@@ -291,10 +293,11 @@ def step(model: Model, world: WorldState, ground, gravity, force=None, torque=No
     else:
         ppass = functools.partial(_position_pass, model, slots)
     if n_pos > 0:
-        com, ang, solved = fused.per_world_fori_loop(
-            n_pos, ppass,
-            pconsts, (tuple(V2.of(c) for c in com), tuple(ang), jnp.zeros((), f32)),
-            mode=cfg.kernel, unroll=cfg.unroll)
+        with jax.named_scope("position_passes"):
+            com, ang, solved = fused.per_world_fori_loop(
+                n_pos, ppass,
+                pconsts, (tuple(V2.of(c) for c in com), tuple(ang), jnp.zeros((), f32)),
+                mode=cfg.kernel, unroll=cfg.unroll)
         com, ang, solved = [c.array() for c in com], list(ang), solved > 0.5
     else:
         solved = jnp.zeros((), bool)
@@ -322,8 +325,9 @@ def step(model: Model, world: WorldState, ground, gravity, force=None, torque=No
         alpha_slot = jnp.clip((d0 - target) / jnp.maximum(d0 - d1, 1e-9), 0.0, 1.0)
         if cfg.toi_from_touching:
             alpha_slot = jnp.where(early, 0.0, alpha_slot)
-        com, ang, vel, omg = _time_of_impact(model, slots, b, jnp.stack(com), jnp.stack(ang), jnp.stack(vel),
-                                             jnp.stack(omg), crossing, alpha_slot, plane_q, plane_n, mu)
+        with jax.named_scope("time_of_impact"):
+            com, ang, vel, omg = _time_of_impact(model, slots, b, jnp.stack(com), jnp.stack(ang), jnp.stack(vel),
+                                                 jnp.stack(omg), crossing, alpha_slot, plane_q, plane_n)
         com, ang, vel, omg = list(com), list(ang), list(vel), list(omg)
 
     # 8. sleep
@@ -380,7 +384,7 @@ def step(model: Model, world: WorldState, ground, gravity, force=None, torque=No
 
 
 def _time_of_impact(model: Model, slots, b: BodyState, com, ang, vel, omg, crossing, alpha_slot, plane_q,
-                    plane_n, mu):
+                    plane_n):
     """Box2D's SolveTOI, simplified, for every body at once -> (com (B, 2), angle (B,), vel (B, 2),
     omega (B,)) at the step's end.
 
@@ -389,8 +393,10 @@ def _time_of_impact(model: Model, slots, b: BodyState, com, ang, vel, omg, cross
     ``contact_radius`` there are solved alone (``toi_position_iterations`` position passes, ``toi_iterations`` velocity passes; joints are
     not part of Box2D's TOI islands) and it moves on for the rest of the step. ``com`` (B, 2), ``ang``
     (B,), ``vel`` (B, 2), ``omg`` (B,) are the ends of the regular solve; ``b`` the start of the step.
-    Bodies are independent here, so the passes run on (B,) arrays: each body's slots in model order,
-    padded to the largest count with slots that are never on (they change nothing).
+    The pose at impact is found on (B, W) arrays (each body's slots in model order, padded to the
+    largest count with slots that are never on); the passes then run on per-world scalars
+    (``_toi_position_pass``, ``_toi_velocity_pass``): unrolled, or with ``config.toi_loop`` as
+    ``fused.per_world_fori_loop``s (one GPU kernel each instead of an XLA loop of small kernels).
     """
     cfg = model.config
     f32 = jnp.float32
@@ -402,11 +408,8 @@ def _time_of_impact(model: Model, slots, b: BodyState, com, ang, vel, omg, cross
     real = jnp.asarray([[s < len(ks) for s in range(width)] for ks in per_body])
     lv = (np.asarray(model.slot_vertex, np.float32)[idx]
           - np.asarray(model.local_com, np.float32)[:, None])  # (B, W, 2) slot vertex from the centre
-    inv_m = jnp.asarray([float(x) for x in model.inv_mass], f32)
-    inv_i = jnp.asarray([float(x) for x in model.inv_inertia], f32)
     q, n = plane_q[idx], plane_n[idx]  # (B, W, 2)
     t = jnp.stack([n[..., 1], -n[..., 0]], -1)
-    mu = mu[idx]
     cross_k = crossing[idx] & real
     hit = jnp.any(cross_k, 1)
     alpha = jnp.min(jnp.where(cross_k, alpha_slot[idx], 1.0), 1)
@@ -414,59 +417,111 @@ def _time_of_impact(model: Model, slots, b: BodyState, com, ang, vel, omg, cross
     a_t = b.angle + alpha * (ang - b.angle)
     arms = rotate(a_t[:, None], lv)
     on = hit[:, None] & real & (dot(c_t[:, None] + arms - q, n) <= cfg.contact_radius)
+
+    # per-world scalars for the passes: bodies with solid slots, their real slots
+    moving = [i for i in range(model.num_bodies) if per_body[i]]
+    pslots = tuple(tuple(range(len(per_body[i]))) for i in moving)
+    lv_np = np.asarray(lv)
+    geom = dict(lv=tuple(tuple((np.float32(lv_np[i, s, 0]), np.float32(lv_np[i, s, 1])) for s in range(len(per_body[i])))
+                         for i in moving),
+                mu=tuple(tuple(np.float32(model.slot_friction[per_body[i][s]]) for s in range(len(per_body[i])))
+                         for i in moving),
+                inv_m=tuple(float(model.inv_mass[i]) for i in moving), inv_i=tuple(float(model.inv_inertia[i]) for i in moving))
+    per_slot = lambda a, vec=False: tuple(tuple(V2.of(a[i, s]) if vec else a[i, s].astype(f32) for s in ss)  # noqa: E731
+                                          for i, ss in zip(moving, pslots))
+    consts = dict(on=per_slot(on), q=per_slot(q, True), n=per_slot(n, True), t=per_slot(t, True),
+                  any=tuple(fused.BlockAny(jnp.any(on[i]).astype(f32)) for i in moving))
+    run = functools.partial(_toi_passes, cfg)
     if cfg.toi_position_iterations > 0:
-        def toi_position(_, carry):
-            c_, a_, done = carry
-            c0, a0 = c_, a_
-            min_sep = jnp.zeros_like(a_)
-            for s in range(width):
-                r = rotate(a_, lv[:, s])
-                sep = dot(c_ + r - q[:, s], n[:, s]) - cfg.contact_radius
-                min_sep = jnp.where(on[:, s], jnp.minimum(min_sep, sep), min_sep)
-                corr = jnp.clip(cfg.toi_baumgarte * (sep + cfg.linear_slop), -cfg.max_linear_correction, 0.0)
-                rn_ = cross(r, n[:, s])
-                kk = inv_m + inv_i * rn_ * rn_
-                p = jnp.where(on[:, s] & (kk > 0), -corr / kk, 0.0)[:, None] * n[:, s]
-                c_ = c_ + inv_m[:, None] * p
-                a_ = a_ + inv_i * cross(r, p)
-            c_ = jnp.where(done[:, None], c0, c_)
-            a_ = jnp.where(done, a0, a_)
-            return c_, a_, done | (min_sep >= -1.5 * cfg.linear_slop)
-
-        c_t, a_t, _ = jax.lax.fori_loop(0, cfg.toi_position_iterations, toi_position,
-                                        (c_t, a_t, jnp.zeros(a_t.shape, bool)))
+        carry = (tuple(V2.of(c_t[i]) for i in moving), tuple(a_t[i] for i in moving),
+                 tuple(jnp.zeros((), f32) for _ in moving))
+        cs, as_, _ = run(cfg.toi_position_iterations, functools.partial(_toi_position_pass, cfg, geom),
+                         {k: consts[k] for k in ("on", "q", "n", "any")}, carry)
+        c_t = c_t.at[np.asarray(moving)].set(jnp.stack([c.array() for c in cs]))
+        a_t = a_t.at[np.asarray(moving)].set(jnp.stack(as_))
         arms = rotate(a_t[:, None], lv)
-
-    def toi_pass(v_t, w_t, lnn, ltt):
-        lnn, ltt = list(lnn), list(ltt)
-        for s in range(width):
-            r, n_s, t_s, on_s = arms[:, s], n[:, s], t[:, s], on[:, s]
-            rn_, rt_ = cross(r, n_s), cross(r, t_s)
-            dv = v_t + cross_sv(w_t, r)
-            new_t = jnp.clip(ltt[s] - dot(dv, t_s) / (inv_m + inv_i * rt_ * rt_), -mu[:, s] * lnn[s], mu[:, s] * lnn[s])
-            new_t = jnp.where(on_s, new_t, 0.0)
-            pt = (new_t - ltt[s])[:, None] * t_s
-            ltt[s] = new_t
-            v_t, w_t = v_t + inv_m[:, None] * pt, w_t + inv_i * cross(r, pt)
-            dv = v_t + cross_sv(w_t, r)
-            new_n = jnp.maximum(lnn[s] - dot(dv, n_s) / (inv_m + inv_i * rn_ * rn_), 0.0)
-            new_n = jnp.where(on_s, new_n, 0.0)
-            pn = (new_n - lnn[s])[:, None] * n_s
-            lnn[s] = new_n
-            v_t, w_t = v_t + inv_m[:, None] * pn, w_t + inv_i * cross(r, pn)
-        return v_t, w_t, tuple(lnn), tuple(ltt)
-
-    zeros = tuple(jnp.zeros(a_t.shape, f32) for _ in range(width))
-    v_t, w_t = vel, omg
-    if cfg.toi_loop:  # one traced pass in a loop: a smaller program, much less compile time
-        v_t, w_t, _, _ = jax.lax.fori_loop(0, cfg.toi_iterations, lambda _, c: toi_pass(*c), (v_t, w_t, zeros, zeros))
-    else:
-        lnn, ltt = zeros, zeros
-        for _ in range(cfg.toi_iterations):
-            v_t, w_t, lnn, ltt = toi_pass(v_t, w_t, lnn, ltt)
+    zeros = tuple(tuple(jnp.zeros((), f32) for _ in ss) for ss in pslots)
+    carry = (tuple(V2.of(vel[i]) for i in moving), tuple(omg[i] for i in moving), zeros, zeros)
+    vs, ws, _, _ = run(cfg.toi_iterations, functools.partial(_toi_velocity_pass, cfg, geom),
+                       dict(arm=per_slot(arms, True), n=consts["n"], t=consts["t"], on=consts["on"], any=consts["any"]),
+                       carry)
+    v_t = vel.at[np.asarray(moving)].set(jnp.stack([v.array() for v in vs]))
+    w_t = omg.at[np.asarray(moving)].set(jnp.stack(ws))
     rest = (1.0 - alpha) * cfg.dt
     return (jnp.where(hit[:, None], c_t + rest[:, None] * v_t, com), jnp.where(hit, a_t + rest * w_t, ang),
             jnp.where(hit[:, None], v_t, vel), jnp.where(hit, w_t, omg))
+
+
+def _toi_passes(cfg, n: int, body, consts, carry):
+    """``n`` passes of a time-of-impact ``body`` (per-world scalars): a fused loop with
+    ``config.toi_loop``, else unrolled (the same arithmetic)."""
+    if cfg.toi_loop:
+        return fused.per_world_fori_loop(n, body, consts, carry, mode=cfg.kernel, unroll=cfg.unroll)
+    for _ in range(n):
+        carry = body(consts, carry)
+    return carry
+
+
+def _toi_position_pass(cfg, geom, c, carry):
+    """One TOI position pass per body (Box2D's SolveTOIPositionConstraints: Baumgarte ``toi_baumgarte``,
+    each slot against its plane at the time of impact); a body stops moving once its deepest slot is
+    within 1.5 slops (``done`` 0/1). Per-world scalars (``fused`` contract); a body no world of a
+    kernel block moves back is skipped there (its pose cannot change, and ``done`` is not returned)."""
+    out = [fused.when(c["any"][b_], functools.partial(_toi_body_position, cfg, geom, c, b_), state, cfg.skip_untouched)
+           for b_, state in enumerate(zip(*carry))]
+    return tuple(tuple(x) for x in zip(*out))
+
+
+def _toi_body_position(cfg, geom, c, b_, state):
+    c_, a_, done = state
+    inv_m, inv_i = geom["inv_m"][b_], geom["inv_i"][b_]
+    c0, a0 = c_, a_
+    min_sep = jnp.zeros((), jnp.float32)
+    for s, (lx, ly) in enumerate(geom["lv"][b_]):
+        on, q, n = c["on"][b_][s] > 0.5, c["q"][b_][s], c["n"][b_][s]
+        r = rotate2(a_, V2(lx, ly))
+        sep = (c_ + r - q).dot(n) - cfg.contact_radius
+        min_sep = jnp.where(on, jnp.minimum(min_sep, sep), min_sep)
+        corr = jnp.clip(cfg.toi_baumgarte * (sep + cfg.linear_slop), -cfg.max_linear_correction, 0.0)
+        rn_ = r.cross(n)
+        kk = inv_m + inv_i * rn_ * rn_
+        p = n * jnp.where(on & (kk > 0), -corr / kk, 0.0)
+        c_ = c_ + inv_m * p
+        a_ = a_ + inv_i * r.cross(p)
+    frozen = done > 0.5
+    return (c0.where(frozen, c_), jnp.where(frozen, a0, a_),
+            jnp.where(frozen | (min_sep >= -1.5 * cfg.linear_slop), 1.0, 0.0).astype(jnp.float32))
+
+
+def _toi_velocity_pass(cfg, geom, c, carry):
+    """One TOI velocity pass per body: each touching slot's friction, then its normal impulse, against
+    the ground alone (no joints). Per-world scalars (``fused`` contract); skipped per block like the
+    position pass."""
+    out = [fused.when(c["any"][b_], functools.partial(_toi_body_velocity, geom, c, b_), state, cfg.skip_untouched)
+           for b_, state in enumerate(zip(*carry))]
+    return tuple(tuple(x) for x in zip(*out))
+
+
+def _toi_body_velocity(geom, c, b_, state):
+    v_t, w_t, lnn, ltt = state
+    lnn, ltt = list(lnn), list(ltt)
+    inv_m, inv_i = geom["inv_m"][b_], geom["inv_i"][b_]
+    for s, mu in enumerate(geom["mu"][b_]):
+        r, n_s, t_s, on_s = c["arm"][b_][s], c["n"][b_][s], c["t"][b_][s], c["on"][b_][s] > 0.5
+        rn_, rt_ = r.cross(n_s), r.cross(t_s)
+        dv = v_t + cross_sv2(w_t, r)
+        new_t = jnp.clip(ltt[s] - dv.dot(t_s) / (inv_m + inv_i * rt_ * rt_), -mu * lnn[s], mu * lnn[s])
+        new_t = jnp.where(on_s, new_t, 0.0)
+        pt = t_s * (new_t - ltt[s])
+        ltt[s] = new_t
+        v_t, w_t = v_t + inv_m * pt, w_t + inv_i * r.cross(pt)
+        dv = v_t + cross_sv2(w_t, r)
+        new_n = jnp.maximum(lnn[s] - dv.dot(n_s) / (inv_m + inv_i * rn_ * rn_), 0.0)
+        new_n = jnp.where(on_s, new_n, 0.0)
+        pn = n_s * (new_n - lnn[s])
+        lnn[s] = new_n
+        v_t, w_t = v_t + inv_m * pn, w_t + inv_i * r.cross(pn)
+    return v_t, w_t, tuple(lnn), tuple(ltt)
 
 
 def _masses(model: Model, joint):
@@ -617,6 +672,7 @@ def _edge_position_constants(model: Model, bodies: BodyState, ec):
     nrm = jnp.where(fb[:, None], to_body(ec["ref_normal"]), ec["ref_normal"])
     pt = jnp.where(fb[:, None], ec["clip"], to_body(ec["clip"] - com))
     return dict(on=tuple(ec["on"][k].astype(jnp.float32) for k in range(len(body))),
+                any=tuple(fused.BlockAny(ec["on"][k].astype(jnp.float32)) for k in range(len(body))),
                 fb=tuple(fb[k].astype(jnp.float32) for k in range(len(body))),
                 a=tuple(V2.of(a[k]) for k in range(len(body))), nrm=tuple(V2.of(nrm[k]) for k in range(len(body))),
                 pt=tuple(V2.of(pt[k]) for k in range(len(body))))
@@ -638,76 +694,96 @@ def _velocity_pass_edges(model: Model, body, friction, c, carry):
     """One velocity pass with edge manifolds (b2ContactSolver::SolveVelocityConstraints): joints, then
     per manifold the friction of each point, then the normal impulses, by Box2D's 2-point block solver
     (its four cases: both points, first only, second only, none) when both points are on and K is well
-    conditioned, else the first point alone. Per-world scalars only (``fused`` contract)."""
+    conditioned, else the first point alone. Per-world scalars only (``fused`` contract). Unlike the
+    position pass it computes every manifold: skipping untouched ones per block (``fused.when``) made
+    this kernel 3.4x slower on an H200 (docs/bipedal.md, speed)."""
     inv_m, inv_i = [float(x) for x in model.inv_mass], [float(x) for x in model.inv_inertia]
     vel, omg, jimp, jmot, ln, lt = (list(x) for x in carry)
     _joint_velocity_pass(model, c, vel, omg, jimp, jmot)
     for p in range(len(body) // 2):
         k1, k2 = 2 * p, 2 * p + 1
         i = body[k1]
-        mi, ii = inv_m[i], inv_i[i]
-        n, t = c["n"][k1], c["t"][k1]
-        for k in (k1, k2):  # friction
-            arm = c["arm"][k]
-            vt = (vel[i] + cross_sv2(omg[i], arm)).dot(t)
-            max_f = np.float32(friction[k]) * ln[k]
-            new_t = jnp.clip(lt[k] - c["tm"][k] * vt, -max_f, max_f) * c["on"][k]
-            pt = (new_t - lt[k]) * t
-            lt[k] = new_t
-            vel[i] = vel[i] + mi * pt
-            omg[i] = omg[i] + ii * arm.cross(pt)
-        r1, r2 = c["arm"][k1], c["arm"][k2]
-        vn1 = (vel[i] + cross_sv2(omg[i], r1)).dot(n)
-        vn2 = (vel[i] + cross_sv2(omg[i], r2)).dot(n)
-        # one point (Box2D's pointCount == 1)
-        s_new = jnp.maximum(ln[k1] - c["nm"][k1] * vn1, 0.0) * c["on"][k1]
-        # block solve of both points
-        a1, a2 = ln[k1], ln[k2]
-        k11, k12, k22 = c["k11"][p], c["k12"][p], c["k22"][p]
-        bx = vn1 - (k11 * a1 + k12 * a2)
-        by = vn2 - (k12 * a1 + k22 * a2)
-        x1 = -(c["m11"][p] * bx + c["m12"][p] * by)
-        y1 = -(c["m12"][p] * bx + c["m22"][p] * by)
-        ok1 = (x1 >= 0.0) & (y1 >= 0.0)
-        x2 = -c["nm"][k1] * bx
-        ok2 = (x2 >= 0.0) & (k12 * x2 + by >= 0.0)
-        y3 = -c["nm"][k2] * by
-        ok3 = (y3 >= 0.0) & (k12 * y3 + bx >= 0.0)
-        ok4 = (bx >= 0.0) & (by >= 0.0)
-        bxn = jnp.where(ok1, x1, jnp.where(ok2, x2, jnp.where(ok3, 0.0, jnp.where(ok4, 0.0, a1))))
-        byn = jnp.where(ok1, y1, jnp.where(ok2, 0.0, jnp.where(ok3, y3, jnp.where(ok4, 0.0, a2))))
-        blk = c["blk"][p] > 0.5
-        new1 = jnp.where(blk, bxn, s_new)
-        new2 = jnp.where(blk, byn, ln[k2])
-        d1, d2 = new1 - ln[k1], new2 - ln[k2]
-        ln[k1], ln[k2] = new1, new2
-        p1, p2 = d1 * n, d2 * n
-        vel[i] = vel[i] + mi * (p1 + p2)
-        omg[i] = omg[i] + ii * (r1.cross(p1) + r2.cross(p2))
+        manifold = functools.partial(_manifold_velocity, c, p, inv_m[i], inv_i[i], friction[k1], friction[k2])
+        vel[i], omg[i], ln[k1], ln[k2], lt[k1], lt[k2] = manifold((vel[i], omg[i], ln[k1], ln[k2], lt[k1], lt[k2]))
     return tuple(vel), tuple(omg), tuple(jimp), tuple(jmot), tuple(ln), tuple(lt)
+
+
+def _manifold_velocity(c, p, mi, ii, f1, f2, state):
+    """One edge manifold's friction and normal impulses -> (vel, omega, normal 1, 2, tangent 1, 2)."""
+    v, w, n1, n2, t1, t2 = state
+    k1, k2 = 2 * p, 2 * p + 1
+    n, t = c["n"][k1], c["t"][k1]
+    ln, lt = [n1, n2], [t1, t2]
+    for j, (k, f) in enumerate(((k1, f1), (k2, f2))):  # friction
+        arm = c["arm"][k]
+        vt = (v + cross_sv2(w, arm)).dot(t)
+        max_f = np.float32(f) * ln[j]
+        new_t = jnp.clip(lt[j] - c["tm"][k] * vt, -max_f, max_f) * c["on"][k]
+        pt = (new_t - lt[j]) * t
+        lt[j] = new_t
+        v = v + mi * pt
+        w = w + ii * arm.cross(pt)
+    r1, r2 = c["arm"][k1], c["arm"][k2]
+    vn1 = (v + cross_sv2(w, r1)).dot(n)
+    vn2 = (v + cross_sv2(w, r2)).dot(n)
+    # one point (Box2D's pointCount == 1)
+    s_new = jnp.maximum(ln[0] - c["nm"][k1] * vn1, 0.0) * c["on"][k1]
+    # block solve of both points
+    a1, a2 = ln
+    k11, k12, k22 = c["k11"][p], c["k12"][p], c["k22"][p]
+    bx = vn1 - (k11 * a1 + k12 * a2)
+    by = vn2 - (k12 * a1 + k22 * a2)
+    x1 = -(c["m11"][p] * bx + c["m12"][p] * by)
+    y1 = -(c["m12"][p] * bx + c["m22"][p] * by)
+    ok1 = (x1 >= 0.0) & (y1 >= 0.0)
+    x2 = -c["nm"][k1] * bx
+    ok2 = (x2 >= 0.0) & (k12 * x2 + by >= 0.0)
+    y3 = -c["nm"][k2] * by
+    ok3 = (y3 >= 0.0) & (k12 * y3 + bx >= 0.0)
+    ok4 = (bx >= 0.0) & (by >= 0.0)
+    bxn = jnp.where(ok1, x1, jnp.where(ok2, x2, jnp.where(ok3, 0.0, jnp.where(ok4, 0.0, a1))))
+    byn = jnp.where(ok1, y1, jnp.where(ok2, 0.0, jnp.where(ok3, y3, jnp.where(ok4, 0.0, a2))))
+    blk = c["blk"][p] > 0.5
+    new1 = jnp.where(blk, bxn, s_new)
+    new2 = jnp.where(blk, byn, a2)
+    d1, d2 = new1 - a1, new2 - a2
+    p1, p2 = d1 * n, d2 * n
+    v = v + mi * (p1 + p2)
+    w = w + ii * (r1.cross(p1) + r2.cross(p2))
+    return v, w, new1, new2, lt[0], lt[1]
 
 
 def _position_pass_edges(model: Model, body, c, carry):
     """One position pass with edge manifolds (b2ContactSolver::SolvePositionConstraints with
     b2PositionSolverManifold): face A, the body's clip point against the edge's fixed plane; face B,
     the edge's fixed clip point against the body's face (its normal turns with the body, the
-    impulse acts along its negation); then the joints. Frozen once solved, as ``_position_pass``."""
+    impulse acts along its negation); then the joints. Frozen once solved, as ``_position_pass``; a
+    point no world of a kernel block touches is skipped there (``fused.when``)."""
     cfg = model.config
     inv_m, inv_i = [float(x) for x in model.inv_mass], [float(x) for x in model.inv_inertia]
     lc = np.asarray(model.local_com, np.float32)
     com0, ang0, _ = carry
     com, ang = list(com0), list(ang0)
-    min_sep = jnp.zeros((), jnp.float32)
+    min_sep = jnp.zeros_like(ang[0])  # a per-world scalar, also as a branch operand in the kernel
     for k, i in enumerate(body):
-        on, fb = c["on"][k] > 0.5, c["fb"][k] > 0.5
-        ra_ = rotate2(ang[i], c["a"][k])
-        rn_ = rotate2(ang[i], c["nrm"][k])
-        rp_ = rotate2(ang[i], c["pt"][k])
-        ref_n = rn_.where(fb, c["nrm"][k])
-        plane = (com[i] + ra_).where(fb, c["a"][k])
-        clip = c["pt"][k].where(fb, com[i] + rp_)
-        sep = (clip - plane).dot(ref_n) - cfg.contact_radius
-        normal = (ref_n * -1.0).where(fb, ref_n)
-        min_sep = jnp.where(on, jnp.minimum(min_sep, sep), min_sep)
-        com[i], ang[i] = _position_impulse(cfg, inv_m[i], inv_i[i], com[i], ang[i], clip - com[i], normal, sep, on)
+        point = functools.partial(_point_position, cfg, c, k, inv_m[i], inv_i[i])
+        com[i], ang[i], min_sep = fused.when(c["any"][k], point, (com[i], ang[i], min_sep), cfg.skip_untouched)
     return _joint_positions_then_freeze(model, c, lc, carry, com, ang, min_sep)
+
+
+def _point_position(cfg, c, k, inv_m, inv_i, state):
+    """One edge contact point's position correction -> (com, angle, deepest separation so far)."""
+    com, ang, min_sep = state
+    on, fb = c["on"][k] > 0.5, c["fb"][k] > 0.5
+    cos, sin = jnp.cos(ang), jnp.sin(ang)  # once for the three vectors (a GPU kernel need not merge them)
+    ra_ = rotate_cs(cos, sin, c["a"][k])
+    rn_ = rotate_cs(cos, sin, c["nrm"][k])
+    rp_ = rotate_cs(cos, sin, c["pt"][k])
+    ref_n = rn_.where(fb, c["nrm"][k])
+    plane = (com + ra_).where(fb, c["a"][k])
+    clip = c["pt"][k].where(fb, com + rp_)
+    sep = (clip - plane).dot(ref_n) - cfg.contact_radius
+    normal = (ref_n * -1.0).where(fb, ref_n)
+    min_sep = jnp.where(on, jnp.minimum(min_sep, sep), min_sep)
+    com, ang = _position_impulse(cfg, inv_m, inv_i, com, ang, clip - com, normal, sep, on)
+    return com, ang, min_sep

@@ -1,0 +1,179 @@
+"""Where one step of the 2-D walker (``envs.make("bipedal")``) spends its time on a GPU.
+
+For each solver variant: milliseconds per sequential ``vmap(step_without_reset)`` (random actions,
+a ``lax.scan`` of ``--steps``) at each batch; then, with ``--trace``, a ``jax.profiler`` trace of the first
+variant's scans, summarised per kernel (launches and device time per step, the HLO op that launched it; with
+``XLA_FLAGS=--xla_dump_to=...`` the optimised HLO maps those ops to the named scopes of
+``physics2d.step``'s phases) and as the share of the wall time the device is busy. The raw trace is not kept (too large to come back from a device).
+
+Variants change only the solver's configuration (the same env otherwise):
+``default`` (Box2D's passes), ``passes_1_1`` (1 velocity / 1 position pass), ``toi_unrolled``
+(the time-of-impact passes unrolled instead of looped), ``no_toi`` (no time of impact: not the walker,
+its cost only), ``xla`` (no Pallas kernel), ``no_skip`` (the kernels compute every contact
+point and time of impact, also in blocks of worlds none of which needs it).
+
+    python -m experiments.profile_bipedal_step --batches 200 --variants default,passes_1_1 --out $OUT/profile.json
+"""
+from __future__ import annotations
+
+import argparse
+import collections
+import dataclasses
+import glob
+import json
+import os
+import tempfile
+import time
+
+import jax
+
+VARIANTS = {
+    "default": {},
+    "passes_1_1": {"velocity_iterations": 1, "position_iterations": 1},
+    "toi_unrolled": {"toi_loop": False},
+    "no_toi": {"continuous": False},
+    "xla": {"kernel": "xla"},
+    "no_skip": {"skip_untouched": False},
+}
+
+
+def make_env(variant: str, **options):
+    import envs
+
+    env = envs.make("bipedal", **options)
+    cfg = dataclasses.replace(env.model.config, **VARIANTS[variant])
+    env.model = dataclasses.replace(env.model, config=cfg)
+    return env
+
+
+def scan_fn(env, batch: int, steps: int, step_name: str = "step_without_reset"):
+    step_fn = getattr(env, step_name)
+    levels = env.param_space.sample(jax.random.PRNGKey(1), (batch,))
+    space = env.action_space()
+
+    @jax.jit
+    def run(key):
+        obs, state = jax.vmap(env.reset)(jax.random.split(key, batch), levels)
+
+        def body(c, k):
+            obs, state = c
+            ka, ks = jax.random.split(k)
+            a = jax.vmap(space.sample)(jax.random.split(ka, batch))
+            obs, state, r, d, _ = jax.vmap(step_fn)(jax.random.split(ks, batch), state, a, levels)
+            return (obs, state), r.sum()
+
+        _, r = jax.lax.scan(body, (obs, state), jax.random.split(key, steps))
+        return r.sum()
+
+    return run
+
+
+def time_scan(run, repeats: int = 3) -> tuple[float, float]:
+    t = time.perf_counter()
+    lowered = run.lower(jax.random.PRNGKey(0))
+    lower_s = time.perf_counter() - t
+    lowered.compile()
+    print(json.dumps({"lower_s": round(lower_s, 1), "xla_compile_s": round(time.perf_counter() - t - lower_s, 1)}),
+          flush=True)
+    jax.block_until_ready(run(jax.random.PRNGKey(0)))
+    compile_s = time.perf_counter() - t
+    best = float("inf")
+    for _ in range(repeats):
+        t = time.perf_counter()
+        jax.block_until_ready(run(jax.random.PRNGKey(0)))
+        best = min(best, time.perf_counter() - t)
+    return compile_s, best
+
+
+def summarise_trace(path: str, steps: int, wall_s: float) -> dict:
+    """Kernel launches and device time per step from an xplane file: per kernel (its name, the HLO
+    op or command buffer that launched it, launch details) and the device's busy share."""
+    from jax.profiler import ProfileData
+
+    pd = ProfileData.from_file(path)
+    by_kernel = {}
+    spans, memcpy = [], collections.Counter()
+    for plane in pd.planes:
+        if not plane.name.startswith("/device:GPU"):
+            continue
+        for line in plane.lines:
+            if not line.name.startswith("Stream"):
+                continue
+            for ev in line.events:
+                stats = dict(ev.stats)
+                name = ev.name
+                if "memcpy" in name.lower() or "memset" in name.lower():
+                    memcpy[name.split(" ")[0]] += 1
+                rec = by_kernel.setdefault(name, {"n": 0, "t": 0.0, "hlo_op": str(stats.get("hlo_op", "")),
+                                                  "details": str(stats.get("kernel_details", ""))[:300]})
+                rec["n"] += 1
+                rec["t"] += ev.duration_ns * 1e-9
+                spans.append((ev.start_ns, ev.start_ns + ev.duration_ns))
+    spans.sort()
+    busy, end = 0.0, -1.0
+    for s, e in spans:
+        if e <= end:
+            continue
+        busy += e - max(s, end)
+        end = e
+    top = sorted(by_kernel.items(), key=lambda kv: -kv[1]["t"])[:80]
+    return {
+        "launches_per_step": len(spans) / steps,
+        "device_busy_ms_per_step": busy * 1e-6 / steps,
+        "wall_ms_per_step": 1e3 * wall_s / steps,
+        "memcpy_per_step": {k: v / steps for k, v in memcpy.items()},
+        "kernels": len(by_kernel),
+        "top_kernels": [{"kernel": k[:200], "hlo_op": r["hlo_op"], "launches_per_step": r["n"] / steps,
+                         "device_ms_per_step": 1e3 * r["t"] / steps, "details": r["details"]} for k, r in top],
+    }
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--batches", default="200")
+    p.add_argument("--steps", type=int, default=200)
+    p.add_argument("--variants", default="default")
+    p.add_argument("--step", default="step_without_reset", choices=("step_without_reset", "step"))
+    p.add_argument("--trace", action="store_true", help="trace the first variant's scans (jax.profiler)")
+    p.add_argument("--out", default="runs/profile_bipedal_step.json")
+    args = p.parse_args(argv)
+    variants = args.variants.split(",")
+    unknown = [v for v in variants if v not in VARIANTS]
+    if unknown:
+        p.error(f"unknown variant(s) {unknown}; known: {sorted(VARIANTS)}")
+    from shed_jax.runtime import provenance
+
+    rec = {**provenance("experiments.profile_bipedal_step", argv), "step": args.step, "rows": []}
+
+    def write():
+        os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
+        with open(args.out, "w") as f:
+            json.dump(rec, f, indent=1)
+
+    rec["traces"] = []
+    for i, v in enumerate(variants):
+        env = make_env(v)
+        for b in (int(x) for x in args.batches.split(",")):
+            run = scan_fn(env, b, args.steps, args.step)
+            compile_s, best = time_scan(run)
+            row = {"variant": v, "batch": b, "steps": args.steps, "compile_s": round(compile_s, 1),
+                   "ms_per_step": 1e3 * best / args.steps, "steps_per_second": b * args.steps / best}
+            rec["rows"].append(row)
+            print(json.dumps(row), flush=True)
+            if i == 0 and args.trace:  # the first variant's program, traced once more
+                with tempfile.TemporaryDirectory() as d:
+                    t = time.perf_counter()
+                    with jax.profiler.trace(d):
+                        jax.block_until_ready(run(jax.random.PRNGKey(0)))
+                    wall = time.perf_counter() - t
+                    files = glob.glob(os.path.join(d, "**", "*.xplane.pb"), recursive=True)
+                    tr = {"variant": v, "batch": b, "steps": args.steps, **summarise_trace(files[0], args.steps, wall)}
+                rec["traces"].append(tr)
+                print(json.dumps({k: tr[k] for k in ("batch", "launches_per_step", "device_busy_ms_per_step",
+                                                     "wall_ms_per_step", "kernels")}), flush=True)
+            write()
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
