@@ -292,36 +292,6 @@ def test_time_of_impact_moves_each_body_as_if_alone():
     np.testing.assert_allclose(alone["free"][2:4], [0.5, -3.0 - 10.0 * DT], atol=1e-5)  # free fall, no contact
 
 
-@pytest.mark.optimized  # bitwise: two programs
-def test_time_of_impact_passes_run_in_the_fused_kernel_bitwise():
-    """With ``toi_loop`` the time-of-impact passes are fused loops: through the Pallas kernel's
-    interpreter a vmapped batch of worlds (two bodies each, hitting the ground at different speeds and
-    tilts, one body missing it) ends bitwise where plain XLA does, and a looped run ends where the
-    unrolled one does up to rounding."""
-    tri = ((-0.4, -0.2), (0.4, -0.2), (0.0, 0.3))
-    speeds, tilts = jnp.asarray([-10.0, -14.0, -6.0]), jnp.asarray([0.0, 0.2, -0.3])
-    out = {}
-    for kernel, loop in (("xla", True), ("interpret", True), ("xla", False)):
-        cfg = physics2d.SolverConfig(dt=DT, toi_position_iterations=20, toi_loop=loop, kernel=kernel)
-        m = physics2d.make_model(2, [physics2d.Polygon(0, BOX, 2.0, 0.4), physics2d.Polygon(1, tri, 2.0, 0.4)], (), cfg)
-
-        def world(v, a, m=m):
-            b = physics2d.bodies_from_origin(m, jnp.asarray([[2.0, 1.35], [6.0, 3.0]]), jnp.stack([a, -a]),
-                                             vel=jnp.stack([jnp.stack([0.0, v]), jnp.stack([0.3, v])]))
-            return physics2d.init_world(m, b)
-
-        step = lambda w, m=m: physics2d.step(m, w, FLAT, -10.0)
-        w, info = jax.jit(jax.vmap(step))(jax.vmap(world)(speeds, tilts))
-        assert info["polygon_touching"][:, 0].tolist() == [True, True, True]  # the box hits in every world
-        assert not bool(jnp.any(info["polygon_touching"][:, 1]))  # the triangle is still in the air
-        out[kernel, loop] = w
-    for a, b in zip(jax.tree_util.tree_leaves(out["xla", True]), jax.tree_util.tree_leaves(out["interpret", True])):
-        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
-    for a, b in zip(jax.tree_util.tree_leaves(out["xla", True]), jax.tree_util.tree_leaves(out["xla", False])):
-        np.testing.assert_allclose(np.asarray(a, np.float32), np.asarray(b, np.float32), rtol=0, atol=1e-5)
-    assert abs(float(out["xla", True].bodies.vel[0, 0, 1])) < 0.5  # the level box: from 10 m/s, stopped at impact
-
-
 def test_tilted_box_landing_on_its_corner_follows_box2d():
     """A walker shin (Gymnasium's lower-leg box) tilted 0.3 rad, 2 mm above the ground, sliding at
     1 m/s: with Box2D's time-of-impact rules (touching at t = 0 within the target, the TOI position

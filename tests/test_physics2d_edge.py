@@ -162,18 +162,24 @@ def test_box_at_rest_on_an_edge_shares_its_weight_between_two_points():
 
 @pytest.mark.optimized  # bitwise: two programs
 def test_edge_contacts_run_in_the_fused_kernel_bitwise():
-    """The edge solver's passes keep the fused loop's contract (per-world scalars, elementwise ops):
-    through the Pallas kernel's interpreter a vmapped batch ends bitwise where plain XLA does."""
+    """The edge solver's passes and the looped time of impact keep the fused loop's contract (per-world
+    scalars, elementwise ops, ``fused.when`` skips): through the Pallas kernel's interpreter a vmapped
+    batch ends bitwise where plain XLA does. The fourth world falls fast enough for a time of impact."""
     box = ((-0.5, -0.25), (0.5, -0.25), (0.5, 0.25), (-0.5, 0.25))
     ground = jnp.asarray([[0.0, 1.0], [5.2, 1.0], [10.0, 1.0]], jnp.float32)  # a junction under the box
     out = {}
     for kernel in ("xla", "interpret"):
         cfg = physics2d.SolverConfig(dt=1 / 50, velocity_iterations=8, position_iterations=3, edge_contacts=2,
-                                     kernel=kernel)
+                                     kernel=kernel, toi_loop=True, toi_position_iterations=20)
         m = physics2d.make_model(1, [physics2d.Polygon(0, box, 2.0, 0.4)], (), cfg)
-        make = lambda y, a, m=m: physics2d.init_world(m, physics2d.bodies_from_origin(m, jnp.stack([jnp.stack([5.0, y])]), a[None]))
-        ws = jax.vmap(make)(jnp.asarray([1.3, 1.26, 1.4]), jnp.asarray([0.0, 0.1, -0.2]))
-        run = lambda w, m=m: jax.lax.scan(lambda w, _: (physics2d.step(m, w, ground, -10.0)[0], None), w, None, length=10)[0]
+        make = lambda y, a, v, m=m: physics2d.init_world(m, physics2d.bodies_from_origin(
+            m, jnp.stack([jnp.stack([5.0, y])]), a[None], vel=jnp.stack([jnp.stack([0.0, v])])))
+        ws = jax.vmap(make)(jnp.asarray([1.3, 1.26, 1.4, 1.4]), jnp.asarray([0.0, 0.1, -0.2, 0.0]),
+                            jnp.asarray([0.0, 0.0, 0.0, -10.0]))
+        step = lambda w, _, m=m: (physics2d.step(m, w, ground, -10.0)[0],) * 2
+        run = lambda w: jax.lax.scan(step, w, None, length=10)
         out[kernel] = jax.jit(jax.vmap(run))(ws)
     for a, b in zip(jax.tree_util.tree_leaves(out["xla"]), jax.tree_util.tree_leaves(out["interpret"])):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    first_vy = out["xla"][1].bodies.vel[3, 0, 0, 1]  # the fast box after its first step
+    assert abs(float(first_vy)) < 1.0, first_vy  # from 10.2 m/s: stopped by the time of impact

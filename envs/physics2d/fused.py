@@ -26,12 +26,14 @@ operand of a world whose flag is 0 unchanged (up to the sign of zero), so the pa
 """
 from __future__ import annotations
 
+import threading
+
 import jax
 import jax.numpy as jnp
 from jax import lax
 
 MODES = ("auto", "xla", "pallas", "interpret")
-_IN_KERNEL = [False]  # True while a kernel body is traced (``when`` then branches per block)
+_TRACING = threading.local()  # .in_kernel: True while this thread traces a kernel body (``when`` branches)
 BLOCK = 128  # worlds per kernel instance (one per thread with 4 warps)
 NUM_WARPS = 4  # Triton warps per kernel instance (32 threads each)
 
@@ -67,7 +69,7 @@ def when(flag: BlockAny, fn, operand, enabled: bool = True):
     docstring: ``fn`` must leave a world whose flag is 0 unchanged). ``enabled=False`` never skips."""
     if not isinstance(flag, BlockAny):
         raise TypeError(f"fused.when needs a BlockAny flag from the loop's consts, got {type(flag).__name__}")
-    if not (_IN_KERNEL[0] and enabled):
+    if not (getattr(_TRACING, "in_kernel", False) and enabled):
         return fn(operand)
     return lax.cond(flag.flag > 0.5, fn, lambda x: x, operand)
 
@@ -147,11 +149,11 @@ def _kernel(n, body, c_tree, s_tree, nc, leaves, interpret):
         # block-uniform flags: reduced once, before the loop
         c = jax.tree_util.tree_map(lambda x: BlockAny(jnp.max(x.flag)) if _is_flag(x) else x, c, is_leaf=_is_flag)
         s = jax.tree_util.tree_unflatten(s_tree, rows[nc:])
-        _IN_KERNEL[0] = True
+        _TRACING.in_kernel = True
         try:
             s = lax.fori_loop(0, n, lambda _, v: body(c, v), s)
         finally:
-            _IN_KERNEL[0] = False
+            _TRACING.in_kernel = False
         for g, v in enumerate(jax.tree_util.tree_leaves(s)):
             o_ref[g, :] = jnp.broadcast_to(jnp.asarray(v, jnp.float32), (BLOCK,))
         for g in range(f_out, rows_out):
