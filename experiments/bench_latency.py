@@ -27,7 +27,6 @@ import os
 import time
 
 import jax
-import jax.numpy as jnp
 
 from shed_jax.runtime import provenance
 
@@ -47,6 +46,13 @@ def _timed(fn, *args, repeats=3):
 def env_latency(env, batch: int, steps: int, step_fn=None) -> dict:
     """Seconds per sequential step (best of 3 after the compile) of ``vmap(step_fn)`` in a
     ``lax.scan`` of ``steps``, random actions; ``step_fn`` defaults to ``env.step``."""
+    compile_s, best = _timed(random_action_scan(env, batch, steps, step_fn), jax.random.PRNGKey(0))
+    return dict(batch=batch, steps=steps, compile_s=compile_s, s_per_step=best / steps)
+
+
+def random_action_scan(env, batch: int, steps: int, step_fn=None):
+    """A jitted ``run(key)``: ``batch`` envs on uniformly sampled levels reset, then ``steps`` sequential
+    ``vmap(step_fn)`` with random actions in a ``lax.scan``; returns the summed reward."""
     step_fn = env.step if step_fn is None else step_fn
     levels = env.param_space.sample(jax.random.PRNGKey(1), (batch,))
     space = env.action_space()
@@ -65,8 +71,7 @@ def env_latency(env, batch: int, steps: int, step_fn=None) -> dict:
         _, r = jax.lax.scan(body, (obs, state), jax.random.split(key, steps))
         return r.sum()
 
-    compile_s, best = _timed(run, jax.random.PRNGKey(0))
-    return dict(batch=batch, steps=steps, compile_s=compile_s, s_per_step=best / steps)
+    return run
 
 
 STUDENT_PARTS = ("rollout", "update", "eval")

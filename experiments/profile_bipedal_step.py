@@ -46,28 +46,6 @@ def make_env(variant: str, **options):
     return env
 
 
-def scan_fn(env, batch: int, steps: int, step_name: str = "step_without_reset"):
-    step_fn = getattr(env, step_name)
-    levels = env.param_space.sample(jax.random.PRNGKey(1), (batch,))
-    space = env.action_space()
-
-    @jax.jit
-    def run(key):
-        obs, state = jax.vmap(env.reset)(jax.random.split(key, batch), levels)
-
-        def body(c, k):
-            obs, state = c
-            ka, ks = jax.random.split(k)
-            a = jax.vmap(space.sample)(jax.random.split(ka, batch))
-            obs, state, r, d, _ = jax.vmap(step_fn)(jax.random.split(ks, batch), state, a, levels)
-            return (obs, state), r.sum()
-
-        _, r = jax.lax.scan(body, (obs, state), jax.random.split(key, steps))
-        return r.sum()
-
-    return run
-
-
 def time_scan(run, repeats: int = 3) -> tuple[float, float]:
     t = time.perf_counter()
     lowered = run.lower(jax.random.PRNGKey(0))
@@ -141,6 +119,7 @@ def main(argv=None) -> int:
     unknown = [v for v in variants if v not in VARIANTS]
     if unknown:
         p.error(f"unknown variant(s) {unknown}; known: {sorted(VARIANTS)}")
+    from experiments.bench_latency import random_action_scan
     from shed_jax.runtime import provenance
 
     rec = {**provenance("experiments.profile_bipedal_step", argv), "step": args.step, "rows": []}
@@ -154,7 +133,7 @@ def main(argv=None) -> int:
     for i, v in enumerate(variants):
         env = make_env(v)
         for b in (int(x) for x in args.batches.split(",")):
-            run = scan_fn(env, b, args.steps, args.step)
+            run = random_action_scan(env, b, args.steps, getattr(env, args.step))
             compile_s, best = time_scan(run)
             row = {"variant": v, "batch": b, "steps": args.steps, "compile_s": round(compile_s, 1),
                    "ms_per_step": 1e3 * best / args.steps, "steps_per_second": b * args.steps / best}
