@@ -421,8 +421,7 @@ def _time_of_impact(model: Model, slots, b: BodyState, com, ang, vel, omg, cross
     # per-world scalars for the passes: bodies with solid slots, their real slots
     moving = [i for i in range(model.num_bodies) if per_body[i]]
     pslots = tuple(tuple(range(len(per_body[i]))) for i in moving)
-    lv_np = np.asarray(lv)
-    geom = dict(lv=tuple(tuple((np.float32(lv_np[i, s, 0]), np.float32(lv_np[i, s, 1])) for s in range(len(per_body[i])))
+    geom = dict(lv=tuple(tuple((np.float32(lv[i, s, 0]), np.float32(lv[i, s, 1])) for s in range(len(per_body[i])))
                          for i in moving),
                 mu=tuple(tuple(np.float32(model.slot_friction[per_body[i][s]]) for s in range(len(per_body[i])))
                          for i in moving),
@@ -482,12 +481,7 @@ def _toi_body_position(cfg, geom, c, b_, state):
         r = rotate2(a_, V2(lx, ly))
         sep = (c_ + r - q).dot(n) - cfg.contact_radius
         min_sep = jnp.where(on, jnp.minimum(min_sep, sep), min_sep)
-        corr = jnp.clip(cfg.toi_baumgarte * (sep + cfg.linear_slop), -cfg.max_linear_correction, 0.0)
-        rn_ = r.cross(n)
-        kk = inv_m + inv_i * rn_ * rn_
-        p = n * jnp.where(on & (kk > 0), -corr / kk, 0.0)
-        c_ = c_ + inv_m * p
-        a_ = a_ + inv_i * r.cross(p)
+        c_, a_ = _position_impulse(cfg, inv_m, inv_i, c_, a_, r, n, sep, on, cfg.toi_baumgarte)
     frozen = done > 0.5
     return (c0.where(frozen, c_), jnp.where(frozen, a0, a_),
             jnp.where(frozen | (min_sep >= -1.5 * cfg.linear_slop), 1.0, 0.0).astype(jnp.float32))
@@ -584,10 +578,12 @@ def _position_pass(model: Model, slots, c, carry):
     return _joint_positions_then_freeze(model, c, lc, carry, com, ang, min_sep)
 
 
-def _position_impulse(cfg, inv_m, inv_i, com, ang, arm, normal, sep, on):
+def _position_impulse(cfg, inv_m, inv_i, com, ang, arm, normal, sep, on, baumgarte=None):
     """One contact point's position correction (Box2D's SolvePositionConstraints step): the
-    Baumgarte-scaled, clamped push along ``normal`` at ``arm`` from the centre of mass -> (com, angle)."""
-    corr = jnp.clip(cfg.baumgarte * (sep + cfg.linear_slop), -cfg.max_linear_correction, 0.0)
+    Baumgarte-scaled, clamped push along ``normal`` at ``arm`` from the centre of mass -> (com, angle).
+    ``baumgarte``: ``cfg.baumgarte`` unless given (the time of impact's sub-step uses its own)."""
+    baumgarte = cfg.baumgarte if baumgarte is None else baumgarte
+    corr = jnp.clip(baumgarte * (sep + cfg.linear_slop), -cfg.max_linear_correction, 0.0)
     rnk = arm.cross(normal)
     kk = inv_m + inv_i * rnk * rnk
     imp = jnp.where(on & (kk > 0), -corr / kk, 0.0)
@@ -703,54 +699,46 @@ def _velocity_pass_edges(model: Model, body, friction, c, carry):
     for p in range(len(body) // 2):
         k1, k2 = 2 * p, 2 * p + 1
         i = body[k1]
-        manifold = functools.partial(_manifold_velocity, c, p, inv_m[i], inv_i[i], friction[k1], friction[k2])
-        vel[i], omg[i], ln[k1], ln[k2], lt[k1], lt[k2] = manifold((vel[i], omg[i], ln[k1], ln[k2], lt[k1], lt[k2]))
+        mi, ii = inv_m[i], inv_i[i]
+        n, t = c["n"][k1], c["t"][k1]
+        for k in (k1, k2):  # friction
+            arm = c["arm"][k]
+            vt = (vel[i] + cross_sv2(omg[i], arm)).dot(t)
+            max_f = np.float32(friction[k]) * ln[k]
+            new_t = jnp.clip(lt[k] - c["tm"][k] * vt, -max_f, max_f) * c["on"][k]
+            pt = (new_t - lt[k]) * t
+            lt[k] = new_t
+            vel[i] = vel[i] + mi * pt
+            omg[i] = omg[i] + ii * arm.cross(pt)
+        r1, r2 = c["arm"][k1], c["arm"][k2]
+        vn1 = (vel[i] + cross_sv2(omg[i], r1)).dot(n)
+        vn2 = (vel[i] + cross_sv2(omg[i], r2)).dot(n)
+        # one point (Box2D's pointCount == 1)
+        s_new = jnp.maximum(ln[k1] - c["nm"][k1] * vn1, 0.0) * c["on"][k1]
+        # block solve of both points
+        a1, a2 = ln[k1], ln[k2]
+        k11, k12, k22 = c["k11"][p], c["k12"][p], c["k22"][p]
+        bx = vn1 - (k11 * a1 + k12 * a2)
+        by = vn2 - (k12 * a1 + k22 * a2)
+        x1 = -(c["m11"][p] * bx + c["m12"][p] * by)
+        y1 = -(c["m12"][p] * bx + c["m22"][p] * by)
+        ok1 = (x1 >= 0.0) & (y1 >= 0.0)
+        x2 = -c["nm"][k1] * bx
+        ok2 = (x2 >= 0.0) & (k12 * x2 + by >= 0.0)
+        y3 = -c["nm"][k2] * by
+        ok3 = (y3 >= 0.0) & (k12 * y3 + bx >= 0.0)
+        ok4 = (bx >= 0.0) & (by >= 0.0)
+        bxn = jnp.where(ok1, x1, jnp.where(ok2, x2, jnp.where(ok3, 0.0, jnp.where(ok4, 0.0, a1))))
+        byn = jnp.where(ok1, y1, jnp.where(ok2, 0.0, jnp.where(ok3, y3, jnp.where(ok4, 0.0, a2))))
+        blk = c["blk"][p] > 0.5
+        new1 = jnp.where(blk, bxn, s_new)
+        new2 = jnp.where(blk, byn, ln[k2])
+        d1, d2 = new1 - ln[k1], new2 - ln[k2]
+        ln[k1], ln[k2] = new1, new2
+        p1, p2 = d1 * n, d2 * n
+        vel[i] = vel[i] + mi * (p1 + p2)
+        omg[i] = omg[i] + ii * (r1.cross(p1) + r2.cross(p2))
     return tuple(vel), tuple(omg), tuple(jimp), tuple(jmot), tuple(ln), tuple(lt)
-
-
-def _manifold_velocity(c, p, mi, ii, f1, f2, state):
-    """One edge manifold's friction and normal impulses -> (vel, omega, normal 1, 2, tangent 1, 2)."""
-    v, w, n1, n2, t1, t2 = state
-    k1, k2 = 2 * p, 2 * p + 1
-    n, t = c["n"][k1], c["t"][k1]
-    ln, lt = [n1, n2], [t1, t2]
-    for j, (k, f) in enumerate(((k1, f1), (k2, f2))):  # friction
-        arm = c["arm"][k]
-        vt = (v + cross_sv2(w, arm)).dot(t)
-        max_f = np.float32(f) * ln[j]
-        new_t = jnp.clip(lt[j] - c["tm"][k] * vt, -max_f, max_f) * c["on"][k]
-        pt = (new_t - lt[j]) * t
-        lt[j] = new_t
-        v = v + mi * pt
-        w = w + ii * arm.cross(pt)
-    r1, r2 = c["arm"][k1], c["arm"][k2]
-    vn1 = (v + cross_sv2(w, r1)).dot(n)
-    vn2 = (v + cross_sv2(w, r2)).dot(n)
-    # one point (Box2D's pointCount == 1)
-    s_new = jnp.maximum(ln[0] - c["nm"][k1] * vn1, 0.0) * c["on"][k1]
-    # block solve of both points
-    a1, a2 = ln
-    k11, k12, k22 = c["k11"][p], c["k12"][p], c["k22"][p]
-    bx = vn1 - (k11 * a1 + k12 * a2)
-    by = vn2 - (k12 * a1 + k22 * a2)
-    x1 = -(c["m11"][p] * bx + c["m12"][p] * by)
-    y1 = -(c["m12"][p] * bx + c["m22"][p] * by)
-    ok1 = (x1 >= 0.0) & (y1 >= 0.0)
-    x2 = -c["nm"][k1] * bx
-    ok2 = (x2 >= 0.0) & (k12 * x2 + by >= 0.0)
-    y3 = -c["nm"][k2] * by
-    ok3 = (y3 >= 0.0) & (k12 * y3 + bx >= 0.0)
-    ok4 = (bx >= 0.0) & (by >= 0.0)
-    bxn = jnp.where(ok1, x1, jnp.where(ok2, x2, jnp.where(ok3, 0.0, jnp.where(ok4, 0.0, a1))))
-    byn = jnp.where(ok1, y1, jnp.where(ok2, 0.0, jnp.where(ok3, y3, jnp.where(ok4, 0.0, a2))))
-    blk = c["blk"][p] > 0.5
-    new1 = jnp.where(blk, bxn, s_new)
-    new2 = jnp.where(blk, byn, a2)
-    d1, d2 = new1 - a1, new2 - a2
-    p1, p2 = d1 * n, d2 * n
-    v = v + mi * (p1 + p2)
-    w = w + ii * (r1.cross(p1) + r2.cross(p2))
-    return v, w, new1, new2, lt[0], lt[1]
 
 
 def _position_pass_edges(model: Model, body, c, carry):
