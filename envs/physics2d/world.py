@@ -109,7 +109,7 @@ def apply_impulse(model: Model, bodies: BodyState, body: int, impulse, point) ->
 
 def step(model: Model, world: WorldState, ground, gravity, force=None, torque=None, projector=None,
          position_iterations=None, free_flight: bool = False, motor_speed=None, max_motor_torque=None,
-         edges=None, edge_valid=None):
+         edges=None, edge_valid=None, start_contacts: bool = True):
     """Advance ``world`` by one time step. Returns (new world, info).
 
     ``projector``: optional constant (3B, 3B) matrix from ``locked_velocity_projector``; when given,
@@ -127,6 +127,10 @@ def step(model: Model, world: WorldState, ground, gravity, force=None, torque=No
     Box2D's SetMotorSpeed / SetMaxMotorTorque set before ``b2World::Step``; a batch of worlds can
     give each its own); None keeps every joint's static ``RevoluteJoint`` values. Entries of joints
     without a motor are ignored.
+    ``start_contacts=False`` (static, edge contacts): the caller guarantees that no solid polygon is
+    within contact distance of the ground at the start pose (e.g. a body created above it). The edge
+    manifolds are then skipped and the velocity and position passes solve the joints alone (the time of
+    impact still runs): the full step's values at a fraction of its work and compile.
     ``edges`` (S, 2, 2), ``edge_valid`` (S,) bool: with ``config.edge_contacts`` the ground as separate
     Box2D edges, edge s starting at ground point s (S = P - 1; a longer edge may cover several
     segments, the ones it covers then invalid); None: every ground segment is its own edge. Solid
@@ -162,11 +166,13 @@ def step(model: Model, world: WorldState, ground, gravity, force=None, torque=No
     solid = jnp.asarray([(not s) and projector is None for s in model.slot_sensor])
     active = touching & solid
     edge_mode = bool(cfg.edge_contacts) and projector is None
-    if edge_mode:  # solver contacts: Box2D edge manifolds, warm started by (edge, feature)
+    if edge_mode and (free_flight or not start_contacts):  # no manifold has points: the passes solve the joints alone
+        ec = dict(on=jnp.zeros((model.num_contacts,), bool), key=jnp.zeros_like(world.contact_key), body=(),
+                  friction=(), pairs=jnp.zeros((len(model.polygons), ground.shape[0] - 1), bool))
+        e_on = ec["on"]
+    elif edge_mode:  # solver contacts: Box2D edge manifolds, warm started by (edge, feature)
         edges = jnp.stack([ground[:-1], ground[1:]], 1) if edges is None else jnp.asarray(edges, jnp.float32)
         valid = jnp.ones((edges.shape[0],), bool) if edge_valid is None else jnp.asarray(edge_valid, bool)
-        if free_flight:
-            valid = jnp.zeros_like(valid)
         with jax.named_scope("edge_manifolds"):
             ec = edge_constraints(model, b, edges, valid)
         e_on = ec["on"]
@@ -193,9 +199,9 @@ def step(model: Model, world: WorldState, ground, gravity, force=None, torque=No
     normal_mass = 1.0 / (mslot + islot * rn**2)
     tangent_mass = 1.0 / (mslot + islot * rt**2)
     if edge_mode:
-        econ = _edge_velocity_constants(model, b, ec)
-        ebody = ec["body"]
-        for k in range(model.num_contacts):  # warm start (a second point Box2D drops is not applied)
+        ebody = ec["body"]  # () in free flight
+        econ = _edge_velocity_constants(model, b, ec) if ebody else {}
+        for k in range(len(ebody)):  # warm start (a second point Box2D drops is not applied)
             on_k = econ["on"][k]
             p = on_k * (lam_n[k] * econ["n"][k].array() + lam_t[k] * econ["t"][k].array())
             i = ebody[k]
@@ -241,10 +247,11 @@ def step(model: Model, world: WorldState, ground, gravity, force=None, torque=No
     if max_motor_torque is not None:
         mt = jnp.asarray(max_motor_torque, f32)
         vconsts["max_motor_torque"] = tuple(mt[j] for j in range(len(model.joints)))
-    cslots = list(range(model.num_contacts)) if edge_mode else slots
+    cslots = list(range(len(ebody))) if edge_mode else slots
     carry = (tuple(V2.of(v) for v in vel), tuple(omg), tuple((i[0], i[1], i[2]) for i in jimp), tuple(jmot),
              tuple(lam_n[k] for k in cslots), tuple(lam_t[k] for k in cslots))
-    if edge_mode:
+    if edge_mode:  # the manifolds' constants replace the vertex slots' (none in free flight)
+        vconsts = {k: v for k, v in vconsts.items() if k not in ("on", "arm", "n", "t", "nm", "tm")}
         vconsts.update(econ)
         vpass = functools.partial(_velocity_pass_edges, model, ebody, ec["friction"])
     else:
@@ -288,7 +295,7 @@ def step(model: Model, world: WorldState, ground, gravity, force=None, torque=No
     pconsts = dict(on=tuple(active[k].astype(f32) for k in slots), q=tuple(V2.of(plane_q[k]) for k in slots),
                    n=tuple(V2.of(plane_n[k]) for k in slots), state=tuple(s.astype(f32) for s in jstate))
     if edge_mode:
-        pconsts = dict(_edge_position_constants(model, b, ec), state=pconsts["state"])
+        pconsts = dict(_edge_position_constants(model, b, ec) if ebody else {}, state=pconsts["state"])
         ppass = functools.partial(_position_pass_edges, model, ebody)
     else:
         ppass = functools.partial(_position_pass, model, slots)
@@ -339,8 +346,10 @@ def step(model: Model, world: WorldState, ground, gravity, force=None, torque=No
 
     zero = jnp.zeros((), jnp.float32)
     if edge_mode:
-        ln_full, lt_full = jnp.stack(ln), jnp.stack(lt)
-        contact_key, stored_touching = ec["key"], e_on
+        ln_full = jnp.stack(ln) if ln else jnp.zeros((model.num_contacts,), jnp.float32)
+        lt_full = jnp.stack(lt) if lt else jnp.zeros((model.num_contacts,), jnp.float32)
+        # a key is kept only where its contact is on (zero elsewhere, so free flight stores the same)
+        contact_key, stored_touching = jnp.where(e_on[:, None], ec["key"], 0), e_on
     else:
         pos_of = {k: s for s, k in enumerate(slots)}
         ln_full = jnp.stack([ln[pos_of[k]] if k in pos_of else zero for k in range(model.num_slots)])
