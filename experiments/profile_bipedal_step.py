@@ -6,11 +6,15 @@ variant's scans, summarised per kernel (launches and device time per step, the H
 ``XLA_FLAGS=--xla_dump_to=...`` the optimised HLO maps those ops to the named scopes of
 ``physics2d.step``'s phases) and as the share of the wall time the device is busy. The raw trace is not kept (too large to come back from a device).
 
+``--step`` picks what is timed: ``step_without_reset`` (default), ``step`` (with its auto-reset) or
+``reset`` (``env.reset`` alone, a new terrain and push each time).
+
 Variants change only the solver's configuration (the same env otherwise):
 ``default`` (Box2D's passes), ``passes_1_1`` (1 velocity / 1 position pass), ``toi_unrolled``
 (the time-of-impact passes unrolled instead of looped), ``no_toi`` (no time of impact: not the walker,
 its cost only), ``xla`` (no Pallas kernel), ``no_skip`` (the kernels compute every contact
-point and time of impact, also in blocks of worlds none of which needs it).
+point and time of impact, also in blocks of worlds none of which needs it), ``full_reset`` (the
+env's ``light_reset=False``: the reset's physics step with its edge manifolds).
 
     python -m experiments.profile_bipedal_step --batches 200 --variants default,passes_1_1 --out $OUT/profile.json
 """
@@ -26,6 +30,7 @@ import tempfile
 import time
 
 import jax
+import jax.numpy as jnp
 
 VARIANTS = {
     "default": {},
@@ -34,16 +39,35 @@ VARIANTS = {
     "no_toi": {"continuous": False},
     "xla": {"kernel": "xla"},
     "no_skip": {"skip_untouched": False},
+    "full_reset": {},  # env option below: the reset's physics step with its edge manifolds
 }
+ENV_OPTIONS = {"full_reset": {"light_reset": False}}
 
 
 def make_env(variant: str, **options):
     import envs
 
-    env = envs.make("bipedal", **options)
+    env = envs.make("bipedal", **{**ENV_OPTIONS.get(variant, {}), **options})
     cfg = dataclasses.replace(env.model.config, **VARIANTS[variant])
     env.model = dataclasses.replace(env.model, config=cfg)
     return env
+
+
+def reset_scan(env, batch: int, steps: int):
+    """A jitted ``run(key)``: ``steps`` sequential ``vmap(env.reset)`` of ``batch`` envs on sampled levels,
+    each with new keys (a new terrain and push); their observations and poses are summed, so XLA keeps them."""
+    levels = env.param_space.sample(jax.random.PRNGKey(1), (batch,))
+
+    @jax.jit
+    def run(key):
+        def body(total, k):
+            obs, state = jax.vmap(env.reset)(jax.random.split(k, batch), levels)
+            return total + obs.sum() + state.world.bodies.com.sum(), None
+
+        total, _ = jax.lax.scan(body, jnp.float32(0.0), jax.random.split(key, steps))
+        return total
+
+    return run
 
 
 def time_scan(run, repeats: int = 3) -> tuple[float, float]:
@@ -111,7 +135,8 @@ def main(argv=None) -> int:
     p.add_argument("--batches", default="200")
     p.add_argument("--steps", type=int, default=200)
     p.add_argument("--variants", default="default")
-    p.add_argument("--step", default="step_without_reset", choices=("step_without_reset", "step"))
+    p.add_argument("--step", default="step_without_reset", choices=("step_without_reset", "step", "reset"),
+                   help="what each scan iteration runs: a step without or with its auto-reset, or a reset alone")
     p.add_argument("--trace", action="store_true", help="trace the first variant's scans (jax.profiler)")
     p.add_argument("--out", default="runs/profile_bipedal_step.json")
     args = p.parse_args(argv)
@@ -133,7 +158,8 @@ def main(argv=None) -> int:
     for i, v in enumerate(variants):
         env = make_env(v)
         for b in (int(x) for x in args.batches.split(",")):
-            run = random_action_scan(env, b, args.steps, getattr(env, args.step))
+            run = (reset_scan(env, b, args.steps) if args.step == "reset"
+                   else random_action_scan(env, b, args.steps, getattr(env, args.step)))
             compile_s, best = time_scan(run)
             row = {"variant": v, "batch": b, "steps": args.steps, "compile_s": round(compile_s, 1),
                    "ms_per_step": 1e3 * best / args.steps, "steps_per_second": b * args.steps / best}
