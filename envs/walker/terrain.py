@@ -93,8 +93,6 @@ class _Carry:
     stair_h: jax.Array
     stair_slope: jax.Array
     stair_n: jax.Array  # int32
-    boxes: jax.Array
-    n_boxes: jax.Array
 
 
 def generate(key: jax.Array, level: Any, max_boxes: int = 64, unroll: int = 1) -> Terrain:
@@ -223,11 +221,8 @@ def generate_from_uniforms(uniforms: jax.Array, level: Any, max_boxes: int = 64,
         y_stairs = jnp.where(gym, y_ramp, y_stairs)
         y = jnp.where(stairs_walk, y_stairs, y)
 
-        # Append this column's boxes (compacted; slots beyond max_boxes are dropped).
-        pos = carry.n_boxes + jnp.cumsum(cand_ok) - 1
-        pos = jnp.where(cand_ok, pos, max_boxes)  # out of range -> dropped
-        boxes = carry.boxes.at[pos].set(cand, mode="drop")
-        n_boxes = carry.n_boxes + jnp.sum(cand_ok)
+        # This column's boxes are an output of the scan: they are appended in order after it (a
+        # (max_boxes, 4) carry with a scatter per column cost most of a GPU reset's time).
 
         # Counter and state transition.
         kind = st
@@ -242,8 +237,8 @@ def generate_from_uniforms(uniforms: jax.Array, level: Any, max_boxes: int = 64,
         st = jnp.where(switch, nxt, st)
         one = switch
 
-        carry = _Carry(y, vel, counter, st, one, y_orig, pit_diff, s_h, s_slope, s_n, boxes, n_boxes)
-        return carry, (x_out, y, kind)
+        carry = _Carry(y, vel, counter, st, one, y_orig, pit_diff, s_h, s_slope, s_n)
+        return carry, (x_out, y, kind, cand, cand_ok)
 
     init = _Carry(
         y=jnp.float32(C.TERRAIN_HEIGHT),
@@ -256,13 +251,16 @@ def generate_from_uniforms(uniforms: jax.Array, level: Any, max_boxes: int = 64,
         stair_h=jnp.float32(0.0),
         stair_slope=jnp.float32(1.0),
         stair_n=jnp.int32(0),
-        boxes=jnp.zeros((max_boxes, 4), jnp.float32),
-        n_boxes=jnp.int32(0),
     )
     idx = jnp.arange(C.TERRAIN_LENGTH, dtype=jnp.int32)
-    carry, (xs, ys, kinds) = jax.lax.scan(column, init, (idx, uniforms), unroll=unroll)
-    valid = jnp.arange(max_boxes) < carry.n_boxes
-    return Terrain(x=xs, y=ys, boxes=carry.boxes, box_valid=valid, n_boxes=carry.n_boxes, kinds=kinds)
+    _, (xs, ys, kinds, cand, cand_ok) = jax.lax.scan(column, init, (idx, uniforms), unroll=unroll)
+    # the boxes in column order, compacted; those beyond max_boxes are dropped
+    cand, cand_ok = cand.reshape(-1, 4), cand_ok.reshape(-1)
+    pos = jnp.where(cand_ok, jnp.cumsum(cand_ok) - 1, max_boxes)  # out of range -> dropped
+    boxes = jnp.zeros((max_boxes, 4), jnp.float32).at[pos].set(cand, mode="drop")
+    n_boxes = jnp.sum(cand_ok, dtype=jnp.int32)
+    valid = jnp.arange(max_boxes) < n_boxes
+    return Terrain(x=xs, y=ys, boxes=boxes, box_valid=valid, n_boxes=n_boxes, kinds=kinds)
 
 
 @struct.dataclass
