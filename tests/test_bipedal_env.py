@@ -224,6 +224,24 @@ def test_heuristic_matches_gymnasiums_controller():
     assert phases == {1, 2, 3}
 
 
+def test_parity_fall_sites_count_the_nearest_obstacle():
+    """The parity harness's falls by obstacle: runs of non-grass columns are obstacles; a fall counts
+    for the nearest one within 3 terrain steps of the hull, else for grass; episodes that did not
+    fall are not counted."""
+    from envs.bipedal.parity import column_obstacles, fall_sites
+
+    S = C.TERRAIN_STEP
+    kinds = np.array([C.GRASS, C.STUMP, C.GRASS, C.GRASS, C.PIT, C.PIT, C.PIT, C.STAIRS, C.STAIRS, C.GRASS])
+    xs = np.arange(10) * S
+    obs = column_obstacles(kinds, xs)
+    assert [k for _, _, k in obs] == ["stump", "pit", "stairs"]
+    np.testing.assert_allclose([(a, b) for a, b, _ in obs], [(S, 2 * S), (4 * S, 7 * S), (7 * S, 9 * S)])
+    assert column_obstacles(np.array([C.GRASS, C.PIT]), np.array([0.0, S]))[0][2] == "pit"  # a run at the end
+    x = [1.5 * S, 5 * S, 2.9 * S, 30 * S, 3 * S]
+    fell = [True, True, True, True, False]
+    assert fall_sites(x, fell, [obs] * 5) == {"stump": 2, "stairs": 0, "pit": 1, "grass": 1}
+
+
 # ----------------------------------------------------------------------------------- the shared program
 def test_reset_shapes_and_created_pose(sim):
     env, reset, _ = sim

@@ -16,7 +16,8 @@ one included. An episode ends on termination or the
 level's time limit (1600 steps flat, 2000 Hardcore, as Gymnasium registers them). A fall is a
 termination with reward -100 (hull contact or x < 0). Bar (docs/bipedal.md "Parity"): mean return
 within 15 % of Gymnasium's or within 2 standard errors of the difference, whichever is wider, and
-fall rate within 0.1.
+fall rate within 0.1. Each row also counts the falls by the obstacle nearest to where the hull was
+(``*_fall_sites``: stump, stairs, pit, or grass when none is within 3 terrain steps).
 """
 from __future__ import annotations
 
@@ -32,6 +33,8 @@ import numpy as np
 
 from envs.bipedal.env import BipedalOptions, BipedalWalker
 from envs.bipedal.heuristic import heuristic, heuristic_init
+from envs.walker import constants as C
+from envs.walker import terrain as T
 from envs.walker.levels import LEVELS
 from shed_jax.runtime import provenance
 
@@ -81,6 +84,10 @@ def jax_episodes(level: str, episodes: int, seed: int = 0, chunk: int = 100, con
     def one(key, theta):
         k0, k1 = jax.random.split(key)
         obs, state = env.reset(k0, params)
+        # the episode's terrain, for where it ended: reset_env draws it from the first half of its key
+        # (checked: its profile must be the state's)
+        terrain = env.terrain(jax.random.split(k0)[0], params)
+        terrain_ok = jnp.all(T.rasterise(terrain, env.grid) == state.profile)
 
         def body(carry, k):
             obs, state, h, a, done_before, out = carry
@@ -89,14 +96,14 @@ def jax_episodes(level: str, episodes: int, seed: int = 0, chunk: int = 100, con
             first = done & ~done_before
             fell = info["terminated"] & (reward == -100.0)
             out = jax.tree_util.tree_map(lambda o, n: jnp.where(first, n, o), out, dict(
-                ret=info["episode_return"], length=info["episode_length"], fall=fell))
+                ret=info["episode_return"], length=info["episode_length"], fall=fell, x=info["x"]))
             return (obs, state, h, a, done_before | done, out), None
 
-        out0 = dict(ret=jnp.float32(0), length=jnp.int32(0), fall=jnp.bool_(False))
+        out0 = dict(ret=jnp.float32(0), length=jnp.int32(0), fall=jnp.bool_(False), x=jnp.float32(0))
         a, h = first(theta, obs)
         carry = (obs, state, h, a, jnp.bool_(False), out0)
         (_, _, _, _, _, out), _ = jax.lax.scan(body, carry, jax.random.split(k1, max_steps))
-        return out
+        return dict(out, kinds=terrain.kinds, column_x=terrain.x, terrain_ok=terrain_ok)
 
     run = jax.jit(jax.vmap(one, in_axes=(0, None)))
     results = []
@@ -108,8 +115,59 @@ def jax_episodes(level: str, episodes: int, seed: int = 0, chunk: int = 100, con
             if part.shape[0] < chunk:  # same compiled shape for the last chunk
                 part = jnp.concatenate([part, keys[: chunk - part.shape[0]]])
             outs.append(jax.tree_util.tree_map(np.asarray, run(part, theta)))
-        results.append({k: np.concatenate([o[k] for o in outs])[:episodes] for k in outs[0]})
+        res = {k: np.concatenate([o[k] for o in outs])[:episodes] for k in outs[0]}
+        if not res.pop("terrain_ok").all():
+            raise RuntimeError("parity: the terrain redrawn from a reset key is not the reset's (has reset_env's "
+                               "key split changed?)")
+        kinds, cx = res.pop("kinds"), res.pop("column_x")
+        res["obstacles"] = [column_obstacles(k, x) for k, x in zip(kinds, cx)]
+        results.append(res)
     return results
+
+
+OBSTACLE_KINDS = {C.STUMP: "stump", C.STAIRS: "stairs", C.PIT: "pit"}
+
+
+def column_obstacles(kinds, column_x) -> list[tuple[float, float, str]]:
+    """Our terrain's obstacles as (x0, x1, kind): each run of columns of one non-grass state."""
+    out, start = [], None
+    for i, k in enumerate(list(kinds) + [C.GRASS]):
+        if start is not None and k != kinds[start]:
+            out.append((float(column_x[start]), float(column_x[i - 1]) + C.TERRAIN_STEP, OBSTACLE_KINDS[int(kinds[start])]))
+            start = None
+        if start is None and k != C.GRASS and i < len(kinds):
+            start = i
+    return out
+
+
+def gym_obstacles(env) -> list[tuple[float, float, str]]:
+    """A Gymnasium walker's obstacles after its reset, as (x0, x1, kind), from its polygon fixtures:
+    a pit wall reaches more than 1.5 steps below the ground line, a staircase box is wider than 3 steps
+    (4), a stump is any other (1 or 2 steps square)."""
+    tx, ty = np.asarray(env.terrain_x), np.asarray(env.terrain_y)
+    out = []
+    for body in env.terrain:
+        shape = body.fixtures[0].shape
+        if type(shape).__name__ != "b2PolygonShape":
+            continue
+        v = np.asarray(shape.vertices)
+        x0, x1 = float(v[:, 0].min()), float(v[:, 0].max())
+        low = v[:, 1].min() < np.interp(x0, tx, ty) - 1.5 * C.TERRAIN_STEP
+        out.append((x0, x1, "pit" if low else ("stairs" if x1 - x0 > 3 * C.TERRAIN_STEP else "stump")))
+    return sorted(out)
+
+
+def fall_sites(x, fall, obstacles, reach: float = 3 * C.TERRAIN_STEP) -> dict:
+    """Falls counted by the kind of obstacle nearest to the hull's x at the fall (``grass`` when none
+    is within ``reach``): per episode its end x, fall flag and obstacle list (x0, x1, kind)."""
+    counts = {"stump": 0, "stairs": 0, "pit": 0, "grass": 0}
+    for xe, f, obs in zip(x, fall, obstacles):
+        if not f:
+            continue
+        dist = [max(a - xe, xe - b, 0.0) for a, b, _ in obs]
+        j = int(np.argmin(dist)) if dist else -1
+        counts[obs[j][2] if j >= 0 and dist[j] <= reach else "grass"] += 1
+    return counts
 
 
 def _as_chain(walker_cls):
@@ -143,9 +201,10 @@ def gym_episodes(gym_id: str, episodes: int, seed: int = 0, chain: bool = False,
     env = gym.make(gym_id, **({} if max_steps is None else {"max_episode_steps": max_steps}))
     if chain:
         env.unwrapped._generate_terrain = _as_chain(GymWalker).__get__(env.unwrapped)
-    rets, lens, falls = [], [], []
+    rets, lens, falls, xs, obstacles = [], [], [], [], []
     for ep in range(episodes):
         s, _ = env.reset(seed=seed + ep)
+        obstacles.append(gym_obstacles(env.unwrapped))
         h = BipedalWalkerHeuristics()
         a = np.zeros(4) if policy is None else policy(s)
         total, n = 0.0, 0
@@ -159,8 +218,10 @@ def gym_episodes(gym_id: str, episodes: int, seed: int = 0, chain: bool = False,
         rets.append(total)
         lens.append(n)
         falls.append(bool(term and r == -100))
+        xs.append(float(env.unwrapped.hull.position.x))
     env.close()
-    return dict(ret=np.asarray(rets), length=np.asarray(lens), fall=np.asarray(falls))
+    return dict(ret=np.asarray(rets), length=np.asarray(lens), fall=np.asarray(falls), x=np.asarray(xs),
+                obstacles=obstacles)
 
 
 def passes(gym: dict, ours: dict) -> bool:
@@ -234,7 +295,7 @@ def main(argv=None) -> int:
             print(f"gym  {name}: {time.time() - t:.0f}s mean {g['mean']:.1f} se {g['se']:.1f} fall {g['fall']:.2f} "
                   f"len {g['length']:.0f}", flush=True)
             row.update(gym_mean=g["mean"], gym_se=g["se"], gym_std=g["std"], gym_fall=g["fall"], gym_length=g["length"],
-                       gym_quartiles=g["quartiles"])
+                       gym_quartiles=g["quartiles"], gym_fall_sites=fall_sites(d["x"], d["fall"], d["obstacles"]))
         if not args.gym_only:
             t = time.time()
             d = jax_episodes(level, args.episodes, args.seed, min(args.chunk, args.episodes), **opts)[0]
@@ -242,7 +303,8 @@ def main(argv=None) -> int:
             print(f"ours {name}: {time.time() - t:.0f}s mean {o['mean']:.1f} se {o['se']:.1f} fall {o['fall']:.2f} "
                   f"len {o['length']:.0f}", flush=True)
             row.update(ours_mean=o["mean"], ours_se=o["se"], ours_std=o["std"], ours_fall=o["fall"],
-                       ours_length=o["length"], ours_quartiles=o["quartiles"])
+                       ours_length=o["length"], ours_quartiles=o["quartiles"],
+                       ours_fall_sites=fall_sites(d["x"], d["fall"], d["obstacles"]))
         if "gym_mean" in row and "ours_mean" in row:
             row["pass"] = passes(dict(mean=row["gym_mean"], se=row["gym_se"], fall=row["gym_fall"]),
                                  dict(mean=row["ours_mean"], se=row["ours_se"], fall=row["ours_fall"]))
