@@ -50,9 +50,10 @@ def env_latency(env, batch: int, steps: int, step_fn=None) -> dict:
     return dict(batch=batch, steps=steps, compile_s=compile_s, s_per_step=best / steps)
 
 
-def random_action_scan(env, batch: int, steps: int, step_fn=None):
+def random_action_scan(env, batch: int, steps: int, step_fn=None, final_state: bool = False):
     """A jitted ``run(key)``: ``batch`` envs on uniformly sampled levels reset, then ``steps`` sequential
-    ``vmap(step_fn)`` with random actions in a ``lax.scan``; returns the summed reward."""
+    ``vmap(step_fn)`` with random actions in a ``lax.scan``; returns the summed reward, or with
+    ``final_state`` the batch's last state."""
     step_fn = env.step if step_fn is None else step_fn
     levels = env.param_space.sample(jax.random.PRNGKey(1), (batch,))
     space = env.action_space()
@@ -68,8 +69,8 @@ def random_action_scan(env, batch: int, steps: int, step_fn=None):
             obs, state, r, d, _ = jax.vmap(step_fn)(jax.random.split(ks, batch), state, a, levels)
             return (obs, state), r.sum()
 
-        _, r = jax.lax.scan(body, (obs, state), jax.random.split(key, steps))
-        return r.sum()
+        (_, state), r = jax.lax.scan(body, (obs, state), jax.random.split(key, steps))
+        return state if final_state else r.sum()
 
     return run
 

@@ -47,26 +47,15 @@ def _patched(fn):
 
 
 def _env_and_inputs(batch: int, steps: int, concrete: bool = True):
+    """The env (XLA solver) and one step's inputs: the states after ``steps`` random-action steps."""
     import envs
+    from experiments.bench_latency import random_action_scan
 
     env = envs.make("bipedal", solver_kernel="xla")
-    levels = env.param_space.sample(jax.random.PRNGKey(1), (batch,))
-    space = env.action_space()
-
-    @jax.jit
-    def play(key):
-        obs, state = jax.vmap(env.reset)(jax.random.split(key, batch), levels)
-
-        def body(st, k):
-            ka, ks = jax.random.split(k)
-            a = jax.vmap(space.sample)(jax.random.split(ka, batch))
-            _, st, _, _, _ = jax.vmap(env.step)(jax.random.split(ks, batch), st, a, levels)
-            return st, None
-
-        state, _ = jax.lax.scan(body, state, jax.random.split(key, steps))
-        return state
-
+    levels = env.param_space.sample(jax.random.PRNGKey(1), (batch,))  # random_action_scan's levels
+    play = random_action_scan(env, batch, steps, final_state=True)
     state = play(jax.random.PRNGKey(0)) if concrete else jax.eval_shape(play, jax.random.PRNGKey(0))
+    space = env.action_space()
     keys = jax.random.split(jax.random.PRNGKey(2), batch)
     actions = jax.vmap(space.sample)(jax.random.split(jax.random.PRNGKey(3), batch))
     return env, (keys, state, actions, levels)

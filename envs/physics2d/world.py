@@ -199,7 +199,7 @@ def step(model: Model, world: WorldState, ground, gravity, force=None, torque=No
     normal_mass = 1.0 / (mslot + islot * rn**2)
     tangent_mass = 1.0 / (mslot + islot * rt**2)
     if edge_mode:
-        ebody = ec["body"]  # () in free flight
+        ebody = ec["body"]  # () in free flight or without start contacts
         econ = _edge_velocity_constants(model, b, ec) if ebody else {}
         for k in range(len(ebody)):  # warm start (a second point Box2D drops is not applied)
             on_k = econ["on"][k]
@@ -250,7 +250,7 @@ def step(model: Model, world: WorldState, ground, gravity, force=None, torque=No
     cslots = list(range(len(ebody))) if edge_mode else slots
     carry = (tuple(V2.of(v) for v in vel), tuple(omg), tuple((i[0], i[1], i[2]) for i in jimp), tuple(jmot),
              tuple(lam_n[k] for k in cslots), tuple(lam_t[k] for k in cslots))
-    if edge_mode:  # the manifolds' constants replace the vertex slots' (none in free flight)
+    if edge_mode:  # the manifolds' constants replace the vertex slots' (none without manifolds)
         vconsts = {k: v for k, v in vconsts.items() if k not in ("on", "arm", "n", "t", "nm", "tm")}
         vconsts.update(econ)
         vpass = functools.partial(_velocity_pass_edges, model, ebody, ec["friction"])

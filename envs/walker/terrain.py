@@ -221,8 +221,8 @@ def generate_from_uniforms(uniforms: jax.Array, level: Any, max_boxes: int = 64,
         y_stairs = jnp.where(gym, y_ramp, y_stairs)
         y = jnp.where(stairs_walk, y_stairs, y)
 
-        # This column's boxes are an output of the scan: they are appended in order after it (a
-        # (max_boxes, 4) carry with a scatter per column cost most of a GPU reset's time).
+        # This column's boxes are an output of the scan, appended in order after it (a (max_boxes, 4)
+        # carry scattered into at every column was a GPU reset's largest kernel).
 
         # Counter and state transition.
         kind = st
