@@ -91,7 +91,8 @@ def test_terrain_resolution_option_is_checked_recorded_and_reaches_our_env(tmp_p
 
     def fake_episodes(level, episodes, seed=0, chunk=100, **options):  # records what our env would be made with
         seen.update(level=level, **options)
-        return [dict(ret=np.zeros(episodes), length=np.ones(episodes, int), fall=np.zeros(episodes, bool))]
+        return [dict(ret=np.zeros(episodes), length=np.ones(episodes, int), fall=np.zeros(episodes, bool),
+                     x=np.zeros(episodes), obstacles=[[]] * episodes)]
 
     monkeypatch.setattr(parity, "jax_episodes", fake_episodes)
     out = tmp_path / "r.json"

@@ -85,9 +85,9 @@ def jax_episodes(level: str, episodes: int, seed: int = 0, chunk: int = 100, con
         k0, k1 = jax.random.split(key)
         obs, state = env.reset(k0, params)
         # the episode's terrain, for where it ended: reset_env draws it from the first half of its key
-        # (checked: its profile must be the state's)
+        # (checked: its profile must be the state's, to rounding: two call sites compile differently)
         terrain = env.terrain(jax.random.split(k0)[0], params)
-        terrain_ok = jnp.all(T.rasterise(terrain, env.grid) == state.profile)
+        terrain_ok = jnp.max(jnp.abs(T.rasterise(terrain, env.grid) - state.profile)) <= 1e-4
 
         def body(carry, k):
             obs, state, h, a, done_before, out = carry
