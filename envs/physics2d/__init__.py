@@ -2,7 +2,7 @@
 
 Bodies carry convex polygons; contacts are polygon vertices against a static height-field polyline,
 or (``SolverConfig.edge_contacts``) Box2D's edge-vs-polygon manifolds against separate ground edges
-(with friction, no restitution, warm starting and non-linear position correction); revolute joints
+and polygon-vs-polygon manifolds against static box obstacles (with friction, no restitution, warm starting and non-linear position correction); revolute joints
 have motors and angle limits; Box2D-style sleep timers say when the island comes to rest. Nothing
 here knows about any particular game: environments build a ``Model`` and call ``step``.
 """

@@ -23,6 +23,7 @@ import numpy as np
 from envs.physics2d import fused
 from envs.physics2d import joint as jnt
 from envs.physics2d import edge as edg
+from envs.physics2d import polygon as pg
 from envs.physics2d.collision import polyline_points_in_polygon, vertex_segment_touching, vertex_vs_polyline
 from envs.physics2d.mass import polygon_mass
 from envs.physics2d.model import BodyState, Model, WorldState
@@ -55,23 +56,33 @@ def collide(model: Model, bodies: BodyState, ground):
     return touching, jnp.stack(poly_touch), normal, sep, arm
 
 
-def edge_constraints(model: Model, bodies: BodyState, edges, valid):
-    """Box2D's edge-vs-polygon manifolds of every solid polygon against every ground edge, the first
-    ``config.edge_contacts`` touching edges per polygon kept as contact points.
+BOX_KEY = -1_000_000  # warm-start keys of box obstacles: BOX_KEY - round(1000 x0), apart from the edges'
 
-    ``edges`` (S, 2, 2) world segments (each a separate Box2D edge), ``valid`` (S,) bool. Returns a
-    dict of (E,) leaves, E = ``model.num_contacts`` (polygon-major, then edge, then point): ``on``,
+
+def edge_constraints(model: Model, bodies: BodyState, edges, valid, boxes=None, box_valid=None):
+    """Box2D's manifolds of every solid polygon against every ground edge (edge-vs-polygon) and every
+    box obstacle (polygon-vs-polygon), the first ``config.edge_contacts`` touching ones per polygon
+    (edges first, left to right, then boxes in their order) kept as contact points.
+
+    ``edges`` (S, 2, 2) world segments (each a separate Box2D edge), ``valid`` (S,) bool; ``boxes``
+    (K, 4) static axis-aligned boxes (x0, x1, y0, y1), ``box_valid`` (K,) bool, or None. Returns a
+    dict of (E,) leaves, E = ``model.num_contacts`` (polygon-major, then manifold, then point): ``on``,
     ``body`` (static tuple), ``normal`` and ``point`` (Box2D's velocity-constraint frame, world),
     ``face_b``, ``ref_normal``, ``ref_point``, ``clip`` (the manifold, world), ``key`` (E, 2) int32;
-    plus ``pairs`` (num_polygons, S) bool: polygon k's manifold with edge s has points.
+    plus ``pairs`` (num_polygons, S) bool: polygon k's manifold with edge s has points, and
+    ``box_pairs`` (num_polygons, K) the same per box.
     """
     cfg = model.config
     k_edges = cfg.edge_contacts
     lc = np.asarray(model.local_com, np.float64)
-    parts, pairs = [], []
+    n_box = 0 if boxes is None else boxes.shape[0]
+    if n_box:
+        box_x0 = jnp.round(boxes[:, 0] * 1000.0).astype(jnp.int32)
+    parts, pairs, box_pairs = [], [], []
     for k, poly in enumerate(model.polygons):
         if k not in model.edge_polygons:
             pairs.append(jnp.zeros((edges.shape[0],), bool))
+            box_pairs.append(jnp.zeros((n_box,), bool))
             continue
         i = poly.body
         local = np.asarray(poly.vertices, np.float64) - lc[i]
@@ -81,9 +92,14 @@ def edge_constraints(model: Model, bodies: BodyState, edges, valid):
         centroid = bodies.com[i] + rotate(bodies.angle[i], jnp.asarray(centroid - lc[i], jnp.float32))
         m = edg.polygon_edges_manifolds(edges, valid, verts, normals, centroid, cfg.contact_radius)
         pairs.append(m["on"][:, 0])
+        keys = jnp.round(edges[:, 0, 0] * 1000.0).astype(jnp.int32)
+        if n_box:
+            mb = pg.polygon_obstacles_manifolds(boxes, box_valid, verts, normals, centroid, cfg.contact_radius)
+            box_pairs.append(mb["on"][:, 0])
+            m = {name: jnp.concatenate([m[name], mb[name]]) for name in m}
+            keys = jnp.concatenate([keys, BOX_KEY - box_x0])
         sel = edg.select_edges(m, k_edges)  # leaves (K, 2, ...) per point or (K, ...) per manifold
-        x0 = jnp.sum(jnp.where(jnp.arange(edges.shape[0])[None] == sel["edge"][:, None], edges[None, :, 0, 0], 0.0), 1)
-        edge_key = jnp.round(x0 * 1000.0).astype(jnp.int32)
+        edge_key = jnp.sum(jnp.where(jnp.arange(keys.shape[0])[None] == sel["edge"][:, None], keys[None], 0), 1)
         two = lambda a: jnp.repeat(a, 2, axis=0)  # per manifold -> per point
         parts.append(dict(
             on=sel["on"].reshape(-1), normal=two(sel["normal"]), point=sel["point"].reshape(-1, 2),
@@ -95,6 +111,7 @@ def edge_constraints(model: Model, bodies: BodyState, edges, valid):
     out["friction"] = tuple(float(np.sqrt(model.polygons[k].friction * cfg.ground_friction))  # Box2D mixing
                             for k in model.edge_polygons for _ in range(2 * k_edges))
     out["pairs"] = jnp.stack(pairs)
+    out["box_pairs"] = jnp.stack(box_pairs) if n_box else jnp.zeros((len(model.polygons), 0), bool)
     return out
 
 
@@ -109,7 +126,7 @@ def apply_impulse(model: Model, bodies: BodyState, body: int, impulse, point) ->
 
 def step(model: Model, world: WorldState, ground, gravity, force=None, torque=None, projector=None,
          position_iterations=None, free_flight: bool = False, motor_speed=None, max_motor_torque=None,
-         edges=None, edge_valid=None, start_contacts: bool = True):
+         edges=None, edge_valid=None, start_contacts: bool = True, boxes=None, box_valid=None):
     """Advance ``world`` by one time step. Returns (new world, info).
 
     ``projector``: optional constant (3B, 3B) matrix from ``locked_velocity_projector``; when given,
@@ -136,9 +153,12 @@ def step(model: Model, world: WorldState, ground, gravity, force=None, torque=No
     segments, the ones it covers then invalid); None: every ground segment is its own edge. Solid
     polygons then touch the ground through Box2D's edge-vs-polygon manifolds (``edge_constraints``)
     instead of their vertices; the time of impact still uses the vertices against the polyline.
+    ``boxes`` (K, 4) (x0, x1, y0, y1), ``box_valid`` (K,) bool: with ``config.edge_contacts``, static
+    box obstacles besides the edges (Box2D's polygon-vs-polygon manifolds, ``polygon.py``), or None.
+    The polyline should cover their tops for the time of impact and sensor tests, which use it alone.
     info: ``touching`` (V,) slots and ``polygon_touching`` (num_polygons,) at the start pose or
     by a time of impact during the step, ``pair_touching`` (num_polygons, S) per ground segment,
-    ``position_solved`` (), ``asleep`` ().
+    ``box_touching`` (num_polygons, K) per box (edge contacts), ``position_solved`` (), ``asleep`` ().
     """
     cfg = model.config
     dt = cfg.dt
@@ -168,13 +188,16 @@ def step(model: Model, world: WorldState, ground, gravity, force=None, torque=No
     edge_mode = bool(cfg.edge_contacts) and projector is None
     if edge_mode and (free_flight or not start_contacts):  # no manifold has points: the passes solve the joints alone
         ec = dict(on=jnp.zeros((model.num_contacts,), bool), key=jnp.zeros_like(world.contact_key), body=(),
-                  friction=(), pairs=jnp.zeros((len(model.polygons), ground.shape[0] - 1), bool))
+                  friction=(), pairs=jnp.zeros((len(model.polygons), ground.shape[0] - 1), bool),
+                  box_pairs=jnp.zeros((len(model.polygons), 0 if boxes is None else boxes.shape[0]), bool))
         e_on = ec["on"]
     elif edge_mode:  # solver contacts: Box2D edge manifolds, warm started by (edge, feature)
         edges = jnp.stack([ground[:-1], ground[1:]], 1) if edges is None else jnp.asarray(edges, jnp.float32)
         valid = jnp.ones((edges.shape[0],), bool) if edge_valid is None else jnp.asarray(edge_valid, bool)
         with jax.named_scope("edge_manifolds"):
-            ec = edge_constraints(model, b, edges, valid)
+            ec = edge_constraints(model, b, edges, valid,
+                                  None if boxes is None else jnp.asarray(boxes, jnp.float32),
+                                  None if boxes is None else jnp.asarray(box_valid, bool))
         e_on = ec["on"]
         keep = e_on & world.touching & jnp.all(ec["key"] == world.contact_key, -1) & cfg.warm_start
         lam_n = jnp.where(keep, world.normal_impulse, 0.0)
@@ -381,7 +404,7 @@ def step(model: Model, world: WorldState, ground, gravity, force=None, torque=No
         toi_rows = jnp.stack([jnp.any(jnp.stack([toi_pairs[i] for i, p in enumerate(model.slot_polygon) if p == k]), 0)
                               for k in range(len(model.polygons))])
         pairs = jnp.where(solid_poly[:, None], ec["pairs"] | toi_rows, pairs)
-        poly_touch = poly_touch | jnp.any(ec["pairs"], 1)
+        poly_touch = poly_touch | jnp.any(ec["pairs"], 1) | jnp.any(ec["box_pairs"], 1)
     began = []
     for k, poly in enumerate(model.polygons):
         idx = [i for i, p in enumerate(model.slot_polygon) if p == k]
@@ -389,6 +412,8 @@ def step(model: Model, world: WorldState, ground, gravity, force=None, torque=No
     poly_touch = poly_touch | jnp.stack(began)
     info = dict(touching=touching | toi_touch, polygon_touching=poly_touch, pair_touching=pairs,
                 position_solved=solved, asleep=asleep)
+    if edge_mode:
+        info["box_touching"] = ec["box_pairs"]
     return new_world, info
 
 
