@@ -14,7 +14,9 @@ Variants change only the solver's configuration (the same env otherwise):
 (the time-of-impact passes unrolled instead of looped), ``no_toi`` (no time of impact: not the walker,
 its cost only), ``xla`` (no Pallas kernel), ``no_skip`` (the kernels compute every contact
 point and time of impact, also in blocks of worlds none of which needs it), ``full_reset`` (the
-env's ``light_reset=False``: the reset's physics step with its edge manifolds).
+env's ``light_reset=False``: the reset's physics step with its edge manifolds), ``profile_obstacles``
+(the env's ``obstacles="profile"``: obstacles as the height profile's edges, the model before Box2D
+polygons).
 
     python -m experiments.profile_bipedal_step --batches 200 --variants default,passes_1_1 --out $OUT/profile.json
 """
@@ -39,9 +41,10 @@ VARIANTS = {
     "no_toi": {"continuous": False},
     "xla": {"kernel": "xla"},
     "no_skip": {"skip_untouched": False},
-    "full_reset": {},  # env option below: the reset's physics step with its edge manifolds
+    "full_reset": {},  # env options below: the reset's physics step with its edge manifolds
+    "profile_obstacles": {},  # the height profile's edges at obstacles instead of Box2D polygons
 }
-ENV_OPTIONS = {"full_reset": {"light_reset": False}}
+ENV_OPTIONS = {"full_reset": {"light_reset": False}, "profile_obstacles": {"obstacles": "profile"}}
 
 
 def make_env(variant: str, **options):

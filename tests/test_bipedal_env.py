@@ -14,8 +14,9 @@ import envs
 from envs import physics2d
 from envs.bipedal import BipedalWalker, heuristic, heuristic_init
 from envs.bipedal import model as BM
-from envs.bipedal.env import motor_targets
+from envs.bipedal.env import BACK_COLUMNS, motor_targets
 from envs.walker import constants as C
+from envs.walker import terrain as T
 from envs.walker import levels as LV
 from envs.walker.levels import LEVELS
 from envs.walker.params import PARAM_NAMES
@@ -86,6 +87,10 @@ def test_registered_options_and_spaces():
         BipedalWalker(solver_kernel="cuda")
     with pytest.raises(ValueError, match="contacts"):
         BipedalWalker(contacts="polygon")
+    with pytest.raises(ValueError, match="obstacles"):
+        BipedalWalker(obstacles="box")
+    with pytest.raises(ValueError, match="window_boxes"):
+        BipedalWalker(window_boxes=65)
     m = env.model
     # legs against Box2D-style separate terrain edges by default; the vertex model on request
     assert m.config.edge_contacts == BM.EDGE_CONTACTS and m.edge_polygons == (0, 1, 3, 4)  # not the hull (sensor)
@@ -115,6 +120,50 @@ def test_terrain_edges_are_gymnasiums_grass_edges():
         np.testing.assert_allclose(np.asarray(edges[c * r]), np.asarray(ground[[c * r, (c + 1) * r]]), atol=1e-6)
     np.testing.assert_allclose(np.asarray(edges[2 * r: 3 * r]),
                                np.stack([ground[2 * r: 3 * r], ground[2 * r + 1: 3 * r + 1]], 1), atol=1e-6)
+
+
+def test_fixture_window_is_gymnasiums_edges_and_every_box_in_reach():
+    """The "polygon" obstacles' window: one edge per window column, the level's polyline segment
+    (Gymnasium's edge fixture) in the slot of the column's first profile segment, and every obstacle box
+    that reaches into the window, in the generator's order; over sampled FULL levels and Hardcore at
+    every window position, no more boxes reach a window than ``window_boxes`` holds."""
+    env = envs.make("bipedal")
+    o, r = env.options, env.options.terrain_resolution
+    full = env.param_space.sample(jax.random.PRNGKey(3), (48,))
+    hard = stack([LEVELS["Hardcore"](terrain_seed=s, fixed_terrain=True) for s in range(16)])
+    params = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a, b]), full, hard)
+    keys = jax.random.split(jax.random.PRNGKey(4), 64)
+    terrains = jax.jit(jax.vmap(env.terrain))(keys, params)
+    profiles = jax.jit(jax.vmap(lambda t: T.rasterise(t, env.grid)))(terrains)
+    cols = np.arange(-4, 200 - o.window_columns + 4, 3)
+
+    @jax.jit
+    def windows(t, profile):
+        def at(c):
+            ground, col = env.ground_window(profile, (c + BACK_COLUMNS) * C.TERRAIN_STEP + 0.1)
+            reach = t.box_valid & (t.boxes[:, 1] >= ground[0, 0]) & (t.boxes[:, 0] <= ground[-1, 0])
+            return (col,) + env.fixture_window(t, ground, col) + (jnp.sum(reach),)
+        return jax.vmap(at)(jnp.asarray(cols))
+
+    out = jax.tree_util.tree_map(np.asarray, jax.vmap(windows)(terrains, profiles))
+    col, edges, valid, boxes, box_ok, index, n_reach = out
+    assert n_reach.max() <= o.window_boxes, n_reach.max()
+    assert n_reach.max() >= 3  # the windows do reach obstacles
+    np.testing.assert_array_equal(box_ok.sum(-1), n_reach)
+    tx, ty = np.asarray(terrains.x), np.asarray(terrains.y)
+    tb = np.asarray(terrains.boxes)
+    for lv in range(0, 64, 7):
+        for w in range(0, len(cols), 5):
+            c0 = col[lv, w]
+            for j in range(o.window_columns):
+                c, slot = c0 + j, j * r
+                assert valid[lv, w, slot] == (0 <= c <= 198)
+                assert not valid[lv, w, slot + 1: slot + r].any()
+                if 0 <= c <= 198:
+                    np.testing.assert_array_equal(edges[lv, w, slot], [[tx[lv, c], ty[lv, c]], [tx[lv, c + 1], ty[lv, c + 1]]])
+            k = box_ok[lv, w]
+            np.testing.assert_array_equal(boxes[lv, w][k], tb[lv][index[lv, w][k]])
+            assert np.all(np.diff(index[lv, w][k]) > 0)
 
 
 def test_motor_targets_are_gymnasiums():
@@ -240,6 +289,35 @@ def test_parity_fall_sites_count_the_nearest_obstacle():
     x = [1.5 * S, 5 * S, 2.9 * S, 30 * S, 3 * S]
     fell = [True, True, True, True, False]
     assert fall_sites(x, fell, [obs] * 5) == {"stump": 2, "stairs": 0, "pit": 1, "grass": 1}
+
+
+def test_parity_reads_gymnasiums_obstacles_from_its_polygons():
+    """Gymnasium's fixtures -> obstacles: a pit's two walls (1 x 4 steps, the second one's top level
+    with the pit floor's polyline, not the ground's) are one pit, a 4-step-wide box a stair step, a
+    square a stump; edge fixtures are skipped."""
+    b2 = pytest.importorskip("Box2D")
+    from types import SimpleNamespace
+
+    from envs.bipedal.parity import gym_obstacles
+
+    S = C.TERRAIN_STEP
+
+    def body(shape):
+        return SimpleNamespace(fixtures=[SimpleNamespace(shape=shape)])
+
+    def box(x0, x1, y0, y1):
+        return body(b2.b2PolygonShape(vertices=[(x0, y0), (x1, y0), (x1, y1), (x0, y1)]))
+
+    y = 4.0
+    terrain = [box(10 * S, 11 * S, y - 4 * S, y), box(13 * S, 14 * S, y - 4 * S, y),  # a pit, walls 3 steps apart
+               box(20 * S, 22 * S, y, y + 2 * S),  # a 2-step stump
+               box(30 * S, 34 * S, y - S, y), box(34 * S, 38 * S, y, y + S),  # two stair steps
+               box(45 * S, 46 * S, y, y + S),  # a 1-step stump
+               box(50 * S, 51 * S, y - 4 * S, y), box(54 * S, 55 * S, y - 4 * S, y),  # another pit
+               body(b2.b2EdgeShape(vertices=[(0.0, y), (S, y)]))]
+    got = gym_obstacles(SimpleNamespace(terrain=terrain))
+    assert [k for _, _, k in got] == ["pit", "stump", "stairs", "stairs", "stump", "pit"]
+    np.testing.assert_allclose([got[0][:2], got[-1][:2]], [(10 * S, 14 * S), (50 * S, 55 * S)], rtol=1e-6)
 
 
 # ----------------------------------------------------------------------------------- the shared program

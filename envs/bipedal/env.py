@@ -5,10 +5,11 @@ Gymnasium-hardcore switch), with the same generator, named levels, samplers and 
 every UED method runs on either walker unchanged. The rules (motors, lidar, observation, reward,
 termination) are Gymnasium's; rigid-body dynamics are ``envs.physics2d``. See docs/bipedal.md.
 
-Per env the state carries the level's terrain profile (``max(polyline, box tops)`` sampled every
-``TERRAIN_STEP / terrain_resolution``, the MJX walker's ``terrain.rasterise``): the physics collides
-the walker's polygon vertices with a window of that profile around the hull, and the lidar and the
-hull test read the same profile, so what is sensed is what is touched.
+Per env the state carries the level's terrain (polyline and obstacle boxes) and its height profile
+(``max(polyline, box tops)`` sampled every ``TERRAIN_STEP / terrain_resolution``, the MJX walker's
+``terrain.rasterise``). The legs collide, as in Gymnasium, with the polyline's edges and the obstacle
+boxes as Box2D polygons in a window around the hull; the time of impact, the lidar and the hull test
+read the profile, the same ground's upper outline.
 """
 from __future__ import annotations
 
@@ -31,6 +32,7 @@ from envs.walker.interface import WalkerInterface
 
 KINDS = ("auto", "xla", "pallas", "interpret")
 CONTACTS = ("edge", "vertex")
+OBSTACLES = ("polygon", "profile")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -54,6 +56,15 @@ class BipedalOptions:
                         separate edge fixtures (``physics2d`` edge manifolds, ``terrain_edges``);
                         "vertex": each leg vertex against the profile polyline under it (the first
                         milestone's model).
+    obstacles:          with edge contacts, what the legs touch: "polygon": Gymnasium's fixtures, the
+                        polyline's edges (one per terrain column) and the obstacle boxes (stumps,
+                        stair steps, pit walls) as Box2D polygons; "profile": the height profile's
+                        edges (an obstacle's faces and top as profile segments; the model until
+                        2026-12-02).
+    continuous:         the time of impact (Box2D's ``continuousPhysics``, on in Gymnasium); off only
+                        for diagnostics (``envs.bipedal.parity --no-toi``).
+    window_boxes:       obstacle boxes the physics collides with per step ("polygon"): the first ones
+                        that reach into the window (8 covers DCD's FULL space; ``tests/test_bipedal_env.py``).
     """
 
     velocity_iterations: int = M.VELOCITY_ITERATIONS
@@ -66,20 +77,29 @@ class BipedalOptions:
     solver_kernel: str = "auto"
     contacts: str = "edge"
     light_reset: bool = True
+    obstacles: str = "polygon"
+    window_boxes: int = 8
+    continuous: bool = True
 
     def __post_init__(self):
         ints = dict(velocity_iterations=(1, 1000), position_iterations=(0, 1000), terrain_resolution=(1, 32),
-                    window_columns=(12, 64), max_boxes=(8, 512), terrain_unroll=(1, 200), unroll=(1, 64))
+                    window_columns=(12, 64), max_boxes=(8, 512), terrain_unroll=(1, 200), unroll=(1, 64),
+                    window_boxes=(1, 64))
         for name, (lo, hi) in ints.items():
             v = getattr(self, name)
             if not isinstance(v, int) or isinstance(v, bool) or not lo <= v <= hi:
                 raise ValueError(f"BipedalOptions.{name} must be an int in [{lo}, {hi}], got {v!r}")
         if self.solver_kernel not in KINDS:
             raise ValueError(f"BipedalOptions.solver_kernel must be one of {KINDS}, got {self.solver_kernel!r}")
-        if not isinstance(self.light_reset, bool):
-            raise ValueError(f"BipedalOptions.light_reset must be a bool, got {self.light_reset!r}")
+        for name in ("light_reset", "continuous"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"BipedalOptions.{name} must be a bool, got {getattr(self, name)!r}")
         if self.contacts not in CONTACTS:
             raise ValueError(f"BipedalOptions.contacts must be one of {CONTACTS}, got {self.contacts!r}")
+        if self.obstacles not in OBSTACLES:
+            raise ValueError(f"BipedalOptions.obstacles must be one of {OBSTACLES}, got {self.obstacles!r}")
+        if self.window_boxes > self.max_boxes:
+            raise ValueError(f"BipedalOptions.window_boxes must be <= max_boxes ({self.max_boxes}), got {self.window_boxes}")
 
 
 BACK_COLUMNS = 7  # window columns behind the hull's column
@@ -99,6 +119,8 @@ class BipedalState(EnvState):
     leg_contact: jax.Array  # (2,) bool, Gymnasium's lower legs' ground_contact after the last step
     leg_pairs: jax.Array  # (2, window_columns) bool, lower leg touching each terrain column's edge
     window: jax.Array  # int32 first terrain column of the window of the last step
+    terrain: T.Terrain  # the level's polyline and boxes (the "polygon" obstacles' fixtures)
+    leg_box_pairs: jax.Array  # (2, max_boxes) bool, lower leg touching each obstacle box
 
 
 class BipedalWalker(WalkerInterface, Environment):
@@ -114,7 +136,7 @@ class BipedalWalker(WalkerInterface, Environment):
             raise ValueError(f"bipedal: unknown option(s) {sorted(unknown)}; valid: {sorted(fields)}")
         self.options = o = BipedalOptions(**options)
         self.model = M.walker_model(o.velocity_iterations, o.position_iterations, o.unroll, o.solver_kernel,
-                                    M.EDGE_CONTACTS if o.contacts == "edge" else 0)
+                                    M.EDGE_CONTACTS if o.contacts == "edge" else 0, o.continuous)
         self.grid = T.make_grid(o.terrain_resolution)
         self._start = M.initial_pose()
 
@@ -154,6 +176,31 @@ class BipedalWalker(WalkerInterface, Environment):
         edges = jnp.where((merged & first)[:, None, None], column_edge, seg)
         return edges, ~merged | first
 
+    def fixture_window(self, terrain: T.Terrain, ground: jax.Array, col: jax.Array):
+        """Gymnasium's fixtures around the window: the polyline's edge of each window column (edge
+        (x_c, y_c) -> (x_c+1, y_c+1), in the slot of the column's first profile segment; the others,
+        and columns off the 199 edges, invalid), and the first ``window_boxes`` obstacle boxes that
+        reach into the window. Returns (edges (P - 1, 2, 2), valid (P - 1,), boxes (window_boxes, 4),
+        box valid, box index (window_boxes,) int32 into ``terrain.boxes``)."""
+        o = self.options
+        r, w = o.terrain_resolution, o.window_columns
+        c = col + jnp.arange(w)
+        ci = jnp.clip(c, 0, C.TERRAIN_LENGTH - 2)
+        column_edge = jnp.stack([jnp.stack([terrain.x[ci], terrain.y[ci]], -1),
+                                 jnp.stack([terrain.x[ci + 1], terrain.y[ci + 1]], -1)], 1)  # (W, 2, 2)
+        ok = (c >= 0) & (c <= C.TERRAIN_LENGTH - 2)
+        s = jnp.arange(w * r)
+        edges = jnp.where((s % r == 0)[:, None, None], column_edge[s // r], jnp.stack([ground[:-1], ground[1:]], 1))
+        valid = (s % r == 0) & ok[s // r]
+        lo, hi = ground[0, 0], ground[-1, 0]
+        reach = terrain.box_valid & (terrain.boxes[:, 1] >= lo) & (terrain.boxes[:, 0] <= hi)
+        rank = jnp.cumsum(reach.astype(jnp.int32)) - 1
+        k = o.window_boxes
+        slot = jnp.where(reach & (rank < k), rank, k)  # (max_boxes,) window slot, k = not taken
+        index = jnp.full((k + 1,), 0, jnp.int32).at[slot].set(jnp.arange(reach.shape[0], dtype=jnp.int32))[:k]
+        box_ok = jnp.zeros((k + 1,), bool).at[slot].set(True)[:k]
+        return edges, valid, terrain.boxes[index], box_ok, index
+
     # ------------------------------------------------------------------ observation / reward
     def hull_origin(self, world: physics2d.WorldState) -> jax.Array:
         return physics2d.body_origin(self.model, world.bodies)[M.HULL]
@@ -185,16 +232,21 @@ class BipedalWalker(WalkerInterface, Environment):
         """One Box2D-style step with Gymnasium's motor settings for ``action``; updates the contact flags.
         ``start_contacts=False`` (static): ``physics2d.step``'s, for a start pose clear of the ground.
 
-        Returns (world, leg_contact, leg_pairs, window column, hull touched the ground)."""
+        Returns (world, leg_contact, (leg_pairs, leg_box_pairs), window column, hull touched the ground)."""
         speed, torque = motor_targets(action)
         order = jnp.asarray(M.GYM_JOINT)  # to the model's (Box2D island) joint order
         speed, torque = speed[order], torque[order]
+        o = self.options
         ground, col = self.ground_window(state.profile, self.hull_origin(state.world)[0])
-        edges, valid = (self.terrain_edges(ground) if self.options.contacts == "edge" and start_contacts
-                        else (None, None))
+        edges = valid = boxes = box_ok = None
+        polygons = o.contacts == "edge" and o.obstacles == "polygon"
+        if polygons:
+            edges, valid, boxes, box_ok, box_index = self.fixture_window(state.terrain, ground, col)
+        elif o.contacts == "edge" and start_contacts:
+            edges, valid = self.terrain_edges(ground)
         world, info = physics2d.step(self.model, state.world, ground, C.GRAVITY, force=force,
                                      motor_speed=speed, max_motor_torque=torque, edges=edges, edge_valid=valid,
-                                     start_contacts=start_contacts)
+                                     start_contacts=start_contacts, boxes=boxes, box_valid=box_ok)
         # Gymnasium's ContactDetector: one Box2D contact per (lower leg, terrain edge) pair; BeginContact
         # sets the leg's flag, EndContact clears it even while the leg still touches another edge.
         r = self.options.terrain_resolution
@@ -205,21 +257,29 @@ class BipedalWalker(WalkerInterface, Environment):
         prev = jnp.where(ok[None], jnp.take(state.leg_pairs, jnp.clip(idx, 0, self.options.window_columns - 1), axis=1), False)
         began = jnp.any(pairs & ~prev, axis=1)
         ended = jnp.any(~pairs & prev, axis=1)
+        box_pairs = state.leg_box_pairs
+        if polygons:  # the same rule per (lower leg, obstacle box); boxes out of the window end their contact
+            lower = info["box_touching"][jnp.asarray([M.POLYGON[b] for b in M.LOWER])] & box_ok[None]
+            box_pairs = jnp.zeros_like(box_pairs).at[:, box_index].max(lower)
+            began = began | jnp.any(box_pairs & ~state.leg_box_pairs, axis=1)
+            ended = ended | jnp.any(~box_pairs & state.leg_box_pairs, axis=1)
         leg_contact = jnp.where(ended, False, jnp.where(began, True, state.leg_contact))
-        return world, leg_contact, pairs, col, info["polygon_touching"][M.POLYGON[M.HULL]]
+        return world, leg_contact, (pairs, box_pairs), col, info["polygon_touching"][M.POLYGON[M.HULL]]
 
     # ------------------------------------------------------------------ reset / step
     def reset_env(self, key: jax.Array, params: P.WalkerParams):
         """Gymnasium's reset: terrain, the walker created as Gymnasium places it, a random horizontal
         force U(-5, 5) on the hull, and one step with zero action (its observation is returned)."""
         k_terrain, k_push = jax.random.split(key)
-        profile = T.rasterise(self.terrain(k_terrain, params), self.grid)
+        terrain = self.terrain(k_terrain, params)
+        profile = T.rasterise(terrain, self.grid)
         pos, ang = self._start
         world = physics2d.init_world(self.model, physics2d.bodies_from_origin(self.model, pos, ang))
         state = BipedalState(
             time=jnp.int32(0), episode_return=jnp.float32(0.0), world=world, profile=profile,
             prev_shaping=jnp.float32(0.0), leg_contact=jnp.zeros((2,), bool),
-            leg_pairs=jnp.zeros((2, self.options.window_columns), bool), window=jnp.int32(0))
+            leg_pairs=jnp.zeros((2, self.options.window_columns), bool), window=jnp.int32(0),
+            terrain=terrain, leg_box_pairs=jnp.zeros((2, self.options.max_boxes), bool))
         _, col = self.ground_window(profile, self.hull_origin(world)[0])
         state = state.replace(window=col)
         push = jax.random.uniform(k_push, (), jnp.float32, -C.INITIAL_RANDOM, C.INITIAL_RANDOM)
@@ -229,8 +289,8 @@ class BipedalWalker(WalkerInterface, Environment):
         # solve the joints alone (tests/test_bipedal_env.py checks this is the full step)
         world, contact, pairs, col, _ = self.physics(state, jnp.zeros((4,), jnp.float32), force,
                                                      start_contacts=not self.options.light_reset)
-        state = state.replace(world=world, leg_contact=contact, leg_pairs=pairs, window=col,
-                              prev_shaping=self.shaping(world))
+        state = state.replace(world=world, leg_contact=contact, leg_pairs=pairs[0], leg_box_pairs=pairs[1],
+                              window=col, prev_shaping=self.shaping(world))
         return self.observation(world, contact, profile), state
 
     def step_env(self, key, state: BipedalState, action, params: P.WalkerParams):
@@ -239,7 +299,7 @@ class BipedalWalker(WalkerInterface, Environment):
         finite = (jnp.all(jnp.isfinite(b.com)) & jnp.all(jnp.isfinite(b.vel)) & jnp.all(jnp.isfinite(b.angle))
                   & jnp.all(jnp.isfinite(b.omega)))
         world = jax.tree_util.tree_map(lambda n, o: jnp.where(finite, n, o), world, state.world)
-        new = state.replace(world=world, leg_contact=contact, leg_pairs=pairs, window=col)
+        new = state.replace(world=world, leg_contact=contact, leg_pairs=pairs[0], leg_box_pairs=pairs[1], window=col)
         shaping = self.shaping(world)
         torque_cost = C.TORQUE_COST * jnp.sum(jnp.clip(jnp.abs(action), 0.0, 1.0))
         reward = shaping - state.prev_shaping - torque_cost

@@ -34,7 +34,6 @@ import numpy as np
 from envs.bipedal.env import BipedalOptions, BipedalWalker
 from envs.bipedal.heuristic import heuristic, heuristic_init
 from envs.walker import constants as C
-from envs.walker import terrain as T
 from envs.walker.levels import LEVELS
 from shed_jax.runtime import provenance
 
@@ -84,10 +83,7 @@ def jax_episodes(level: str, episodes: int, seed: int = 0, chunk: int = 100, con
     def one(key, theta):
         k0, k1 = jax.random.split(key)
         obs, state = env.reset(k0, params)
-        # the episode's terrain, for where it ended: reset_env draws it from the first half of its key
-        # (checked: its profile must be the state's, to rounding: two call sites compile differently)
-        terrain = env.terrain(jax.random.split(k0)[0], params)
-        terrain_ok = jnp.max(jnp.abs(T.rasterise(terrain, env.grid) - state.profile)) <= 1e-4
+        terrain = state.terrain  # the episode's, for where it ended
 
         def body(carry, k):
             obs, state, h, a, done_before, out = carry
@@ -103,7 +99,7 @@ def jax_episodes(level: str, episodes: int, seed: int = 0, chunk: int = 100, con
         a, h = first(theta, obs)
         carry = (obs, state, h, a, jnp.bool_(False), out0)
         (_, _, _, _, _, out), _ = jax.lax.scan(body, carry, jax.random.split(k1, max_steps))
-        return dict(out, kinds=terrain.kinds, column_x=terrain.x, terrain_ok=terrain_ok)
+        return dict(out, kinds=terrain.kinds, column_x=terrain.x)
 
     run = jax.jit(jax.vmap(one, in_axes=(0, None)))
     results = []
@@ -116,9 +112,6 @@ def jax_episodes(level: str, episodes: int, seed: int = 0, chunk: int = 100, con
                 part = jnp.concatenate([part, keys[: chunk - part.shape[0]]])
             outs.append(jax.tree_util.tree_map(np.asarray, run(part, theta)))
         res = {k: np.concatenate([o[k] for o in outs])[:episodes] for k in outs[0]}
-        if not res.pop("terrain_ok").all():
-            raise RuntimeError("parity: the terrain redrawn from a reset key is not the reset's (has reset_env's "
-                               "key split changed?)")
         kinds, cx = res.pop("kinds"), res.pop("column_x")
         res["obstacles"] = [column_obstacles(k, x) for k, x in zip(kinds, cx)]
         results.append(res)
@@ -142,9 +135,9 @@ def column_obstacles(kinds, column_x) -> list[tuple[float, float, str]]:
 
 def gym_obstacles(env) -> list[tuple[float, float, str]]:
     """A Gymnasium walker's obstacles after its reset, as (x0, x1, kind), from its polygon fixtures:
-    a pit wall reaches more than 1.5 steps below the ground line, a staircase box is wider than 3 steps
-    (4), a stump is any other (1 or 2 steps square)."""
-    tx, ty = np.asarray(env.terrain_x), np.asarray(env.terrain_y)
+    a box taller than 3 steps is a pit wall (4 steps tall; a pit's two walls are one obstacle, from the
+    first wall's x0 to the second's x1, as our pit columns), a box wider than 3 steps a stair step (4
+    wide), any other a stump (1 or 2 steps square)."""
     out = []
     for body in env.terrain:
         shape = body.fixtures[0].shape
@@ -152,9 +145,16 @@ def gym_obstacles(env) -> list[tuple[float, float, str]]:
             continue
         v = np.asarray(shape.vertices)
         x0, x1 = float(v[:, 0].min()), float(v[:, 0].max())
-        low = v[:, 1].min() < np.interp(x0, tx, ty) - 1.5 * C.TERRAIN_STEP
-        out.append((x0, x1, "pit" if low else ("stairs" if x1 - x0 > 3 * C.TERRAIN_STEP else "stump")))
-    return sorted(out)
+        tall = v[:, 1].max() - v[:, 1].min() > 3 * C.TERRAIN_STEP
+        out.append((x0, x1, "pit" if tall else ("stairs" if x1 - x0 > 3 * C.TERRAIN_STEP else "stump")))
+    out.sort()
+    merged = []
+    for ob in out:  # Gymnasium creates a pit's walls in pairs, the second 3 or 4 steps after the first
+        if ob[2] == "pit" and merged and merged[-1][2] == "pit" and merged[-1][3] == 1:
+            merged[-1] = (merged[-1][0], ob[1], "pit", 2)
+        else:
+            merged.append(ob + (1,))
+    return [ob[:3] for ob in merged]
 
 
 def fall_sites(x, fall, obstacles, reach: float = 3 * C.TERRAIN_STEP) -> dict:
@@ -191,9 +191,10 @@ def _as_chain(walker_cls):
 
 
 def gym_episodes(gym_id: str, episodes: int, seed: int = 0, chain: bool = False, policy=None,
-                 max_steps: int | None = None) -> dict:
+                 max_steps: int | None = None, continuous: bool = True) -> dict:
     """Gymnasium's own env and gait, or ``policy`` (observation -> action, numpy) instead of the
-    gait; ``chain``: its grass as one chain shape (see ``_as_chain``); ``max_steps``: a shorter limit."""
+    gait; ``chain``: its grass as one chain shape (see ``_as_chain``); ``max_steps``: a shorter limit;
+    ``continuous=False``: Box2D's time of impact off (``world.continuousPhysics``)."""
     import gymnasium as gym
     from gymnasium.envs.box2d.bipedal_walker import BipedalWalker as GymWalker
     from gymnasium.envs.box2d.bipedal_walker import BipedalWalkerHeuristics
@@ -201,6 +202,7 @@ def gym_episodes(gym_id: str, episodes: int, seed: int = 0, chain: bool = False,
     env = gym.make(gym_id, **({} if max_steps is None else {"max_episode_steps": max_steps}))
     if chain:
         env.unwrapped._generate_terrain = _as_chain(GymWalker).__get__(env.unwrapped)
+    env.unwrapped.world.continuousPhysics = continuous
     rets, lens, falls, xs, obstacles = [], [], [], [], []
     for ep in range(episodes):
         s, _ = env.reset(seed=seed + ep)
@@ -246,6 +248,10 @@ def main(argv=None) -> int:
     p.add_argument("--terrain-resolution", type=int, default=None, metavar="R",
                    help="diagnostic: our terrain profile samples per terrain step (default 4): an obstacle's face "
                         "is 0.467/R m wide and its columns have a contact edge every 0.467/R m")
+    p.add_argument("--no-toi", action="store_true",
+                   help="diagnostic: the time of impact off on both sides (Box2D's continuousPhysics, ours continuous)")
+    p.add_argument("--obstacles", default=None, choices=("polygon", "profile"),
+                   help="diagnostic: what our legs touch at obstacles (BipedalOptions.obstacles; default polygon)")
     p.add_argument("--policy", default=None, metavar="FILE",
                    help="a policy.msgpack of 'python -m shed_jax ppo --env bipedal' instead of the gait; "
                         "--episodes per saved seed; the rows are named <tag>_<setting> and --out keeps the others")
@@ -254,9 +260,9 @@ def main(argv=None) -> int:
     p.add_argument("--out", default=None, help="write the JSON record here (e.g. docs/results/bipedal.json)")
     args = p.parse_args(argv)
     if args.policy is not None:
-        if args.gym_chain or args.iterations or args.terrain_resolution is not None:
+        if args.gym_chain or args.iterations or args.terrain_resolution is not None or args.obstacles or args.no_toi:
             p.error("--policy runs with Gymnasium's edges, Box2D's 180/60 passes and our default terrain; "
-                    "drop --gym-chain/--iterations/--terrain-resolution")
+                    "drop --gym-chain/--iterations/--terrain-resolution/--obstacles/--no-toi")
         if not pathlib.Path(args.policy).is_file():
             p.error(f"--policy {args.policy}: no such file")
     if not re.fullmatch(r"[a-z0-9_]+", args.tag):
@@ -276,13 +282,18 @@ def main(argv=None) -> int:
         opts = dict(velocity_iterations=v, position_iterations=q)
     if args.terrain_resolution is not None:
         opts["terrain_resolution"] = args.terrain_resolution
+    if args.obstacles is not None:
+        opts["obstacles"] = args.obstacles
+    if args.no_toi:
+        opts["continuous"] = False
     try:
         BipedalOptions(**opts)
     except ValueError as err:
         p.error(str(err))
     record = {**provenance("envs.bipedal.parity", argv),
               "device": jax.devices()[0].device_kind if not args.gym_only else "cpu",
-              "seed": args.seed, "gym_terrain": "chain" if args.gym_chain else "edges", "ours_options": opts, "parity": {}}
+              "seed": args.seed, "gym_terrain": "chain" if args.gym_chain else "edges",
+              "gym_continuous": not args.no_toi, "ours_options": opts, "parity": {}}
     if args.policy is not None:
         return policy_main(args, names, record)
     for name in names:
@@ -290,7 +301,7 @@ def main(argv=None) -> int:
         row = {"episodes": args.episodes}
         if not args.jax_only:
             t = time.time()
-            d = gym_episodes(gym_id, args.episodes, args.seed, chain=args.gym_chain)
+            d = gym_episodes(gym_id, args.episodes, args.seed, chain=args.gym_chain, continuous=not args.no_toi)
             g = summarize(d["ret"], d["length"], d["fall"])
             print(f"gym  {name}: {time.time() - t:.0f}s mean {g['mean']:.1f} se {g['se']:.1f} fall {g['fall']:.2f} "
                   f"len {g['length']:.0f}", flush=True)
