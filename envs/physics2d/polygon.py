@@ -24,11 +24,9 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from envs.physics2d.edge import FACE, VERTEX, clip_segment_to_line, pack_id
+# Box2D 2.3.0 uses the same reference-face hysteresis (k_relativeTol, k_absoluteTol) for polygons as for edges
+from envs.physics2d.edge import ABSOLUTE_TOL, FACE, RELATIVE_TOL, VERTEX, clip_segment_to_line, pack_id
 from envs.physics2d.vec import dot
-
-RELATIVE_TOL = 0.98  # b2CollidePolygons' k_relativeTol / k_absoluteTol (reference-face hysteresis)
-ABSOLUTE_TOL = 0.001
 
 
 def box_polygon(box):
