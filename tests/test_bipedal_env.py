@@ -124,11 +124,11 @@ def test_terrain_edges_are_gymnasiums_grass_edges():
 
 def test_fixture_window_is_gymnasiums_edges_and_every_box_in_reach():
     """The "polygon" obstacles' window: one edge per window column, the level's polyline segment
-    (Gymnasium's edge fixture) in the slot of the column's first profile segment, and every obstacle box
+    (Gymnasium's edge fixture), and every obstacle box
     that reaches into the window, in the generator's order; over sampled FULL levels and Hardcore at
     every window position, no more boxes reach a window than ``window_boxes`` holds."""
     env = envs.make("bipedal")
-    o, r = env.options, env.options.terrain_resolution
+    o = env.options
     full = env.param_space.sample(jax.random.PRNGKey(3), (48,))
     hard = stack([LEVELS["Hardcore"](terrain_seed=s, fixed_terrain=True) for s in range(16)])
     params = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a, b]), full, hard)
@@ -155,12 +155,12 @@ def test_fixture_window_is_gymnasiums_edges_and_every_box_in_reach():
     for lv in range(0, 64, 7):
         for w in range(0, len(cols), 5):
             c0 = col[lv, w]
+            assert edges.shape[2] == o.window_columns
             for j in range(o.window_columns):
-                c, slot = c0 + j, j * r
-                assert valid[lv, w, slot] == (0 <= c <= 198)
-                assert not valid[lv, w, slot + 1: slot + r].any()
+                c = c0 + j
+                assert valid[lv, w, j] == (0 <= c <= 198)
                 if 0 <= c <= 198:
-                    np.testing.assert_array_equal(edges[lv, w, slot], [[tx[lv, c], ty[lv, c]], [tx[lv, c + 1], ty[lv, c + 1]]])
+                    np.testing.assert_array_equal(edges[lv, w, j], [[tx[lv, c], ty[lv, c]], [tx[lv, c + 1], ty[lv, c + 1]]])
             k = box_ok[lv, w]
             np.testing.assert_array_equal(boxes[lv, w][k], tb[lv][index[lv, w][k]])
             assert np.all(np.diff(index[lv, w][k]) > 0)

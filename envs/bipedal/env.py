@@ -178,20 +178,16 @@ class BipedalWalker(WalkerInterface, Environment):
 
     def fixture_window(self, terrain: T.Terrain, ground: jax.Array, col: jax.Array):
         """Gymnasium's fixtures around the window: the polyline's edge of each window column (edge
-        (x_c, y_c) -> (x_c+1, y_c+1), in the slot of the column's first profile segment; the others,
-        and columns off the 199 edges, invalid), and the first ``window_boxes`` obstacle boxes that
-        reach into the window. Returns (edges (P - 1, 2, 2), valid (P - 1,), boxes (window_boxes, 4),
-        box valid, box index (window_boxes,) int32 into ``terrain.boxes``)."""
+        (x_c, y_c) -> (x_c+1, y_c+1); columns off the 199 edges invalid), and the first
+        ``window_boxes`` obstacle boxes that reach into the window. Returns (edges (window_columns, 2, 2),
+        valid (window_columns,), boxes (window_boxes, 4), box valid, box index (window_boxes,) int32
+        into ``terrain.boxes``)."""
         o = self.options
-        r, w = o.terrain_resolution, o.window_columns
-        c = col + jnp.arange(w)
+        c = col + jnp.arange(o.window_columns)
         ci = jnp.clip(c, 0, C.TERRAIN_LENGTH - 2)
-        column_edge = jnp.stack([jnp.stack([terrain.x[ci], terrain.y[ci]], -1),
-                                 jnp.stack([terrain.x[ci + 1], terrain.y[ci + 1]], -1)], 1)  # (W, 2, 2)
-        ok = (c >= 0) & (c <= C.TERRAIN_LENGTH - 2)
-        s = jnp.arange(w * r)
-        edges = jnp.where((s % r == 0)[:, None, None], column_edge[s // r], jnp.stack([ground[:-1], ground[1:]], 1))
-        valid = (s % r == 0) & ok[s // r]
+        edges = jnp.stack([jnp.stack([terrain.x[ci], terrain.y[ci]], -1),
+                           jnp.stack([terrain.x[ci + 1], terrain.y[ci + 1]], -1)], 1)  # (W, 2, 2)
+        valid = (c >= 0) & (c <= C.TERRAIN_LENGTH - 2)
         lo, hi = ground[0, 0], ground[-1, 0]
         reach = terrain.box_valid & (terrain.boxes[:, 1] >= lo) & (terrain.boxes[:, 0] <= hi)
         rank = jnp.cumsum(reach.astype(jnp.int32)) - 1
@@ -249,8 +245,9 @@ class BipedalWalker(WalkerInterface, Environment):
                                      start_contacts=start_contacts, boxes=boxes, box_valid=box_ok)
         # Gymnasium's ContactDetector: one Box2D contact per (lower leg, terrain edge) pair; BeginContact
         # sets the leg's flag, EndContact clears it even while the leg still touches another edge.
-        r = self.options.terrain_resolution
-        pairs = info["pair_touching"][jnp.asarray([M.POLYGON[b] for b in M.LOWER])].reshape(2, self.options.window_columns, r).any(-1)
+        pairs = info["pair_touching"][jnp.asarray([M.POLYGON[b] for b in M.LOWER])]  # per edge
+        if not polygons:  # per profile segment: a column's edge covers its r segments
+            pairs = pairs.reshape(2, self.options.window_columns, self.options.terrain_resolution).any(-1)
         shift = col - state.window  # the previous window, re-indexed to this one's columns
         idx = jnp.arange(self.options.window_columns) + shift
         ok = (idx >= 0) & (idx < self.options.window_columns)

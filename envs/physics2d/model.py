@@ -93,6 +93,11 @@ class SolverConfig:
     # (+ 0.25 slop tolerance, but not overlapping) as touching at t = 0: the body goes back to its
     # start pose and is re-solved alone for the whole step. False (the lander's setting) skips this.
     toi_from_touching: bool = False
+    # edge contacts' time of impact (physics2d/toi.py): distance samples per step, bisections of the
+    # first interval under the target, and shapes tried per polygon (those nearest its swept box)
+    toi_samples: int = 4
+    toi_bisections: int = 8
+    toi_candidates: int = 6
     # ground contacts of solid polygons: 0 = every polygon vertex against the polyline segment under it
     # (the lander's model); k > 0 = Box2D's edge-vs-polygon manifold (b2CollideEdgeAndPolygon, up to
     # two points, face A or face B) of each polygon against every ground edge as a separate Box2D edge
@@ -116,6 +121,10 @@ class SolverConfig:
             )
         if self.toi_position_iterations < 0:
             raise ValueError(f"SolverConfig.toi_position_iterations must be >= 0, got {self.toi_position_iterations}")
+        for name, lo in (("toi_samples", 1), ("toi_bisections", 0), ("toi_candidates", 1)):
+            v = getattr(self, name)
+            if not isinstance(v, int) or isinstance(v, bool) or v < lo:
+                raise ValueError(f"SolverConfig.{name} must be an int >= {lo}, got {v!r}")
         if self.edge_contacts < 0:
             raise ValueError(f"SolverConfig.edge_contacts must be >= 0, got {self.edge_contacts}")
         if self.unroll < 1:

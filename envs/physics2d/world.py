@@ -24,6 +24,7 @@ from envs.physics2d import fused
 from envs.physics2d import joint as jnt
 from envs.physics2d import edge as edg
 from envs.physics2d import polygon as pg
+from envs.physics2d import toi
 from envs.physics2d.collision import polyline_points_in_polygon, vertex_segment_touching, vertex_vs_polyline
 from envs.physics2d.mass import polygon_mass
 from envs.physics2d.model import BodyState, Model, WorldState
@@ -149,16 +150,19 @@ def step(model: Model, world: WorldState, ground, gravity, force=None, torque=No
     manifolds are then skipped and the velocity and position passes solve the joints alone (the time of
     impact still runs): the full step's values at a fraction of its work and compile.
     ``edges`` (S, 2, 2), ``edge_valid`` (S,) bool: with ``config.edge_contacts`` the ground as separate
-    Box2D edges, edge s starting at ground point s (S = P - 1; a longer edge may cover several
-    segments, the ones it covers then invalid); None: every ground segment is its own edge. Solid
-    polygons then touch the ground through Box2D's edge-vs-polygon manifolds (``edge_constraints``)
-    instead of their vertices; the time of impact still uses the vertices against the polyline.
+    Box2D edges, left to right (any number; invalid slots have no contact); None: every ground
+    segment is its own edge. Solid polygons then touch the ground through Box2D's edge-vs-polygon
+    manifolds (``edge_constraints``) instead of their vertices, with Box2D's time of impact against
+    the same edges (``_time_of_impact_polygons``).
     ``boxes`` (K, 4) (x0, x1, y0, y1), ``box_valid`` (K,) bool: with ``config.edge_contacts``, static
     box obstacles besides the edges (Box2D's polygon-vs-polygon manifolds, ``polygon.py``), or None.
-    The polyline should cover their tops for the time of impact and sensor tests, which use it alone.
+    The polyline should cover the edges and box tops for the sensor polygons, which touch it alone.
     info: ``touching`` (V,) slots and ``polygon_touching`` (num_polygons,) at the start pose or
-    by a time of impact during the step, ``pair_touching`` (num_polygons, S) per ground segment,
-    ``box_touching`` (num_polygons, K) per box (edge contacts), ``position_solved`` (), ``asleep`` ().
+    by a time of impact during the step, ``pair_touching`` (num_polygons, S) per ground segment
+    (vertex contacts) or per edge (edge contacts: the solid polygons' manifolds, sensor rows False),
+    ``box_touching`` (num_polygons, K) per box and ``toi_crowded`` () (edge contacts: some polygon had
+    more shapes in reach of its sweep than ``config.toi_candidates``, the farthest then not tried),
+    ``position_solved`` (), ``asleep`` ().
     """
     cfg = model.config
     dt = cfg.dt
@@ -186,18 +190,19 @@ def step(model: Model, world: WorldState, ground, gravity, force=None, torque=No
     solid = jnp.asarray([(not s) and projector is None for s in model.slot_sensor])
     active = touching & solid
     edge_mode = bool(cfg.edge_contacts) and projector is None
+    if edge_mode:  # the fixtures: separate edges (every ground segment by default) and boxes
+        edges = jnp.stack([ground[:-1], ground[1:]], 1) if edges is None else jnp.asarray(edges, jnp.float32)
+        valid = jnp.ones((edges.shape[0],), bool) if edge_valid is None else jnp.asarray(edge_valid, bool)
+        boxes = None if boxes is None else jnp.asarray(boxes, jnp.float32)
+        box_valid = None if boxes is None else jnp.asarray(box_valid, bool)
     if edge_mode and (free_flight or not start_contacts):  # no manifold has points: the passes solve the joints alone
         ec = dict(on=jnp.zeros((model.num_contacts,), bool), key=jnp.zeros_like(world.contact_key), body=(),
-                  friction=(), pairs=jnp.zeros((len(model.polygons), ground.shape[0] - 1), bool),
+                  friction=(), pairs=jnp.zeros((len(model.polygons), edges.shape[0]), bool),
                   box_pairs=jnp.zeros((len(model.polygons), 0 if boxes is None else boxes.shape[0]), bool))
         e_on = ec["on"]
     elif edge_mode:  # solver contacts: Box2D edge manifolds, warm started by (edge, feature)
-        edges = jnp.stack([ground[:-1], ground[1:]], 1) if edges is None else jnp.asarray(edges, jnp.float32)
-        valid = jnp.ones((edges.shape[0],), bool) if edge_valid is None else jnp.asarray(edge_valid, bool)
         with jax.named_scope("edge_manifolds"):
-            ec = edge_constraints(model, b, edges, valid,
-                                  None if boxes is None else jnp.asarray(boxes, jnp.float32),
-                                  None if boxes is None else jnp.asarray(box_valid, bool))
+            ec = edge_constraints(model, b, edges, valid, boxes, box_valid)
         e_on = ec["on"]
         keep = e_on & world.touching & jnp.all(ec["key"] == world.contact_key, -1) & cfg.warm_start
         lam_n = jnp.where(keep, world.normal_impulse, 0.0)
@@ -351,7 +356,16 @@ def step(model: Model, world: WorldState, ground, gravity, force=None, torque=No
             early = inside & (d0 > 0.0) & (d0 < target + 0.25 * cfg.linear_slop)
             crossing = crossing | early
     toi_touch = crossing
-    if cfg.continuous and not free_flight:
+    toi_pairs = toi_box_pairs = None
+    toi_crowded = jnp.zeros((), bool)
+    if edge_mode and cfg.continuous and not free_flight:  # solid polygons: Box2D's time of impact
+        with jax.named_scope("time_of_impact"):
+            com, ang, vel, omg, toi_pairs, toi_box_pairs, toi_crowded = _time_of_impact_polygons(
+                model, b, jnp.stack(com), jnp.stack(ang), jnp.stack(vel), jnp.stack(omg), edges, valid, boxes, box_valid)
+        com, ang, vel, omg = list(com), list(ang), list(vel), list(omg)
+    if edge_mode:  # a solid slot's vertex crossing is not a touch there; sensors keep it
+        toi_touch = crossing & jnp.asarray(model.slot_sensor)
+    elif cfg.continuous and not free_flight:
         alpha_slot = jnp.clip((d0 - target) / jnp.maximum(d0 - d1, 1e-9), 0.0, 1.0)
         if cfg.toi_from_touching:
             alpha_slot = jnp.where(early, 0.0, alpha_slot)
@@ -390,21 +404,23 @@ def step(model: Model, world: WorldState, ground, gravity, force=None, torque=No
         asleep=asleep,
         contact_key=contact_key,
     )
-    # per (polygon, ground segment) touching: start pose, plus segments hit by a time of impact
-    if free_flight:
-        pairs_v = jnp.zeros((model.num_slots, ground.shape[0] - 1), bool)
-    else:
-        seg_sel = (plane_q[:, None, 0] == ground[None, :-1, 0]) & inside[:, None]  # (V, S) segment used
-        pairs_v = vertex_segment_touching(start_pts, ground, cfg.contact_radius) | (seg_sel & toi_touch[:, None])
-    pairs = jnp.stack([jnp.any(jnp.stack([pairs_v[i] for i, p in enumerate(model.slot_polygon) if p == k]), 0)
-                       for k in range(len(model.polygons))])
-    if edge_mode and not free_flight:  # solid polygons: Box2D's touching (manifold points) per edge, or a time of impact
-        toi_pairs = seg_sel & toi_touch[:, None]
+    box_pairs = ec["box_pairs"] if edge_mode else None
+    if edge_mode:  # per (polygon, edge): Box2D's touching (manifold points) at the start pose or at a time
+        # of impact, for the solid polygons (sensor polygons' rows are False: they touch through vertices)
         solid_poly = jnp.asarray([k in model.edge_polygons for k in range(len(model.polygons))])
-        toi_rows = jnp.stack([jnp.any(jnp.stack([toi_pairs[i] for i, p in enumerate(model.slot_polygon) if p == k]), 0)
-                              for k in range(len(model.polygons))])
-        pairs = jnp.where(solid_poly[:, None], ec["pairs"] | toi_rows, pairs)
-        poly_touch = poly_touch | jnp.any(ec["pairs"], 1) | jnp.any(ec["box_pairs"], 1)
+        edge_rows = ec["pairs"] if toi_pairs is None else ec["pairs"] | toi_pairs
+        pairs = edge_rows & solid_poly[:, None]
+        if toi_box_pairs is not None:
+            box_pairs = box_pairs | toi_box_pairs
+        poly_touch = poly_touch | jnp.any(pairs, 1) | jnp.any(box_pairs, 1)
+    else:  # per (polygon, ground segment): start pose, plus segments hit by a time of impact
+        if free_flight:
+            pairs_v = jnp.zeros((model.num_slots, ground.shape[0] - 1), bool)
+        else:
+            seg_sel = (plane_q[:, None, 0] == ground[None, :-1, 0]) & inside[:, None]  # (V, S) segment used
+            pairs_v = vertex_segment_touching(start_pts, ground, cfg.contact_radius) | (seg_sel & toi_touch[:, None])
+        pairs = jnp.stack([jnp.any(jnp.stack([pairs_v[i] for i, p in enumerate(model.slot_polygon) if p == k]), 0)
+                           for k in range(len(model.polygons))])
     began = []
     for k, poly in enumerate(model.polygons):
         idx = [i for i, p in enumerate(model.slot_polygon) if p == k]
@@ -413,8 +429,146 @@ def step(model: Model, world: WorldState, ground, gravity, force=None, torque=No
     info = dict(touching=touching | toi_touch, polygon_touching=poly_touch, pair_touching=pairs,
                 position_solved=solved, asleep=asleep)
     if edge_mode:
-        info["box_touching"] = ec["box_pairs"]
+        info["box_touching"] = box_pairs
+        info["toi_crowded"] = toi_crowded
     return new_world, info
+
+
+def _time_of_impact_polygons(model: Model, b: BodyState, com, ang, vel, omg, edges, valid, boxes, box_valid):
+    """Box2D's SolveTOI for the solid polygons against the static edges and boxes (edge contacts):
+    -> (com (B, 2), angle (B,), vel (B, 2), omega (B,)) at the step's end, and the (polygon, edge)
+    (num_polygons, S) and (polygon, box) (num_polygons, K) pairs touching at a time of impact, and
+    whether any polygon had more shapes in reach than ``config.toi_candidates``.
+
+    Each body's sweep runs from the step's start ``b`` to the regular solve's end (``com``, ``ang``).
+    Its time of impact is the earliest over its polygons and the shapes in reach (``toi.earliest_impact``,
+    the touching-at-the-start rule with ``config.toi_from_touching``). A body with one moves back to that
+    pose, where its manifolds (``edge_constraints``) are solved alone: ``toi_position_iterations``
+    position passes with Baumgarte ``toi_baumgarte`` until its deepest point is within 1.5 slops
+    (``b2ContactSolver::SolveTOIPositionConstraints``), then, from the corrected pose, ``toi_iterations``
+    velocity passes without warm starting (``b2Island::SolveTOI``; joints are not in Box2D's TOI
+    islands), and it moves on with the new velocity for the rest of the step. Box2D would process
+    further impacts of the same body in the step; one per body is handled here. A body without a
+    manifold point at its time of impact keeps its end pose (Box2D disables that contact)."""
+    cfg = model.config
+    f32 = jnp.float32
+    nb = model.num_bodies
+    target = max(cfg.linear_slop, cfg.contact_radius - 3.0 * cfg.linear_slop)
+    tolerance = 0.25 * cfg.linear_slop
+    lc = np.asarray(model.local_com, np.float32)
+    shapes, ok = toi.edge_shapes(edges), valid
+    if boxes is not None:
+        shapes = jnp.concatenate([shapes, pg.box_polygon(boxes)[0]])
+        ok = jnp.concatenate([ok, box_valid])
+    alpha = jnp.ones((nb,), f32)
+    crowded = jnp.zeros((), bool)
+    impact = jax.vmap(functools.partial(toi.earliest_impact, target=target, tolerance=tolerance,
+                                        candidates=cfg.toi_candidates, samples=cfg.toi_samples,
+                                        bisections=cfg.toi_bisections, from_touching=cfg.toi_from_touching),
+                      in_axes=(0, 0, 0, 0, 0, None, None))
+    by_count = {}  # polygons with the same vertex count in one vmapped search (fewer, larger GPU kernels)
+    for k in model.edge_polygons:
+        by_count.setdefault(len(model.polygons[k].vertices), []).append(k)
+    for ks in by_count.values():
+        i = np.asarray([model.polygons[k].body for k in ks], np.int32)
+        local = jnp.asarray(np.stack([np.asarray(model.polygons[k].vertices, np.float32) - lc[model.polygons[k].body]
+                                      for k in ks]))
+        a_k, _, crowd_k = impact(local, b.com[i], b.angle[i], com[i], ang[i], shapes, ok)
+        alpha = alpha.at[i].min(a_k)
+        crowded = crowded | jnp.any(crowd_k)
+    hit = alpha < 1.0 - 10.0 * float(np.finfo(np.float32).eps)  # Box2D's "no more TOI events" test
+    c_t = b.com + alpha[:, None] * (com - b.com)
+    a_t = b.angle + alpha * (ang - b.angle)
+    at_toi = BodyState(com=c_t, angle=a_t, vel=vel, omega=omg)
+    ec = edge_constraints(model, at_toi, edges, valid, boxes, box_valid)
+    body = ec["body"]
+    cb = np.asarray(body, np.int32)
+    groups = [[k for k, i in enumerate(body) if i == g] for g in range(nb)]
+    has = jnp.stack([jnp.any(jnp.stack([ec["on"][k] for k in ks])) if ks else jnp.zeros((), bool) for ks in groups])
+    hit = hit & has
+    ec = dict(ec, on=ec["on"] & hit[cb])
+    moving = [g for g in range(nb) if groups[g]]
+    inv_m = [float(model.inv_mass[g]) for g in moving]
+    inv_i = [float(model.inv_inertia[g]) for g in moving]
+    flags = tuple(fused.BlockAny(hit[g].astype(f32)) for g in moving)
+
+    # position passes at the time of impact, per body (its contacts only)
+    pconsts = dict(_edge_position_constants(model, at_toi, ec), hit=flags)
+    carry = (tuple(V2.of(c_t[g]) for g in moving), tuple(a_t[g] for g in moving), tuple(jnp.zeros((), f32) for _ in moving))
+    if cfg.toi_position_iterations > 0:
+        ppass = functools.partial(_toi_position_pass_polygons, cfg, [groups[g] for g in moving], inv_m, inv_i)
+        cs, as_, _ = _toi_passes(cfg, cfg.toi_position_iterations, ppass, pconsts, carry)
+        c_p = c_t.at[np.asarray(moving)].set(jnp.stack([c.array() for c in cs]))
+        a_p = a_t.at[np.asarray(moving)].set(jnp.stack(as_))
+    else:
+        c_p, a_p = c_t, a_t
+
+    # velocity passes from the corrected pose (Box2D's "leap of faith"), no warm start
+    moved = _manifolds_moved(ec, c_t[cb], a_t[cb], c_p[cb], a_p[cb])
+    at_p = BodyState(com=c_p, angle=a_p, vel=vel, omega=omg)
+    vconsts = _edge_velocity_constants(model, at_p, moved)
+    zeros = tuple(jnp.zeros((), f32) for _ in body)
+    vpass = functools.partial(_toi_velocity_pass_polygons, model, body, ec["friction"])
+    vs, ws, _, _ = _toi_passes(cfg, cfg.toi_iterations, vpass, vconsts,
+                               (tuple(V2.of(vel[g]) for g in range(nb)), tuple(omg[g] for g in range(nb)), zeros, zeros))
+    v_t = jnp.stack([v.array() for v in vs])
+    w_t = jnp.stack(ws)
+    rest = (1.0 - alpha) * cfg.dt  # the rest of the step, clamped as Box2D integrates
+    tr = rest[:, None] * v_t
+    tr2 = dot(tr, tr)
+    v_t = jnp.where((tr2 > cfg.max_translation**2)[:, None], v_t * (cfg.max_translation / jnp.sqrt(jnp.maximum(tr2, 1e-30)))[:, None], v_t)
+    rot = rest * w_t
+    w_t = jnp.where(rot * rot > cfg.max_rotation**2, w_t * (cfg.max_rotation / jnp.maximum(jnp.abs(rot), 1e-30)), w_t)
+    hit_poly = jnp.asarray([model.polygons[k].body for k in range(len(model.polygons))], jnp.int32)
+    hit_poly = hit[hit_poly][:, None]
+    return (jnp.where(hit[:, None], c_p + rest[:, None] * v_t, com), jnp.where(hit, a_p + rest * w_t, ang),
+            jnp.where(hit[:, None], v_t, vel), jnp.where(hit, w_t, omg),
+            ec["pairs"] & hit_poly, ec["box_pairs"] & hit_poly, crowded)
+
+
+def _manifolds_moved(ec, com0, ang0, com1, ang1):
+    """Manifold points carried rigidly with their bodies from (com0, ang0) to (com1, ang1) (per
+    contact (E, 2), (E,)), as Box2D's world manifold follows the bodies' transforms: the polygon's
+    side (face A's clip points, face B's face) moves, the static side stays; the velocity frame
+    (``normal``, ``point`` midway between the skins) follows."""
+    fb = ec["face_b"][:, None]
+    turn = ang1 - ang0
+    move = lambda p: com1 + rotate(turn, p - com0)  # noqa: E731
+    ref_n = jnp.where(fb, rotate(turn, ec["ref_normal"]), ec["ref_normal"])
+    ref_p = jnp.where(fb, move(ec["ref_point"]), ec["ref_point"])
+    clip = jnp.where(fb, ec["clip"], move(ec["clip"]))
+    raw = dot(clip - ref_p, ref_n)
+    return dict(ec, normal=jnp.where(fb, -ref_n, ref_n), point=clip - 0.5 * raw[:, None] * ref_n,
+                ref_normal=ref_n, ref_point=ref_p, clip=clip)
+
+
+def _toi_position_pass_polygons(cfg, groups, inv_m, inv_i, c, carry):
+    """One TOI position pass per moving body over its own manifold points (Baumgarte
+    ``toi_baumgarte``); a body stops once its deepest point is within 1.5 slops (``done`` 0/1).
+    Per-world scalars (``fused`` contract); a body no world of a kernel block moves back is skipped."""
+    out = []
+    for g, state in enumerate(zip(*carry)):
+        fn = functools.partial(_toi_body_position_polygons, cfg, c, groups[g], inv_m[g], inv_i[g])
+        out.append(fused.when(c["hit"][g], fn, state, cfg.skip_untouched))
+    return tuple(tuple(x) for x in zip(*out))
+
+
+def _toi_body_position_polygons(cfg, c, ks, inv_m, inv_i, state):
+    c0, a0, done = state
+    c_, a_, min_sep = c0, a0, jnp.zeros_like(a0)
+    for k in ks:
+        c_, a_, min_sep = _point_position(cfg, c, k, inv_m, inv_i, (c_, a_, min_sep), cfg.toi_baumgarte)
+    frozen = done > 0.5
+    return (c0.where(frozen, c_), jnp.where(frozen, a0, a_),
+            jnp.where(frozen | (min_sep >= -1.5 * cfg.linear_slop), 1.0, 0.0).astype(jnp.float32))
+
+
+def _toi_velocity_pass_polygons(model: Model, body, friction, c, carry):
+    """One TOI velocity pass: the manifolds alone (no joints), every body at once (each manifold
+    acts on its own body only). Per-world scalars (``fused`` contract)."""
+    vel, omg, ln, lt = (list(x) for x in carry)
+    _manifolds_velocity(model, body, friction, c, vel, omg, ln, lt)
+    return tuple(vel), tuple(omg), tuple(ln), tuple(lt)
 
 
 def _time_of_impact(model: Model, slots, b: BodyState, com, ang, vel, omg, crossing, alpha_slot, plane_q,
@@ -727,9 +881,16 @@ def _velocity_pass_edges(model: Model, body, friction, c, carry):
     conditioned, else the first point alone. Per-world scalars only (``fused`` contract). Unlike the
     position pass it computes every manifold: skipping untouched ones per block (``fused.when``) made
     this kernel 3.4x slower on an H200 (docs/bipedal.md, speed)."""
-    inv_m, inv_i = [float(x) for x in model.inv_mass], [float(x) for x in model.inv_inertia]
     vel, omg, jimp, jmot, ln, lt = (list(x) for x in carry)
     _joint_velocity_pass(model, c, vel, omg, jimp, jmot)
+    _manifolds_velocity(model, body, friction, c, vel, omg, ln, lt)
+    return tuple(vel), tuple(omg), tuple(jimp), tuple(jmot), tuple(ln), tuple(lt)
+
+
+def _manifolds_velocity(model: Model, body, friction, c, vel, omg, ln, lt):
+    """The manifolds' part of a velocity pass (in place on the lists): per manifold the friction of
+    each point, then the normal impulses (block solver or first point alone)."""
+    inv_m, inv_i = [float(x) for x in model.inv_mass], [float(x) for x in model.inv_inertia]
     for p in range(len(body) // 2):
         k1, k2 = 2 * p, 2 * p + 1
         i = body[k1]
@@ -772,7 +933,6 @@ def _velocity_pass_edges(model: Model, body, friction, c, carry):
         p1, p2 = d1 * n, d2 * n
         vel[i] = vel[i] + mi * (p1 + p2)
         omg[i] = omg[i] + ii * (r1.cross(p1) + r2.cross(p2))
-    return tuple(vel), tuple(omg), tuple(jimp), tuple(jmot), tuple(ln), tuple(lt)
 
 
 def _position_pass_edges(model: Model, body, c, carry):
@@ -793,8 +953,9 @@ def _position_pass_edges(model: Model, body, c, carry):
     return _joint_positions_then_freeze(model, c, lc, carry, com, ang, min_sep)
 
 
-def _point_position(cfg, c, k, inv_m, inv_i, state):
-    """One edge contact point's position correction -> (com, angle, deepest separation so far)."""
+def _point_position(cfg, c, k, inv_m, inv_i, state, baumgarte=None):
+    """One edge contact point's position correction -> (com, angle, deepest separation so far);
+    ``baumgarte``: ``_position_impulse``'s."""
     com, ang, min_sep = state
     on, fb = c["on"][k] > 0.5, c["fb"][k] > 0.5
     cos, sin = jnp.cos(ang), jnp.sin(ang)  # once for the three vectors (a GPU kernel need not merge them)
@@ -807,5 +968,5 @@ def _point_position(cfg, c, k, inv_m, inv_i, state):
     sep = (clip - plane).dot(ref_n) - cfg.contact_radius
     normal = (ref_n * -1.0).where(fb, ref_n)
     min_sep = jnp.where(on, jnp.minimum(min_sep, sep), min_sep)
-    com, ang = _position_impulse(cfg, inv_m, inv_i, com, ang, clip - com, normal, sep, on)
+    com, ang = _position_impulse(cfg, inv_m, inv_i, com, ang, clip - com, normal, sep, on, baumgarte)
     return com, ang, min_sep
