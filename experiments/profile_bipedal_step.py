@@ -16,7 +16,8 @@ its cost only), ``xla`` (no Pallas kernel), ``no_skip`` (the kernels compute eve
 point and time of impact, also in blocks of worlds none of which needs it), ``full_reset`` (the
 env's ``light_reset=False``: the reset's physics step with its edge manifolds), ``profile_obstacles``
 (the env's ``obstacles="profile"``: obstacles as the height profile's edges, the model before Box2D
-polygons).
+polygons), ``terrain_loop`` (the env's ``terrain_kernel="xla"``: the terrain's 200-column loop as an
+XLA loop, the generator before 2026-12-02).
 
     python -m experiments.profile_bipedal_step --batches 200 --variants default,passes_1_1 --out $OUT/profile.json
 """
@@ -43,8 +44,10 @@ VARIANTS = {
     "no_skip": {"skip_untouched": False},
     "full_reset": {},  # env options below: the reset's physics step with its edge manifolds
     "profile_obstacles": {},  # the height profile's edges at obstacles instead of Box2D polygons
+    "terrain_loop": {},  # the terrain generator as an XLA loop instead of one kernel
 }
-ENV_OPTIONS = {"full_reset": {"light_reset": False}, "profile_obstacles": {"obstacles": "profile"}}
+ENV_OPTIONS = {"full_reset": {"light_reset": False}, "profile_obstacles": {"obstacles": "profile"},
+               "terrain_loop": {"terrain_kernel": "xla"}}
 
 
 def make_env(variant: str, **options):
@@ -71,6 +74,24 @@ def reset_scan(env, batch: int, steps: int):
         return total
 
     return run
+
+
+def terrain_check(n: int) -> dict:
+    """The env's terrain (its ``terrain_kernel``, one kernel on a GPU) against the XLA loop's on ``n``
+    sampled levels (a fifth of them Gymnasium's Hardcore), new terrains: worlds whose column kinds, box
+    count or box slots differ, and the largest coordinate difference."""
+    import numpy as np
+
+    import envs
+
+    env, loop = envs.make("bipedal"), envs.make("bipedal", terrain_kernel="xla")
+    levels = env.param_space.sample(jax.random.PRNGKey(2), (n,))
+    levels = levels.replace(fixed_terrain=jnp.zeros((n,), bool), gym_hardcore=jnp.arange(n) % 5 == 0)
+    keys = jax.random.split(jax.random.PRNGKey(3), n)
+    a, b = (jax.tree_util.tree_map(np.asarray, jax.jit(jax.vmap(e.terrain))(keys, levels)) for e in (env, loop))
+    exact = ((a.kinds == b.kinds).all(1) & (a.n_boxes == b.n_boxes) & (a.box_valid == b.box_valid).all(1))
+    return {"worlds": n, "terrain_kernel": env.options.terrain_kernel, "worlds_differing": int((~exact).sum()),
+            "max_abs_diff": {f: float(np.abs(getattr(a, f) - getattr(b, f)).max()) for f in ("x", "y", "boxes")}}
 
 
 def time_scan(run, repeats: int = 3) -> tuple[float, float]:
@@ -141,6 +162,8 @@ def main(argv=None) -> int:
     p.add_argument("--step", default="step_without_reset", choices=("step_without_reset", "step", "reset"),
                    help="what each scan iteration runs: a step without or with its auto-reset, or a reset alone")
     p.add_argument("--trace", action="store_true", help="trace the first variant's scans (jax.profiler)")
+    p.add_argument("--terrain-check", type=int, default=0, metavar="N",
+                   help="first compare the terrain kernel with the XLA loop on N sampled levels")
     p.add_argument("--out", default="runs/profile_bipedal_step.json")
     args = p.parse_args(argv)
     variants = args.variants.split(",")
@@ -158,6 +181,10 @@ def main(argv=None) -> int:
             json.dump(rec, f, indent=1)
 
     rec["traces"] = []
+    if args.terrain_check:
+        rec["terrain_check"] = terrain_check(args.terrain_check)
+        print(json.dumps(rec["terrain_check"]), flush=True)
+        write()
     for i, v in enumerate(variants):
         env = make_env(v)
         for b in (int(x) for x in args.batches.split(",")):

@@ -84,6 +84,56 @@ def test_when_skips_per_kernel_block_and_never_on_the_xla_path():
         fused.when(jnp.float32(1.0), lambda v: v, jnp.float32(0.0))
 
 
+def leaky(c, s, x):
+    """A scan body with per-iteration inputs and two outputs: s <- a s + u_i, emitting s and sign(s - 1/2) i."""
+    y = c["a"] * s + x["u"]
+    return y, (y, jnp.sign(y - 0.5) * x["i"])
+
+
+def test_scan_matches_lax_scan_unbatched_vmapped_and_nested():
+    """``per_world_scan``: the kernel (through the interpreter) stores every iteration's outputs where
+    ``lax.scan`` stacks them, over more worlds than one block (130 = 128 + 2), with an unbatched
+    const, unbatched and under nested vmaps; an iteration count that is not a power of two (200)."""
+    n, w = 200, 130
+    u = jax.random.uniform(jax.random.PRNGKey(0), (w, n))
+    a = jnp.linspace(0.1, 0.9, w, dtype=jnp.float32)
+    i = jnp.arange(n, dtype=jnp.float32)
+
+    def run(mode, a, s0, u):
+        return fused.per_world_scan(leaky, dict(a=a), s0, dict(u=u, i=i), mode=mode)
+
+    def reference(a, s0, u):  # plain numpy
+        s, ys, zs = s0, [], []
+        for k in range(n):
+            s = np.float32(a * s + u[k])
+            ys.append(s)
+            zs.append(np.sign(s - 0.5) * k)
+        return s, np.array(ys), np.array(zs)
+
+    s, (ys, zs) = run("interpret", a[3], jnp.float32(1.0), u[3])
+    want = reference(np.asarray(a[3]), np.float32(1.0), np.asarray(u[3]))
+    np.testing.assert_allclose(float(s), want[0], rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(ys), want[1], rtol=1e-5)
+    np.testing.assert_array_equal(np.asarray(zs), want[2])
+    s0 = jnp.ones((w,), jnp.float32)
+    got = jax.jit(jax.vmap(lambda a, s, u: run("interpret", a, s, u)))(a, s0, u)
+    xla = jax.jit(jax.vmap(lambda a, s, u: run("xla", a, s, u)))(a, s0, u)
+    assert got[1][0].shape == (w, n)
+    for g, x in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(xla)):
+        np.testing.assert_allclose(np.asarray(g), np.asarray(x), rtol=1e-6)
+    nested = jax.jit(jax.vmap(jax.vmap(lambda a, s, u: run("interpret", a, s, u), in_axes=(0, None, 0)),
+                              in_axes=(0, None, 0)))(a.reshape(2, 65), jnp.float32(1.0), u.reshape(2, 65, n))
+    np.testing.assert_allclose(np.asarray(nested[1][0]).reshape(w, n), np.asarray(xla[1][0]), rtol=1e-6)
+
+
+def test_scan_bad_inputs_raise():
+    with pytest.raises(TypeError, match="float32 xs of one shape"):
+        fused.per_world_scan(leaky, dict(a=jnp.float32(1.0)), jnp.float32(0.0),
+                             dict(u=jnp.zeros(3), i=jnp.zeros(4)), mode="interpret")
+    with pytest.raises(ValueError, match="at least one xs leaf"):
+        fused.per_world_scan(leaky, {}, jnp.float32(0.0), (), mode="interpret")
+
+
 def test_bad_leaves_and_modes_raise():
     with pytest.raises(ValueError, match="solver kernel"):
         fused.resolve_mode("cuda")

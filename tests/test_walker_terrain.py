@@ -157,6 +157,46 @@ def test_walker_terrain_passes_its_unroll_option_to_the_generator():
     assert [(e.params["length"], e.params["unroll"]) for e in scans] == [(C.TERRAIN_LENGTH, 8)]
 
 
+def test_terrain_kernel_gives_the_loops_terrain():
+    """``kernel`` (the walkers' ``terrain_kernel`` option): the state machine as one kernel (here
+    through Pallas' interpreter) gives the XLA loop's terrain: kinds, counts and box slots exactly,
+    coordinates up to float32 rounding, on 130 worlds (two kernel blocks) of a level with every
+    obstacle type, Gymnasium's Hardcore and a fixed-terrain level."""
+    def batch(kernel):
+        return jax.jit(jax.vmap(lambda k, lv: T.level_terrain(k, lv, 64, 1, kernel), in_axes=(0, None)))
+
+    loop, kernel = batch("xla"), batch("interpret")
+    keys = jax.random.split(jax.random.PRNGKey(11), 130)
+    seen = set()
+    for level in (make_params(roughness=2.0, pit_gap_high=2.0, stump_height_high=1.0, stair_height_high=1.0, stair_steps=4.0),
+                  make_params(gym_hardcore=True),
+                  make_params(roughness=1.0, stump_height_high=0.5, terrain_seed=3, fixed_terrain=True)):
+        want = jax.tree_util.tree_map(np.asarray, loop(keys, level))
+        got = jax.tree_util.tree_map(np.asarray, kernel(keys, level))
+        for field in dataclasses.fields(got):
+            a, b = getattr(got, field.name), getattr(want, field.name)
+            if np.issubdtype(a.dtype, np.floating):
+                np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-5, err_msg=field.name)
+            else:
+                np.testing.assert_array_equal(a, b, err_msg=field.name)
+        seen |= set(np.unique(want.kinds).tolist())
+    assert seen == {C.GRASS, C.STUMP, C.STAIRS, C.PIT}
+
+
+def test_walker_terrain_passes_its_kernel_option_to_the_generator():
+    import envs
+    from envs.walker.params import make_params as mp
+
+    def program(**options):  # a batch of two terrains, as the envs' resets run it
+        env = envs.make("bipedal", **options)
+        keys = jax.random.split(jax.random.PRNGKey(0), 2)
+        return str(jax.make_jaxpr(jax.vmap(lambda k: env.terrain(k, mp(roughness=1.0))))(keys))
+
+    loop, kernel = program(terrain_kernel="xla"), program(terrain_kernel="interpret")
+    assert "scan[" in loop and "pallas_call" not in loop
+    assert "pallas_call" in kernel
+
+
 def test_terrain_unroll_option_is_validated():
     from envs.bipedal.env import BipedalOptions
     from envs.walker.options import WalkerOptions
@@ -164,6 +204,8 @@ def test_terrain_unroll_option_is_validated():
         assert cls(terrain_unroll=25).terrain_unroll == 25
         with pytest.raises(ValueError, match=rf"^{cls.__name__}.terrain_unroll must be an int in \[1, 200\], got 0$"):
             cls(terrain_unroll=0)
+        with pytest.raises(ValueError, match=rf"^{cls.__name__}.terrain_kernel must be one of \('auto', 'xla', 'pallas', 'interpret'\), got 'gpu'$"):
+            cls(terrain_kernel="gpu")
 
 
 def test_rasterise_hand_made_terrain():

@@ -21,6 +21,7 @@ import numpy as np
 from flax import struct
 
 from envs import physics2d
+from envs.physics2d import fused
 from envs.bipedal import model as M
 from envs.core import EnvState, Environment
 from envs.walker import constants as C
@@ -30,7 +31,7 @@ from envs.walker import params as P
 from envs.walker import terrain as T
 from envs.walker.interface import WalkerInterface
 
-KINDS = ("auto", "xla", "pallas", "interpret")
+KINDS = fused.MODES
 CONTACTS = ("edge", "vertex")
 OBSTACLES = ("polygon", "profile")
 
@@ -48,6 +49,8 @@ class BipedalOptions:
     terrain_unroll:     columns per iteration of the terrain generator's 200-column loop (speed
                         only: the same terrain up to float32 rounding). Every auto-reset generates a terrain: on an H100 the
                         reset is about 5.3 of a step's 8.2 ms at a batch of 200 (docs/bipedal.md).
+    terrain_kernel:     the terrain loop's ``physics2d.fused`` mode: "auto" runs it as one GPU kernel
+                        on GPUs (the XLA loop elsewhere); speed only, the same terrain up to rounding.
     unroll, solver_kernel: physics2d's loop unroll (speed only) and ``SolverConfig.kernel``.
     light_reset:        the reset's physics step without edge manifolds (nothing touches at creation:
                         the passes solve the joints alone): the same result at a fraction of the
@@ -73,6 +76,7 @@ class BipedalOptions:
     window_columns: int = 16
     max_boxes: int = 64
     terrain_unroll: int = 1
+    terrain_kernel: str = "auto"
     unroll: int = 1
     solver_kernel: str = "auto"
     contacts: str = "edge"
@@ -89,8 +93,9 @@ class BipedalOptions:
             v = getattr(self, name)
             if not isinstance(v, int) or isinstance(v, bool) or not lo <= v <= hi:
                 raise ValueError(f"BipedalOptions.{name} must be an int in [{lo}, {hi}], got {v!r}")
-        if self.solver_kernel not in KINDS:
-            raise ValueError(f"BipedalOptions.solver_kernel must be one of {KINDS}, got {self.solver_kernel!r}")
+        for name in ("solver_kernel", "terrain_kernel"):
+            if getattr(self, name) not in KINDS:
+                raise ValueError(f"BipedalOptions.{name} must be one of {KINDS}, got {getattr(self, name)!r}")
         for name in ("light_reset", "continuous"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"BipedalOptions.{name} must be a bool, got {getattr(self, name)!r}")

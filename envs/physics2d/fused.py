@@ -80,25 +80,56 @@ def _is_flag(x) -> bool:
 
 def per_world_fori_loop(n: int, body, consts, carry, *, mode: str = "auto", unroll: int = 1):
     """``carry = body(consts, carry)`` ``n`` times, for one world; see the module docstring."""
+    xla = lambda c, s, _: (lax.fori_loop(0, n, lambda _, x: body(c, x), s, unroll=unroll), ())  # noqa: E731
+    step = lambda c, s, _: (body(c, s), ())  # noqa: E731
+    return _per_world(n, step, xla, consts, carry, (), mode)[0]
+
+
+def per_world_scan(body, consts, carry, xs, *, mode: str = "auto"):
+    """``lax.scan`` for one world: ``(carry, y_i) = body(consts, carry, x_i)`` over the leading axis of
+    ``xs``; returns ``(carry, ys)``. ``xs`` leaves are float32 ``(n,)`` per world, ``y_i`` leaves
+    float32 per-world scalars (stacked to ``(n,)``); the body's contract is the module docstring's. In
+    the kernel each iteration loads its row of ``xs`` and stores its row of ``ys`` (global memory), so
+    per-iteration outputs cost no registers."""
+    x_leaves = jax.tree_util.tree_leaves(xs)
+    if not x_leaves:
+        raise ValueError("per_world_scan needs at least one xs leaf (its length is the scan's)")
+    n = jnp.shape(x_leaves[0])[0] if jnp.ndim(x_leaves[0]) else -1
+    for x in x_leaves:
+        if jnp.shape(x) != (n,) or jnp.result_type(x) != jnp.float32:
+            raise TypeError(f"per_world_scan needs float32 xs of one shape (n,), got {jnp.shape(x)} {jnp.result_type(x)}")
+    xla = lambda c, s, x: lax.scan(lambda s_, x_: body(c, s_, x_), s, x)  # noqa: E731
+    return _per_world(n, body, xla, consts, carry, xs, mode)
+
+
+def _per_world(n, step, xla, consts, carry, xs, mode):
+    """Shared by the loop and the scan: ``xla(consts, carry, xs)`` is the reference, ``step`` one
+    iteration ``(consts, carry, x_i) -> (carry, y_i)`` for the kernel."""
     mode = resolve_mode(mode)
-    xla = lambda c, s: lax.fori_loop(0, n, lambda _, x: body(c, x), s, unroll=unroll)  # noqa: E731
     if mode == "xla" or n == 0:
-        return xla(consts, carry)
+        return xla(consts, carry, xs)
     c_leaves, c_tree = jax.tree_util.tree_flatten(consts)
     s_leaves, s_tree = jax.tree_util.tree_flatten(carry)
+    x_leaves, x_tree = jax.tree_util.tree_flatten(xs)
     for x in c_leaves + s_leaves:
         if jnp.shape(x) != () or jnp.result_type(x) != jnp.float32:
             raise TypeError(f"per_world_fori_loop needs float32 per-world scalars, got {jnp.shape(x)} "
                             f"{jnp.result_type(x)}")
-    nc = len(c_leaves)
+    nc, ns = len(c_leaves), len(s_leaves)
+    # the per-iteration outputs' structure, from an abstract evaluation of one step
+    y_shape = jax.eval_shape(lambda c, s, x: step(c, s, x)[1], consts, carry,
+                             jax.tree_util.tree_map(lambda v: v[0], xs))
+    y_tree = jax.tree_util.tree_structure(y_shape)
 
     def run_one(*leaves):
         c = jax.tree_util.tree_unflatten(c_tree, leaves[:nc])
-        s = jax.tree_util.tree_unflatten(s_tree, leaves[nc:])
-        return tuple(jax.tree_util.tree_leaves(xla(c, s)))
+        s = jax.tree_util.tree_unflatten(s_tree, leaves[nc:nc + ns])
+        x = jax.tree_util.tree_unflatten(x_tree, leaves[nc + ns:])
+        s, y = xla(c, s, x)
+        return tuple(jax.tree_util.tree_leaves(s)) + tuple(jax.tree_util.tree_leaves(y))
 
-    def run_many(*leaves):  # every leaf (W,): W worlds
-        return tuple(_kernel(n, body, c_tree, s_tree, nc, leaves, mode == "interpret"))
+    def run_many(*leaves):  # per-world leaves (W,), per-iteration leaves (W, n)
+        return tuple(_kernel(n, step, c_tree, s_tree, x_tree, y_tree, nc, ns, leaves, mode == "interpret"))
 
     many = _flattening(run_many)
     one = jax.custom_batching.custom_vmap(run_one)
@@ -109,20 +140,23 @@ def per_world_fori_loop(n: int, body, consts, carry, *, mode: str = "auto", unro
         out = many(*leaves)
         return out, (True,) * len(out)
 
-    leaves = [jnp.asarray(x, jnp.float32) for x in c_leaves + s_leaves]
-    return jax.tree_util.tree_unflatten(s_tree, one(*leaves))
+    leaves = [jnp.asarray(x, jnp.float32) for x in c_leaves + s_leaves + x_leaves]
+    out = one(*leaves)
+    ny = y_tree.num_leaves
+    s = jax.tree_util.tree_unflatten(s_tree, out[:len(out) - ny])
+    return s, jax.tree_util.tree_unflatten(y_tree, out[len(out) - ny:])
 
 
 def _flattening(run_many):
-    """``run_many`` over (W,) leaves, made vmappable by folding a new batch axis into W."""
+    """``run_many`` over (W, ...) leaves, made vmappable by folding a new batch axis into W."""
     many = jax.custom_batching.custom_vmap(run_many)
 
     @many.def_vmap
     def _rule(axis_size, in_batched, *leaves):
         full = [x if b else jnp.broadcast_to(x, (axis_size,) + jnp.shape(x)) for x, b in zip(leaves, in_batched)]
         w = full[0].shape[1]
-        out = many(*[x.reshape(axis_size * w) for x in full])
-        return tuple(y.reshape(axis_size, w) for y in out), (True,) * len(out)
+        out = many(*[x.reshape((axis_size * w,) + x.shape[2:]) for x in full])
+        return tuple(y.reshape((axis_size, w) + y.shape[1:]) for y in out), (True,) * len(out)
 
     return many
 
@@ -131,27 +165,50 @@ def _pow2(k: int) -> int:
     return 1 << max(0, (k - 1).bit_length())
 
 
-def _kernel(n, body, c_tree, s_tree, nc, leaves, interpret):
-    """All ``n`` iterations for W worlds in one ``pallas_call`` over blocks of ``BLOCK`` worlds."""
+def _kernel(n, step, c_tree, s_tree, x_tree, y_tree, nc, ns, leaves, interpret):
+    """All ``n`` iterations for W worlds in one ``pallas_call`` over blocks of ``BLOCK`` worlds:
+    per-world inputs and outputs as (fields, worlds) rows, per-iteration ones as (fields, n, worlds)."""
     from jax.experimental import pallas as pl
 
     w = leaves[0].shape[0]
-    f_in, f_out = len(leaves), len(leaves) - nc
-    # Triton wants power-of-two block shapes: pad fields and worlds (padding worlds are zeros,
-    # computed and dropped; the solver's divisions are guarded, so they stay finite).
+    f_in, f_out = nc + ns, ns
+    f_x, f_y = x_tree.num_leaves, y_tree.num_leaves
+    # Triton wants power-of-two block shapes: pad fields, iterations and worlds (padding worlds are
+    # zeros, computed and dropped; the solver's divisions are guarded, so they stay finite).
     rows_in, rows_out, wp = _pow2(f_in), _pow2(f_out), -(-w // BLOCK) * BLOCK
-    x = jnp.stack(leaves, 0)
-    x = jnp.pad(x, ((0, rows_in - f_in), (0, wp - w)))
+    x = jnp.pad(jnp.stack(leaves[:f_in], 0), ((0, rows_in - f_in), (0, wp - w)))
+    in_specs = [pl.BlockSpec((rows_in, BLOCK), lambda i: (0, i))]
+    out_shape = [jax.ShapeDtypeStruct((rows_out, wp), jnp.float32)]
+    out_specs = [pl.BlockSpec((rows_out, BLOCK), lambda i: (0, i))]
+    inputs = [x]
+    if f_x:
+        n_p = _pow2(n)
+        seq = jnp.stack([v.T for v in leaves[f_in:]], 0)  # (f_x, n, W)
+        inputs.append(jnp.pad(seq, ((0, _pow2(f_x) - f_x), (0, n_p - n), (0, wp - w))))
+        in_specs.append(pl.BlockSpec((_pow2(f_x), n_p, BLOCK), lambda i: (0, 0, i)))
+    if f_y:
+        out_shape.append(jax.ShapeDtypeStruct((_pow2(f_y), _pow2(n), wp), jnp.float32))
+        out_specs.append(pl.BlockSpec((_pow2(f_y), _pow2(n), BLOCK), lambda i: (0, 0, i)))
 
-    def kernel(x_ref, o_ref):
+    def kernel(*refs):
+        x_ref, seq_ref = refs[0], refs[1] if f_x else None
+        o_ref, ys_ref = refs[len(inputs)], refs[len(inputs) + 1] if f_y else None
         rows = [x_ref[f, :] for f in range(f_in)]
         c = jax.tree_util.tree_unflatten(c_tree, rows[:nc])
         # block-uniform flags: reduced once, before the loop
         c = jax.tree_util.tree_map(lambda x: BlockAny(jnp.max(x.flag)) if _is_flag(x) else x, c, is_leaf=_is_flag)
         s = jax.tree_util.tree_unflatten(s_tree, rows[nc:])
+
+        def iteration(i, s):
+            xi = jax.tree_util.tree_unflatten(x_tree, [seq_ref[f, i, :] for f in range(f_x)])
+            s, y = step(c, s, xi)
+            for g, v in enumerate(jax.tree_util.tree_leaves(y)):
+                ys_ref[g, i, :] = jnp.broadcast_to(jnp.asarray(v, jnp.float32), (BLOCK,))
+            return s
+
         _TRACING.in_kernel = True
         try:
-            s = lax.fori_loop(0, n, lambda _, v: body(c, v), s)
+            s = lax.fori_loop(0, n, iteration, s)
         finally:
             _TRACING.in_kernel = False
         for g, v in enumerate(jax.tree_util.tree_leaves(s)):
@@ -164,13 +221,16 @@ def _kernel(n, body, c_tree, s_tree, nc, leaves, interpret):
         from jax.experimental.pallas import triton as plt
 
         kwargs["compiler_params"] = plt.CompilerParams(num_warps=NUM_WARPS)
-    out = pl.pallas_call(
+    outs = pl.pallas_call(
         kernel,
-        out_shape=jax.ShapeDtypeStruct((rows_out, wp), jnp.float32),
+        out_shape=tuple(out_shape),
         grid=(wp // BLOCK,),
-        in_specs=[pl.BlockSpec((rows_in, BLOCK), lambda i: (0, i))],
-        out_specs=pl.BlockSpec((rows_out, BLOCK), lambda i: (0, i)),
+        in_specs=in_specs,
+        out_specs=tuple(out_specs),
         interpret=interpret,
         **kwargs,
-    )(x)
-    return [out[g, :w] for g in range(f_out)]
+    )(*inputs)
+    out = [outs[0][g, :w] for g in range(f_out)]
+    if f_y:
+        out += [outs[1][g, :n, :w].T for g in range(f_y)]
+    return out

@@ -35,4 +35,5 @@ class WalkerInterface:
 
     def terrain(self, key: jax.Array, params: P.WalkerParams) -> T.Terrain:
         """The level's terrain: from ``terrain_seed`` if ``fixed_terrain``, else from ``key``."""
-        return T.level_terrain(key, params, self.options.max_boxes, self.options.terrain_unroll)
+        o = self.options
+        return T.level_terrain(key, params, o.max_boxes, o.terrain_unroll, o.terrain_kernel)

@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import dataclasses
 
+from envs.physics2d.fused import MODES as KERNELS
+
 PRECISIONS = ("highest", "high", "default")  # jax.default_matmul_precision names for float32
 
 
@@ -22,6 +24,8 @@ class WalkerOptions:
     terrain_unroll:      columns per iteration of the terrain generator's 200-column loop (speed
                          only: the same terrain up to float32 rounding). Every auto-reset generates a terrain, so on a GPU
                          the loop's 200 dependent iterations are part of every training step.
+    terrain_kernel:      the terrain loop's ``envs.physics2d.fused`` mode: "auto" runs it as one GPU
+                         kernel on GPUs (the XLA loop elsewhere); speed only, the same terrain up to rounding.
     z_span:              vertical extent of the heightfield above its per-level base (m).
     contact_threshold:   a lower leg touches the ground if a contact's distance is <= this (m).
     unroll_substeps:     unroll the substep loop in Python (faster on GPU) instead of lax.scan.
@@ -41,6 +45,7 @@ class WalkerOptions:
     collide_upper_legs: bool = False
     max_boxes: int = 64
     terrain_unroll: int = 1
+    terrain_kernel: str = "auto"
     z_span: float = 100.0
     contact_threshold: float = 0.01
     unroll_substeps: bool = False
@@ -61,6 +66,8 @@ class WalkerOptions:
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"WalkerOptions.{name} must be a bool, got {getattr(self, name)!r}")
 
+        if self.terrain_kernel not in KERNELS:
+            raise ValueError(f"WalkerOptions.terrain_kernel must be one of {KERNELS}, got {self.terrain_kernel!r}")
         if self.matmul_precision not in PRECISIONS:
             raise ValueError(f"WalkerOptions.matmul_precision must be one of {PRECISIONS}, got {self.matmul_precision!r}")
 

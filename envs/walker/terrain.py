@@ -1,4 +1,4 @@
-"""DCD's parametric BipedalWalker terrain generator as one ``lax.scan`` over the 200 columns.
+"""DCD's parametric BipedalWalker terrain generator: one sequential loop over the 200 columns.
 
 ``generate(key, level)`` reproduces DCD's GRASS/STUMP/STAIRS/PIT state machine (docs/walker.md "Terrain") from the
 8 level parameters and a key, returning the ground polyline (199 edges through ``x, y``) and the
@@ -8,7 +8,10 @@ MJX heightfield, the analytic lidar, the hull-contact test and the renderer all 
 so physics, sensing and drawing agree).
 
 Everything is pure jnp on scalars and fixed-size arrays, so a batch of different levels is one
-``vmap``. Any parameter vector is valid: pairs are sorted and thresholds applied here.
+``vmap``. Any parameter vector is valid: pairs are sorted and thresholds applied here. The loop
+carries only per-world scalars (the state machine); every column's boxes are built after it, all at
+once. So the loop can run as one GPU kernel (``envs.physics2d.fused.per_world_scan``): as an XLA
+loop its 200 dependent iterations launch about 8 small kernels each, most of a GPU reset's time.
 
 A level with ``gym_hardcore`` set runs Gymnasium's BipedalWalkerHardcore rules instead (docs/walker.md "Terrain"),
 in the same scan, selected per level so that one batch can mix both: every obstacle type present,
@@ -83,32 +86,51 @@ def process(level: Any) -> ProcessedLevel:
 
 @struct.dataclass
 class _Carry:
+    """The column state machine's state, every field a float32 scalar (integers held exactly)."""
+
     y: jax.Array
     velocity: jax.Array
-    counter: jax.Array  # int32
-    state: jax.Array  # int32
-    oneshot: jax.Array  # bool
+    counter: jax.Array
+    state: jax.Array
+    oneshot: jax.Array  # 0 / 1
     y_orig: jax.Array
     pit_diff: jax.Array
     stair_h: jax.Array
     stair_slope: jax.Array
-    stair_n: jax.Array  # int32
+    stair_n: jax.Array
 
 
-def generate(key: jax.Array, level: Any, max_boxes: int = 64, unroll: int = 1) -> Terrain:
+@struct.dataclass
+class _Consts:
+    """The level's values the state machine reads, as float32 scalars (flags 0 / 1)."""
+
+    roughness: jax.Array  # 1 on Gymnasium-hardcore levels
+    pit_lo: jax.Array
+    pit_hi: jax.Array
+    stair_lo: jax.Array
+    stair_hi: jax.Array
+    steps: jax.Array
+    gym: jax.Array
+    hardcore: jax.Array
+    present: tuple  # (stump, stairs, pit) flags
+
+
+def generate(key: jax.Array, level: Any, max_boxes: int = 64, unroll: int = 1, kernel: str = "xla") -> Terrain:
     """Run the column state machine. ``level`` has the 8 DCD fields (e.g. ``WalkerParams``)."""
-    return generate_from_uniforms(column_uniforms(key), level, max_boxes, unroll)
+    return generate_from_uniforms(column_uniforms(key), level, max_boxes, unroll, kernel)
 
 
-def level_terrain(key: jax.Array, level: Any, max_boxes: int = 64, unroll: int = 1) -> Terrain:
+def level_terrain(key: jax.Array, level: Any, max_boxes: int = 64, unroll: int = 1, kernel: str = "xla") -> Terrain:
     """The level's terrain: from its ``terrain_seed`` if ``fixed_terrain`` (exact replay), else from
     ``key`` (a new terrain of the same parameters). Shared by every walker environment. ``unroll``:
-    columns per iteration of the generator's loop (speed only: the same terrain up to float32 rounding)."""
+    columns per iteration of the generator's XLA loop; ``kernel``: ``envs.physics2d.fused`` mode of
+    the loop ("auto": one GPU kernel on GPUs). Both are speed only: the same terrain up to float32
+    rounding."""
     seed = jnp.asarray(level.terrain_seed, jnp.int32)
     typed = jnp.issubdtype(jnp.asarray(key).dtype, jax.dtypes.prng_key)
     seeded = jax.random.key(seed) if typed else jax.random.PRNGKey(seed)
     k = jnp.where(jnp.asarray(level.fixed_terrain), seeded, key)
-    return generate(k, level, max_boxes, unroll)
+    return generate(k, level, max_boxes, unroll, kernel)
 
 
 def column_uniforms(key: jax.Array) -> jax.Array:
@@ -124,136 +146,151 @@ def _randint(u: jax.Array, low: int, high: int) -> jax.Array:
     return low + jnp.minimum(jnp.floor(u * (high - low)), high - low - 1.0)
 
 
-def generate_from_uniforms(uniforms: jax.Array, level: Any, max_boxes: int = 64, unroll: int = 1) -> Terrain:
-    """``generate`` with its random numbers given (``[200, 8]``, see ``column_uniforms``)."""
+def _pit_gap(u1, lo, hi, gym):
+    """A pit's gap in steps: 1 + U(lo, hi) (DCD), randint(3, 5) (Gymnasium)."""
+    return jnp.where(gym, _randint(u1, 3, 5), 1.0 + lo + u1 * (hi - lo))
+
+
+def _stairs(u3, u4, u5, lo, hi, steps, gym):
+    """A staircase's (step height, slope +-1, step count): DCD's U(lo, hi) and randint(steps),
+    Gymnasium's 1 and randint(3, 5)."""
+    h = jnp.where(gym, 1.0, lo + u3 * (hi - lo))
+    n = jnp.where(gym, _randint(u5, 3, 5), jnp.minimum(jnp.floor(u5 * steps), steps - 1.0))
+    return h, jnp.where(u4 > 0.5, 1.0, -1.0), n
+
+
+def _column(k: _Consts, carry: _Carry, inp):
+    """One column of the state machine on per-world scalars (``fused.per_world_scan``'s contract).
+    Returns (carry, (x of the column's vertex, its height, its state, whether it is a oneshot
+    column)). Only a oneshot column writes boxes, and its height is the one it entered with."""
+    i, u = inp
+    S, w = C.TERRAIN_STEP, float(C.STAIR_WIDTH)
+    x = i * S
+    st, one = carry.state, carry.oneshot > 0.5
+    y, vel, counter = carry.y, carry.velocity, carry.counter
+    y_orig, pit_diff = carry.y_orig, carry.pit_diff
+    s_h, s_slope, s_n = carry.stair_h, carry.stair_slope, carry.stair_n
+    gym = k.gym > 0.5
+
+    # GRASS (not oneshot): smoothed random walk towards y0, scaled by roughness.
+    grass = (st == C.GRASS) & ~one
+    v_new = 0.8 * vel + 0.01 * jnp.sign(C.TERRAIN_HEIGHT - y)
+    v_new = v_new + jnp.where(i > C.TERRAIN_STARTPAD, (2.0 * u[0] - 1.0) / C.SCALE, 0.0)
+    vel = jnp.where(grass, v_new, vel)
+    y = jnp.where(grass, y + k.roughness * v_new, y)
+
+    # PIT oneshot: the counter spans the gap (its walls are boxes, built after the loop).
+    pit_one = (st == C.PIT) & one
+    gap = _pit_gap(u[1], k.pit_lo, k.pit_hi, gym)
+    c_gap = jnp.ceil(gap)
+    counter = jnp.where(pit_one, c_gap + 2.0, counter)
+    pit_diff = jnp.where(pit_one, c_gap - gap, pit_diff)
+    y_orig = jnp.where(pit_one, y, y_orig)
+
+    # PIT later columns: floor 4 steps down; the closing column is moved back by pit_diff.
+    pit_walk = (st == C.PIT) & ~one
+    y = jnp.where(pit_walk, jnp.where(counter > 1.0, y_orig - C.PIT_DEPTH * S, y_orig), y)
+    closing = pit_walk & (counter == 1.0)
+    x_out = jnp.where(closing, x - pit_diff * S, x)
+    pit_diff = jnp.where(closing, 0.0, pit_diff)
+
+    # STUMP oneshot: DCD's counter is not reset; Gymnasium's restarts at the square's size.
+    counter = jnp.where((st == C.STUMP) & one & gym, _randint(u[2], 1, 3), counter)
+
+    # STAIRS oneshot: N steps of width 4 (built only if the height exceeds 0.01).
+    stairs_one = (st == C.STAIRS) & one
+    h_new, slope_new, n_new = _stairs(u[3], u[4], u[5], k.stair_lo, k.stair_hi, k.steps, gym)
+    build = stairs_one & (h_new > 0.01)
+    counter = jnp.where(build, n_new * w + jnp.where(gym, 0.0, 1.0), counter)
+    y_orig = jnp.where(stairs_one, y, y_orig)
+    s_h = jnp.where(stairs_one, h_new, s_h)
+    s_slope = jnp.where(stairs_one, slope_new, s_slope)
+    s_n = jnp.where(stairs_one, n_new, s_n)
+
+    # STAIRS later columns: follow the step tops (descending: one step lower).
+    stairs_walk = (st == C.STAIRS) & ~one
+    s_pos = s_n * w - counter
+    n_done = jnp.floor(s_pos / w)
+    y_stairs = y_orig + (n_done * s_h * s_slope - jnp.where(s_slope < 0, s_h, 0.0)) * S
+    y_ramp = y_orig + (s_pos - s_slope) / w * s_slope * S  # Gymnasium's rule
+    y_stairs = jnp.where(gym, y_ramp, y_stairs)
+    y = jnp.where(stairs_walk, y_stairs, y)
+
+    # Counter and state transition: after a grass stretch, the r-th present obstacle type,
+    # r = randint(number present); after an obstacle, grass.
+    counter = counter - 1.0
+    switch = counter == 0.0
+    n_grass = C.TERRAIN_GRASS - C.TERRAIN_GRASS // 2
+    counter = jnp.where(switch, C.TERRAIN_GRASS // 2 + jnp.minimum(jnp.floor(u[6] * n_grass), n_grass - 1.0), counter)
+    p = [f > 0.5 for f in k.present]
+    n_present = sum(k.present)
+    r = jnp.minimum(jnp.floor(u[7] * n_present), jnp.maximum(n_present - 1.0, 0.0))
+    before = [0.0, k.present[0], k.present[0] + k.present[1]]  # present types before each type
+    obstacle = jnp.float32(C.STUMP)  # argmax's answer when none matches (unused: then not hardcore)
+    for kind, ok, b in reversed(list(zip((C.STUMP, C.STAIRS, C.PIT), p, before))):
+        obstacle = jnp.where(ok & (b == r), float(kind), obstacle)
+    nxt = jnp.where((st == C.GRASS) & (k.hardcore > 0.5), obstacle, float(C.GRASS))
+    new = _Carry(y, vel, counter, jnp.where(switch, nxt, st), jnp.where(switch, 1.0, 0.0),
+                 y_orig, pit_diff, s_h, s_slope, s_n)
+    return new, (x_out, y, st, carry.oneshot)
+
+
+def generate_from_uniforms(uniforms: jax.Array, level: Any, max_boxes: int = 64, unroll: int = 1,
+                           kernel: str = "xla") -> Terrain:
+    """``generate`` with its random numbers given (``[200, 8]``, see ``column_uniforms``).
+
+    Two parts: the state machine's sequential loop over columns on per-world scalars (one GPU kernel
+    with ``kernel="pallas"``/``"auto"``, through ``fused.per_world_scan``), then every column's
+    boxes at once from its state, height and uniforms (no box passes through the loop)."""
+    from envs.physics2d import fused
+
     lv = process(level)
-    S = C.TERRAIN_STEP
+    S, w = C.TERRAIN_STEP, C.STAIR_WIDTH
+    f32 = lambda v: jnp.asarray(v, jnp.float32)  # noqa: E731
     gym = jnp.asarray(getattr(level, "gym_hardcore", False), bool)
     hardcore = gym | lv.has_stump | lv.has_stairs | lv.has_pit
-    present = jnp.stack([lv.has_stump, lv.has_stairs, lv.has_pit]) | gym
-    roughness = jnp.where(gym, 1.0, lv.roughness)
-    w = C.STAIR_WIDTH
+    present = tuple(f32(flag | gym) for flag in (lv.has_stump, lv.has_stairs, lv.has_pit))
+    consts = _Consts(roughness=f32(jnp.where(gym, 1.0, lv.roughness)), pit_lo=lv.pit[0], pit_hi=lv.pit[1],
+                     stair_lo=lv.stair[0], stair_hi=lv.stair[1], steps=f32(lv.steps), gym=f32(gym),
+                     hardcore=f32(hardcore), present=present)
+    init = _Carry(y=f32(C.TERRAIN_HEIGHT), velocity=f32(0.0), counter=f32(C.TERRAIN_STARTPAD),
+                  state=f32(C.GRASS), oneshot=f32(0.0), y_orig=f32(0.0), pit_diff=f32(0.0),
+                  stair_h=f32(0.0), stair_slope=f32(1.0), stair_n=f32(0.0))
+    idx = jnp.arange(C.TERRAIN_LENGTH, dtype=jnp.float32)
+    us = tuple(uniforms[:, j] for j in range(8))
+    if fused.resolve_mode(kernel) == "xla":
+        _, (xs, ys, st, one) = jax.lax.scan(lambda c, x: _column(consts, c, x), init, (idx, us), unroll=unroll)
+    else:
+        _, (xs, ys, st, one) = fused.per_world_scan(_column, consts, init, (idx, us), mode=kernel)
+    kinds = st.astype(jnp.int32)
+    one = one > 0.5
 
-    n_present = jnp.sum(present)
-
-    def column(carry: _Carry, inp):
-        i, u = inp  # u: this column's 8 uniforms
-        x = i.astype(jnp.float32) * S
-        st, one = carry.state, carry.oneshot
-        y, vel, counter = carry.y, carry.velocity, carry.counter
-        y_orig, pit_diff = carry.y_orig, carry.pit_diff
-        s_h, s_slope, s_n = carry.stair_h, carry.stair_slope, carry.stair_n
-
-        # GRASS (not oneshot): smoothed random walk towards y0, scaled by roughness.
-        grass = (st == C.GRASS) & ~one
-        v_new = 0.8 * vel + 0.01 * jnp.sign(C.TERRAIN_HEIGHT - y)
-        v_new = v_new + jnp.where(i > C.TERRAIN_STARTPAD, (2.0 * u[0] - 1.0) / C.SCALE, 0.0)
-        vel = jnp.where(grass, v_new, vel)
-        y = jnp.where(grass, y + roughness * v_new, y)
-
-        cand = jnp.zeros((BOX_SLOTS_PER_COLUMN, 4), jnp.float32)
-        cand_ok = jnp.zeros((BOX_SLOTS_PER_COLUMN,), bool)
-
-        # PIT oneshot: two walls, gap 1 + U(lo, hi) steps apart.
-        pit_one = (st == C.PIT) & one
-        gap = 1.0 + lv.pit[0] + u[1] * (lv.pit[1] - lv.pit[0])
-        gap = jnp.where(gym, _randint(u[1], 3, 5), gap)
-        c_gap = jnp.ceil(gap)
-        wall1 = jnp.stack([x, x + S, y - C.PIT_DEPTH * S, y])
-        wall2 = wall1 + jnp.stack([gap * S, gap * S, 0.0, 0.0])
-        counter = jnp.where(pit_one, c_gap.astype(jnp.int32) + 2, counter)
-        pit_diff = jnp.where(pit_one, c_gap - gap, pit_diff)
-        y_orig = jnp.where(pit_one, y, y_orig)
-        cand = jnp.where(pit_one, cand.at[0].set(wall1).at[1].set(wall2), cand)
-        cand_ok = jnp.where(pit_one, cand_ok.at[:2].set(True), cand_ok)
-
-        # PIT later columns: floor 4 steps down; the closing column is moved back by pit_diff.
-        pit_walk = (st == C.PIT) & ~one
-        y = jnp.where(pit_walk, jnp.where(counter > 1, y_orig - C.PIT_DEPTH * S, y_orig), y)
-        closing = pit_walk & (counter == 1)
-        x_out = jnp.where(closing, x - pit_diff * S, x)
-        pit_diff = jnp.where(closing, 0.0, pit_diff)
-
-        # STUMP oneshot: width 1, float 0, height U(lo, hi) steps; the counter is not reset.
-        # Gymnasium: a square of randint(1, 3) steps, and the counter restarts at that size.
-        stump_one = (st == C.STUMP) & one
-        h_stump = lv.stump[0] + u[2] * (lv.stump[1] - lv.stump[0])
-        size_gym = _randint(u[2], 1, 3)
-        h_stump = jnp.where(gym, size_gym, h_stump)
-        w_stump = jnp.where(gym, size_gym, 1.0)
-        cand = jnp.where(stump_one, cand.at[0].set(jnp.stack([x, x + w_stump * S, y, y + h_stump * S])), cand)
-        cand_ok = jnp.where(stump_one, cand_ok.at[0].set(True), cand_ok)
-        counter = jnp.where(stump_one & gym, size_gym.astype(jnp.int32), counter)
-
-        # STAIRS oneshot: N = randint(steps) boxes of width 4, height h, slope +-1 (if h > 0.01).
-        stairs_one = (st == C.STAIRS) & one
-        h_new = lv.stair[0] + u[3] * (lv.stair[1] - lv.stair[0])
-        slope_new = jnp.where(u[4] > 0.5, 1.0, -1.0)
-        n_new = jnp.minimum(jnp.floor(u[5] * lv.steps).astype(jnp.int32), lv.steps - 1)  # randint(steps)
-        # Gymnasium: height 1, randint(3, 5) steps
-        h_new = jnp.where(gym, 1.0, h_new)
-        n_new = jnp.where(gym, _randint(u[5], 3, 5).astype(jnp.int32), n_new)
-        s_idx = jnp.arange(BOX_SLOTS_PER_COLUMN, dtype=jnp.float32)
-        stair_boxes = jnp.stack(
-            [
-                x + s_idx * w * S,
-                x + (s_idx + 1) * w * S,
-                y + (-h_new + s_idx * h_new * slope_new) * S,
-                y + s_idx * h_new * slope_new * S,
-            ],
-            axis=-1,
-        )
-        build = stairs_one & (h_new > 0.01)
-        cand = jnp.where(build, stair_boxes, cand)
-        cand_ok = jnp.where(build, s_idx < n_new, cand_ok)
-        counter = jnp.where(build, n_new * w + jnp.where(gym, 0, 1), counter)
-        y_orig = jnp.where(stairs_one, y, y_orig)
-        s_h = jnp.where(stairs_one, h_new, s_h)
-        s_slope = jnp.where(stairs_one, slope_new, s_slope)
-        s_n = jnp.where(stairs_one, n_new, s_n)
-
-        # STAIRS later columns: follow the step tops (descending: one step lower).
-        stairs_walk = (st == C.STAIRS) & ~one
-        s_pos = s_n * w - counter
-        n_done = jnp.floor_divide(s_pos, w).astype(jnp.float32)
-        y_stairs = y_orig + (n_done * s_h * s_slope - jnp.where(s_slope < 0, s_h, 0.0)) * S
-        y_ramp = y_orig + (s_pos.astype(jnp.float32) - s_slope) / w * s_slope * S  # Gymnasium's rule
-        y_stairs = jnp.where(gym, y_ramp, y_stairs)
-        y = jnp.where(stairs_walk, y_stairs, y)
-
-        # This column's boxes are an output of the scan, appended in order after it (a (max_boxes, 4)
-        # carry scattered into at every column was a GPU reset's largest kernel).
-
-        # Counter and state transition.
-        kind = st
-        counter = counter - 1
-        switch = counter == 0
-        n_grass = C.TERRAIN_GRASS - C.TERRAIN_GRASS // 2
-        counter = jnp.where(switch, C.TERRAIN_GRASS // 2 + jnp.minimum(jnp.floor(u[6] * n_grass).astype(jnp.int32), n_grass - 1), counter)
-        # Uniform over the present obstacle types: the r-th present one, r = randint(n_present).
-        r = jnp.minimum(jnp.floor(u[7] * n_present).astype(jnp.int32), jnp.maximum(n_present - 1, 0))
-        obstacle = 1 + jnp.argmax((jnp.cumsum(present) - 1 == r) & present)
-        nxt = jnp.where((st == C.GRASS) & hardcore, obstacle, C.GRASS).astype(jnp.int32)
-        st = jnp.where(switch, nxt, st)
-        one = switch
-
-        carry = _Carry(y, vel, counter, st, one, y_orig, pit_diff, s_h, s_slope, s_n)
-        return carry, (x_out, y, kind, cand, cand_ok)
-
-    init = _Carry(
-        y=jnp.float32(C.TERRAIN_HEIGHT),
-        velocity=jnp.float32(0.0),
-        counter=jnp.int32(C.TERRAIN_STARTPAD),
-        state=jnp.int32(C.GRASS),
-        oneshot=jnp.bool_(False),
-        y_orig=jnp.float32(0.0),
-        pit_diff=jnp.float32(0.0),
-        stair_h=jnp.float32(0.0),
-        stair_slope=jnp.float32(1.0),
-        stair_n=jnp.int32(0),
-    )
-    idx = jnp.arange(C.TERRAIN_LENGTH, dtype=jnp.int32)
-    _, (xs, ys, kinds, cand, cand_ok) = jax.lax.scan(column, init, (idx, uniforms), unroll=unroll)
+    # each oneshot column's boxes (at most BOX_SLOTS_PER_COLUMN), at its entry height ``ys``
+    x, u = idx * S, uniforms
+    slot = jnp.arange(BOX_SLOTS_PER_COLUMN, dtype=jnp.float32)
+    pit_one = (kinds == C.PIT) & one
+    gap = _pit_gap(u[:, 1], lv.pit[0], lv.pit[1], gym)
+    wall1 = jnp.stack([x, x + S, ys - C.PIT_DEPTH * S, ys], -1)  # (200, 4)
+    wall2 = wall1 + jnp.stack([gap * S, gap * S, jnp.zeros_like(gap), jnp.zeros_like(gap)], -1)
+    walls = jnp.zeros((C.TERRAIN_LENGTH, BOX_SLOTS_PER_COLUMN, 4), jnp.float32).at[:, 0].set(wall1).at[:, 1].set(wall2)
+    # STUMP: width 1, height U(lo, hi) steps on the ground (Gymnasium: a square of randint(1, 3) steps)
+    stump_one = (kinds == C.STUMP) & one
+    size_gym = _randint(u[:, 2], 1, 3)
+    h_stump = jnp.where(gym, size_gym, lv.stump[0] + u[:, 2] * (lv.stump[1] - lv.stump[0]))
+    w_stump = jnp.where(gym, size_gym, 1.0)
+    stump = jnp.zeros_like(walls).at[:, 0].set(jnp.stack([x, x + w_stump * S, ys, ys + h_stump * S], -1))
+    # STAIRS: step s spans [x + s w, x + (s + 1) w) steps, top at y + s h slope
+    h, slope, n = _stairs(u[:, 3], u[:, 4], u[:, 5], lv.stair[0], lv.stair[1], f32(lv.steps), gym)
+    h, slope, n = h[:, None], slope[:, None], n[:, None]
+    xs_, ys_ = x[:, None], ys[:, None]
+    stair_boxes = jnp.stack([xs_ + slot * w * S, xs_ + (slot + 1) * w * S,
+                             ys_ + (-h + slot * h * slope) * S, ys_ + slot * h * slope * S], -1)
+    build = (kinds == C.STAIRS) & one & (h[:, 0] > 0.01)
+    cand = jnp.where(pit_one[:, None, None], walls, 0.0)
+    cand = jnp.where(stump_one[:, None, None], stump, cand)
+    cand = jnp.where(build[:, None, None], stair_boxes, cand)
+    cand_ok = ((pit_one[:, None] & (slot < 2)) | (stump_one[:, None] & (slot < 1))
+               | (build[:, None] & (slot < n)))
     # the boxes in column order, compacted; those beyond max_boxes are dropped
     cand, cand_ok = cand.reshape(-1, 4), cand_ok.reshape(-1)
     pos = jnp.where(cand_ok, jnp.cumsum(cand_ok) - 1, max_boxes)  # out of range -> dropped
