@@ -1,6 +1,7 @@
 """Put the bipedal walker's measured speed into its record (``docs/results/bipedal.json``).
 
-Reads ``experiments.bench_latency --env bipedal`` records and writes, keeping the record's other keys:
+Reads ``experiments.bench_latency --env bipedal`` records (and ``experiments.profile_bipedal_step``
+records: their ``default`` variant's rows, timed the same way) and writes, keeping the record's other keys:
 ``speed.rows`` (one per batch and record: ms per sequential step, env steps per second, where and
 when; the solver passes, the step timed and the terrain unroll), ``speed.student_rows`` (one per record
 and student part timed with ``--student``: a training rollout or a whole PPO update, with its env
@@ -19,10 +20,21 @@ import pathlib
 from envs.bipedal.model import POSITION_ITERATIONS, VELOCITY_ITERATIONS
 
 
+PROFILE = "experiments.profile_bipedal_step"
+
+
 def speed_rows(records: list[dict]) -> list[dict]:
     """One row per (record, batch): ``ms_per_step`` and ``steps_per_second`` = batch / seconds per step."""
     rows = []
     for rec in records:
+        if PROFILE in rec.get("command", ""):  # profile_bipedal_step: rows of solver variants; "default" is the walker
+            rows += [{"batch": r["batch"], "ms_per_step": r["ms_per_step"], "steps_per_second": r["steps_per_second"],
+                      "compile_s": r["compile_s"], "solver_kernel": "auto",
+                      "step": {"step_without_reset": "without-reset"}.get(rec["step"], rec["step"]), "terrain_unroll": 1,
+                      "velocity_iterations": VELOCITY_ITERATIONS, "position_iterations": POSITION_ITERATIONS,
+                      **{k: rec.get(k) for k in ("device", "date", "command", "note")}}
+                     for r in rec["rows"] if r["variant"] == "default"]
+            continue
         for r in rec["env_rows"]:
             rows.append({"batch": r["batch"], "ms_per_step": 1e3 * r["s_per_step"],
                          "steps_per_second": r["batch"] / r["s_per_step"], "compile_s": r["compile_s"],
@@ -72,7 +84,8 @@ def summary(rows: list[dict]) -> dict:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("latency", nargs="+", help="bench_latency records (latency_*.json) of the bipedal env")
+    p.add_argument("latency", nargs="+", help="bench_latency records (latency_*.json) of the bipedal env, "
+                                              "or profile_bipedal_step records")
     p.add_argument("--out", required=True, help="the bipedal record to update")
     args = p.parse_args(argv)
     records = []
@@ -84,6 +97,9 @@ def main(argv=None) -> int:
             rec = json.loads(path.read_text())
         except json.JSONDecodeError as e:
             p.error(f"{f}: not JSON ({e})")
+        if PROFILE in rec.get("command", "") and rec.get("rows"):  # the profiler's records are all of the bipedal env
+            records.append(rec)
+            continue
         timed = rec.get("env_rows") or any(rec.get(t) is not None for _, t, _ in STUDENT_TIMINGS)
         if rec.get("env") != "bipedal" or not timed:
             p.error(f"{f}: not a bench_latency record of the bipedal env with a timing (env {rec.get('env')!r}, "

@@ -84,6 +84,21 @@ def test_bipedal_speed_fields_from_latency_records(tmp_path):
     assert [(r["velocity_iterations"], r["position_iterations"]) for r in rows] == [(180, 60)] * 3 + [(1, 1)] * 2 + [(180, 60)]
     assert [r["step"] for r in rows] == ["step"] * 5 + ["without-reset"]
     assert rec["speed"]["student_rows"] == []  # no record timed the student
+    # profile_bipedal_step records: their "default" variant's rows (others change the solver); a full
+    # env.step row counts for the headline, a reset-only one does not
+    prof = tmp_path / "p.json"
+    prof.write_text(json.dumps({"device": "gpu: Y", "date": "d", "step": "step",
+                                "command": "python -m experiments.profile_bipedal_step --step step --batches 200",
+                                "rows": [dict(variant="default", batch=200, steps=10, compile_s=2.0, ms_per_step=3.0,
+                                              steps_per_second=200 / 0.003),
+                                         dict(variant="passes_1_1", batch=200, steps=10, compile_s=2.0, ms_per_step=1.0,
+                                              steps_per_second=200 / 0.001)]}))
+    reset = tmp_path / "r.json"
+    reset.write_text(prof.read_text().replace('"step": "step"', '"step": "reset"'))
+    assert bipedal_speed.main([a, str(prof), str(reset), "--out", str(out)]) == 0
+    rec = json.loads(out.read_text())
+    assert rec["ms_per_step_batch200"] == 3.0 and [r["step"] for r in rec["speed"]["rows"]] == ["step", "step", "reset"]
+    assert bipedal_speed.main([a, b, c, d, "--out", str(out)]) == 0
     # student parts (bench_latency --student): a rollout whose record keeps its shape, and an older
     # record without it, whose shape is today's preset with its overrides
     e = tmp_path / "e.json"
