@@ -66,6 +66,8 @@ class BipedalOptions:
                         2026-12-02).
     continuous:         the time of impact (Box2D's ``continuousPhysics``, on in Gymnasium); off only
                         for diagnostics (``envs.bipedal.parity --no-toi``).
+    toi_events:         time-of-impact events per leg and step (``SolverConfig.toi_events``; Box2D
+                        allows up to 8 per contact); each is another copy of the search and its solve.
     window_boxes:       obstacle boxes the physics collides with per step ("polygon"): the first ones
                         that reach into the window (8 covers DCD's FULL space; ``tests/test_bipedal_env.py``).
     """
@@ -84,11 +86,12 @@ class BipedalOptions:
     obstacles: str = "polygon"
     window_boxes: int = 8
     continuous: bool = True
+    toi_events: int = 1
 
     def __post_init__(self):
         ints = dict(velocity_iterations=(1, 1000), position_iterations=(0, 1000), terrain_resolution=(1, 32),
                     window_columns=(12, 64), max_boxes=(8, 512), terrain_unroll=(1, 200), unroll=(1, 64),
-                    window_boxes=(1, 64))
+                    window_boxes=(1, 64), toi_events=(1, 8))
         for name, (lo, hi) in ints.items():
             v = getattr(self, name)
             if not isinstance(v, int) or isinstance(v, bool) or not lo <= v <= hi:
@@ -141,7 +144,7 @@ class BipedalWalker(WalkerInterface, Environment):
             raise ValueError(f"bipedal: unknown option(s) {sorted(unknown)}; valid: {sorted(fields)}")
         self.options = o = BipedalOptions(**options)
         self.model = M.walker_model(o.velocity_iterations, o.position_iterations, o.unroll, o.solver_kernel,
-                                    M.EDGE_CONTACTS if o.contacts == "edge" else 0, o.continuous)
+                                    M.EDGE_CONTACTS if o.contacts == "edge" else 0, o.continuous, o.toi_events)
         self.grid = T.make_grid(o.terrain_resolution)
         self._start = M.initial_pose()
 

@@ -54,7 +54,7 @@ def _box(hx: float, hy: float) -> tuple:
 @functools.lru_cache(maxsize=None)
 def walker_model(velocity_iterations: int = VELOCITY_ITERATIONS, position_iterations: int = POSITION_ITERATIONS,
                  unroll: int = 1, kernel: str = "auto", edge_contacts: int = 0,
-                 continuous: bool = True) -> physics2d.Model:
+                 continuous: bool = True, toi_events: int = 1) -> physics2d.Model:
     """The (cached, static) walker model for the given solver iteration counts; ``edge_contacts``:
     ``physics2d.SolverConfig.edge_contacts`` (0: leg vertices against the polyline); ``continuous``:
     the time of impact (Box2D's ``continuousPhysics``)."""
@@ -81,7 +81,8 @@ def walker_model(velocity_iterations: int = VELOCITY_ITERATIONS, position_iterat
     cfg = physics2d.SolverConfig(dt=C.CONTROL_DT, velocity_iterations=velocity_iterations,
                                  position_iterations=position_iterations, ground_friction=C.TERRAIN_FRICTION,
                                  unroll=unroll, kernel=kernel, toi_loop=True, toi_position_iterations=20,
-                                 toi_from_touching=True, edge_contacts=edge_contacts, continuous=continuous)
+                                 toi_from_touching=True, edge_contacts=edge_contacts, continuous=continuous,
+                                 toi_events=toi_events)
     return physics2d.make_model(NUM_BODIES, tuple(polygons), tuple(joints), cfg)
 
 

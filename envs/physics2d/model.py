@@ -98,6 +98,9 @@ class SolverConfig:
     toi_samples: int = 4
     toi_bisections: int = 8
     toi_candidates: int = 6
+    # edge contacts: time-of-impact events per body and step (each searches the sweep left after the
+    # previous one; Box2D allows up to 8 per contact). Each one is another copy of the search and solve.
+    toi_events: int = 1
     # ground contacts of solid polygons: 0 = every polygon vertex against the polyline segment under it
     # (the lander's model); k > 0 = Box2D's edge-vs-polygon manifold (b2CollideEdgeAndPolygon, up to
     # two points, face A or face B) of each polygon against every ground edge as a separate Box2D edge
@@ -121,7 +124,7 @@ class SolverConfig:
             )
         if self.toi_position_iterations < 0:
             raise ValueError(f"SolverConfig.toi_position_iterations must be >= 0, got {self.toi_position_iterations}")
-        for name, lo in (("toi_samples", 1), ("toi_bisections", 0), ("toi_candidates", 1)):
+        for name, lo in (("toi_samples", 1), ("toi_bisections", 0), ("toi_candidates", 1), ("toi_events", 1)):
             v = getattr(self, name)
             if not isinstance(v, int) or isinstance(v, bool) or v < lo:
                 raise ValueError(f"SolverConfig.{name} must be an int >= {lo}, got {v!r}")

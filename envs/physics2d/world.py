@@ -447,20 +447,42 @@ def _time_of_impact_polygons(model: Model, b: BodyState, com, ang, vel, omg, edg
     position passes with Baumgarte ``toi_baumgarte`` until its deepest point is within 1.5 slops
     (``b2ContactSolver::SolveTOIPositionConstraints``), then, from the corrected pose, ``toi_iterations``
     velocity passes without warm starting (``b2Island::SolveTOI``; joints are not in Box2D's TOI
-    islands), and it moves on with the new velocity for the rest of the step. Box2D would process
-    further impacts of the same body in the step; one per body is handled here. A body without a
-    manifold point at its time of impact keeps its end pose (Box2D disables that contact)."""
+    islands), and it moves on with the new velocity for the rest of the step. That sweep, from the
+    corrected pose at the time of impact to the new end, is searched again, up to ``toi_events``
+    impacts per body and step (Box2D allows up to 8 per contact). A body without a manifold point at
+    its time of impact keeps its end pose (Box2D disables that contact)."""
     cfg = model.config
-    f32 = jnp.float32
     nb = model.num_bodies
-    target = max(cfg.linear_slop, cfg.contact_radius - 3.0 * cfg.linear_slop)
-    tolerance = 0.25 * cfg.linear_slop
-    lc = np.asarray(model.local_com, np.float32)
     shapes, ok = toi.edge_shapes(edges), valid
     if boxes is not None:
         shapes = jnp.concatenate([shapes, pg.box_polygon(boxes)[0]])
         ok = jnp.concatenate([ok, box_valid])
-    alpha = jnp.ones((nb,), f32)
+    sweep = (b.com, b.angle, jnp.zeros((nb,), jnp.float32))  # the sweep's start pose and its time alpha0
+    end = (com, ang, vel, omg)
+    pairs = box_pairs = None
+    crowded = jnp.zeros((), bool)
+    for _ in range(cfg.toi_events):
+        sweep, end, p_e, bp_e, crowd_e = _toi_event(model, sweep, end, shapes, ok, edges, valid, boxes, box_valid)
+        pairs = p_e if pairs is None else pairs | p_e
+        box_pairs = bp_e if box_pairs is None else box_pairs | bp_e
+        crowded = crowded | crowd_e
+    return (*end, pairs, box_pairs, crowded)
+
+
+def _toi_event(model: Model, sweep, end, shapes, ok, edges, valid, boxes, box_valid):
+    """One time-of-impact event per body (``_time_of_impact_polygons``): ``sweep`` = (start com (B, 2),
+    start angle (B,), its step time alpha0 (B,)), ``end`` = (com, angle, vel, omega) at the step's end.
+    Returns the new sweep and end (bodies without an impact unchanged), the pairs touching at the
+    impact and the crowded flag."""
+    cfg = model.config
+    f32 = jnp.float32
+    nb = model.num_bodies
+    s_com, s_ang, alpha0 = sweep
+    com, ang, vel, omg = end
+    target = max(cfg.linear_slop, cfg.contact_radius - 3.0 * cfg.linear_slop)
+    tolerance = 0.25 * cfg.linear_slop
+    lc = np.asarray(model.local_com, np.float32)
+    beta = jnp.ones((nb,), f32)  # the impact's time within the sweep
     crowded = jnp.zeros((), bool)
     impact = jax.vmap(functools.partial(toi.earliest_impact, target=target, tolerance=tolerance,
                                         candidates=cfg.toi_candidates, samples=cfg.toi_samples,
@@ -473,12 +495,13 @@ def _time_of_impact_polygons(model: Model, b: BodyState, com, ang, vel, omg, edg
         i = np.asarray([model.polygons[k].body for k in ks], np.int32)
         local = jnp.asarray(np.stack([np.asarray(model.polygons[k].vertices, np.float32) - lc[model.polygons[k].body]
                                       for k in ks]))
-        a_k, _, crowd_k = impact(local, b.com[i], b.angle[i], com[i], ang[i], shapes, ok)
-        alpha = alpha.at[i].min(a_k)
+        a_k, _, crowd_k = impact(local, s_com[i], s_ang[i], com[i], ang[i], shapes, ok)
+        beta = beta.at[i].min(a_k)
         crowded = crowded | jnp.any(crowd_k)
-    hit = alpha < 1.0 - 10.0 * float(np.finfo(np.float32).eps)  # Box2D's "no more TOI events" test
-    c_t = b.com + alpha[:, None] * (com - b.com)
-    a_t = b.angle + alpha * (ang - b.angle)
+    alpha = alpha0 + (1.0 - alpha0) * beta  # the impact's time within the step
+    hit = (beta < 1.0) & (alpha < 1.0 - 10.0 * float(np.finfo(np.float32).eps))  # Box2D's "no more TOI events" test
+    c_t = s_com + beta[:, None] * (com - s_com)
+    a_t = s_ang + beta * (ang - s_ang)
     at_toi = BodyState(com=c_t, angle=a_t, vel=vel, omega=omg)
     ec = edge_constraints(model, at_toi, edges, valid, boxes, box_valid)
     body = ec["body"]
@@ -521,9 +544,10 @@ def _time_of_impact_polygons(model: Model, b: BodyState, com, ang, vel, omg, edg
     w_t = jnp.where(rot * rot > cfg.max_rotation**2, w_t * (cfg.max_rotation / jnp.maximum(jnp.abs(rot), 1e-30)), w_t)
     hit_poly = jnp.asarray([model.polygons[k].body for k in range(len(model.polygons))], jnp.int32)
     hit_poly = hit[hit_poly][:, None]
-    return (jnp.where(hit[:, None], c_p + rest[:, None] * v_t, com), jnp.where(hit, a_p + rest * w_t, ang),
-            jnp.where(hit[:, None], v_t, vel), jnp.where(hit, w_t, omg),
-            ec["pairs"] & hit_poly, ec["box_pairs"] & hit_poly, crowded)
+    new_end = (jnp.where(hit[:, None], c_p + rest[:, None] * v_t, com), jnp.where(hit, a_p + rest * w_t, ang),
+               jnp.where(hit[:, None], v_t, vel), jnp.where(hit, w_t, omg))
+    new_sweep = (jnp.where(hit[:, None], c_p, s_com), jnp.where(hit, a_p, s_ang), jnp.where(hit, alpha, alpha0))
+    return new_sweep, new_end, ec["pairs"] & hit_poly, ec["box_pairs"] & hit_poly, crowded
 
 
 def _manifolds_moved(ec, com0, ang0, com1, ang1):
