@@ -433,3 +433,15 @@ def test_light_reset_is_the_full_reset_step():
             # under jax.disable_jit, the two are bitwise equal)
             np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
     assert np.all(np.asarray(out_l[0][:, [8, 13]]) == 1.0)  # both feet landed in that step
+
+
+def test_parity_summary_splits_lengths_by_falls():
+    """The harness's summary by hand: returns' mean and standard error, fall rate, and mean lengths
+    over all episodes, those that fell and the others (None when a group is empty)."""
+    from envs.bipedal.parity import summarize
+
+    s = summarize([-100.0, -80.0, 20.0, 40.0], [100, 300, 2000, 1600], [True, True, False, False])
+    assert s["episodes"] == 4 and s["mean"] == -30.0 and s["fall"] == 0.5
+    assert abs(s["se"] - np.std([-100.0, -80.0, 20.0, 40.0]) / 2.0) < 1e-12
+    assert (s["length"], s["length_fell"], s["length_other"]) == (1000.0, 200.0, 1800.0)
+    assert summarize([1.0], [5], [False])["length_fell"] is None

@@ -45,9 +45,13 @@ SETTINGS = {
 
 
 def summarize(returns, lengths, falls) -> dict:
+    """Return statistics, fall rate, mean length, and the mean length of the episodes that fell and
+    of the others (None where there are none): a mean length mixes the two."""
     r = np.asarray(returns, np.float64)
+    n, f = np.asarray(lengths, np.float64), np.asarray(falls, bool)
+    part = lambda m: float(n[m].mean()) if m.any() else None  # noqa: E731
     return dict(episodes=int(r.size), mean=float(r.mean()), std=float(r.std()), se=float(r.std() / np.sqrt(r.size)),
-                fall=float(np.mean(falls)), length=float(np.mean(lengths)),
+                fall=float(np.mean(falls)), length=float(np.mean(lengths)), length_fell=part(f), length_other=part(~f),
                 quartiles=[float(q) for q in np.percentile(r, [25, 50, 75])])
 
 
@@ -252,6 +256,8 @@ def main(argv=None) -> int:
                    help="diagnostic: the time of impact off on both sides (Box2D's continuousPhysics, ours continuous)")
     p.add_argument("--obstacles", default=None, choices=("polygon", "profile"),
                    help="diagnostic: what our legs touch at obstacles (BipedalOptions.obstacles; default polygon)")
+    p.add_argument("--toi-events", type=int, default=None, metavar="K",
+                   help="diagnostic: our time-of-impact events per leg and step (BipedalOptions.toi_events; default 1)")
     p.add_argument("--policy", default=None, metavar="FILE",
                    help="a policy.msgpack of 'python -m shed_jax ppo --env bipedal' instead of the gait; "
                         "--episodes per saved seed; the rows are named <tag>_<setting> and --out keeps the others")
@@ -260,9 +266,10 @@ def main(argv=None) -> int:
     p.add_argument("--out", default=None, help="write the JSON record here (e.g. docs/results/bipedal.json)")
     args = p.parse_args(argv)
     if args.policy is not None:
-        if args.gym_chain or args.iterations or args.terrain_resolution is not None or args.obstacles or args.no_toi:
+        if (args.gym_chain or args.iterations or args.terrain_resolution is not None or args.obstacles or args.no_toi
+                or args.toi_events is not None):
             p.error("--policy runs with Gymnasium's edges, Box2D's 180/60 passes and our default terrain; "
-                    "drop --gym-chain/--iterations/--terrain-resolution/--obstacles/--no-toi")
+                    "drop --gym-chain/--iterations/--terrain-resolution/--obstacles/--no-toi/--toi-events")
         if not pathlib.Path(args.policy).is_file():
             p.error(f"--policy {args.policy}: no such file")
     if not re.fullmatch(r"[a-z0-9_]+", args.tag):
@@ -286,6 +293,8 @@ def main(argv=None) -> int:
         opts["obstacles"] = args.obstacles
     if args.no_toi:
         opts["continuous"] = False
+    if args.toi_events is not None:
+        opts["toi_events"] = args.toi_events
     try:
         BipedalOptions(**opts)
     except ValueError as err:
@@ -306,6 +315,7 @@ def main(argv=None) -> int:
             print(f"gym  {name}: {time.time() - t:.0f}s mean {g['mean']:.1f} se {g['se']:.1f} fall {g['fall']:.2f} "
                   f"len {g['length']:.0f}", flush=True)
             row.update(gym_mean=g["mean"], gym_se=g["se"], gym_std=g["std"], gym_fall=g["fall"], gym_length=g["length"],
+                       gym_length_fell=g["length_fell"], gym_length_other=g["length_other"],
                        gym_quartiles=g["quartiles"], gym_fall_sites=fall_sites(d["x"], d["fall"], d["obstacles"]))
         if not args.gym_only:
             t = time.time()
@@ -314,7 +324,8 @@ def main(argv=None) -> int:
             print(f"ours {name}: {time.time() - t:.0f}s mean {o['mean']:.1f} se {o['se']:.1f} fall {o['fall']:.2f} "
                   f"len {o['length']:.0f}", flush=True)
             row.update(ours_mean=o["mean"], ours_se=o["se"], ours_std=o["std"], ours_fall=o["fall"],
-                       ours_length=o["length"], ours_quartiles=o["quartiles"],
+                       ours_length=o["length"], ours_length_fell=o["length_fell"], ours_length_other=o["length_other"],
+                       ours_quartiles=o["quartiles"],
                        ours_fall_sites=fall_sites(d["x"], d["fall"], d["obstacles"]))
         if "gym_mean" in row and "ours_mean" in row:
             row["pass"] = passes(dict(mean=row["gym_mean"], se=row["gym_se"], fall=row["gym_fall"]),
