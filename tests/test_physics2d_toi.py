@@ -105,6 +105,33 @@ def test_time_of_impact_matches_pybox2d():
     assert max(dts) < 0.02 and np.mean(dts) < 0.003
 
 
+STUMP = (1.0, 1.4667, 0.0, 0.4667)
+STUMP_EDGES = [((-2.0, 0.0), (1.0, 0.0)), ((1.0, 0.0), (1.4667, 0.0)), ((1.4667, 0.0), (4.0, 0.0))]
+
+
+def _shin_at_stump(origin, velocity, steps, **solver):
+    """Gymnasium's shin, upright at ``origin`` with ``velocity``, on the stump terrain for ``steps``
+    steps with Box2D's settings (``solver`` overrides): per step its (x, y, angle), the (shin, stump)
+    touching flag and the crowded flag."""
+    from envs import physics2d
+
+    hx, hy = SHIN
+    ground = jnp.asarray([STUMP_EDGES[0][0]] + [e[1] for e in STUMP_EDGES], jnp.float32)
+    boxes, ok = jnp.asarray([STUMP], jnp.float32), jnp.asarray([True])
+    cfg = physics2d.SolverConfig(**{**dict(dt=1 / 50, velocity_iterations=180, position_iterations=60, ground_friction=2.5,
+                                          toi_loop=True, toi_position_iterations=20, toi_from_touching=True,
+                                          edge_contacts=2), **solver})
+    m = physics2d.make_model(1, [physics2d.Polygon(0, tuple(map(tuple, box(hx, hy))), 1.0, 0.2)], (), cfg)
+    w = physics2d.init_world(m, physics2d.bodies_from_origin(m, [origin], [0.0], vel=[list(velocity)]))
+
+    def body_fn(w, _):
+        w, info = physics2d.step(m, w, ground, -10.0, boxes=boxes, box_valid=ok)
+        return w, (jnp.concatenate([physics2d.body_origin(m, w.bodies)[0], w.bodies.angle[:1]]),
+                   info["box_touching"][0, 0], info["toi_crowded"])
+
+    return jax.tree_util.tree_map(np.asarray, jax.jit(lambda w: jax.lax.scan(body_fn, w, None, length=steps)[1])(w))
+
+
 @pytest.mark.parametrize("start, speed", [((0.3, 0.3), 20.0), ((0.6, 0.05), 15.0)], ids=["flying", "low"])
 def test_shin_thrown_into_a_stump_tips_over_it_as_in_box2d(start, speed):
     """Gymnasium's shin, upright, thrown sideways into a one-step stump: at 20 m/s, 0.3 m above the
@@ -118,26 +145,9 @@ def test_shin_thrown_into_a_stump_tips_over_it_as_in_box2d(start, speed):
     from envs import physics2d
 
     hx, hy = SHIN
-    stump = (1.0, 1.4667, 0.0, 0.4667)
-    edges = [((-2.0, 0.0), (1.0, 0.0)), ((1.0, 0.0), (1.4667, 0.0)), ((1.4667, 0.0), (4.0, 0.0))]
     origin = (start[0], hy + start[1])
-    ref = box_trajectory(b2, edges, origin, 0.0, (hx, hy), velocity=(speed, 0.0), steps=10, boxes=[stump])
-    ground = jnp.asarray([edges[0][0]] + [e[1] for e in edges], jnp.float32)
-    boxes, ok = jnp.asarray([stump], jnp.float32), jnp.asarray([True])
-
-    def run(continuous):
-        cfg = physics2d.SolverConfig(dt=1 / 50, velocity_iterations=180, position_iterations=60, ground_friction=2.5,
-                                     toi_loop=True, toi_position_iterations=20, toi_from_touching=True, edge_contacts=2,
-                                     continuous=continuous)
-        m = physics2d.make_model(1, [physics2d.Polygon(0, tuple(map(tuple, box(hx, hy))), 1.0, 0.2)], (), cfg)
-        w = physics2d.init_world(m, physics2d.bodies_from_origin(m, [origin], [0.0], vel=[[speed, 0.0]]))
-
-        def body_fn(w, _):
-            w, info = physics2d.step(m, w, ground, -10.0, boxes=boxes, box_valid=ok)
-            return w, (jnp.concatenate([physics2d.body_origin(m, w.bodies)[0], w.bodies.angle[:1]]),
-                       info["box_touching"][0, 0], info["toi_crowded"])
-
-        return jax.tree_util.tree_map(np.asarray, jax.jit(lambda w: jax.lax.scan(body_fn, w, None, length=10)[1])(w))
+    ref = box_trajectory(b2, STUMP_EDGES, origin, 0.0, (hx, hy), velocity=(speed, 0.0), steps=10, boxes=[STUMP])
+    run = lambda continuous: _shin_at_stump(origin, (speed, 0.0), 10, continuous=continuous)  # noqa: E731
 
     out, touched, crowded = run(True)
     assert touched[:2].any() and not crowded.any()  # the stump is hit at once; 4 shapes fit the candidates
@@ -160,26 +170,11 @@ def test_second_time_of_impact_in_a_step_stops_a_skimming_shin_at_the_stump():
     from envs import physics2d
 
     hx, hy = SHIN
-    stump = (1.0, 1.4667, 0.0, 0.4667)
-    edges = [((-2.0, 0.0), (1.0, 0.0)), ((1.0, 0.0), (1.4667, 0.0)), ((1.4667, 0.0), (4.0, 0.0))]
     origin, speed = (0.45, hy + 0.03), (28.0, -4.0)
-    ref = box_trajectory(b2, edges, origin, 0.0, (hx, hy), velocity=speed, steps=10, boxes=[stump])
-    ground = jnp.asarray([edges[0][0]] + [e[1] for e in edges], jnp.float32)
-    boxes, ok = jnp.asarray([stump], jnp.float32), jnp.asarray([True])
+    ref = box_trajectory(b2, STUMP_EDGES, origin, 0.0, (hx, hy), velocity=speed, steps=10, boxes=[STUMP])
 
-    def run(events):
-        cfg = physics2d.SolverConfig(dt=1 / 50, velocity_iterations=180, position_iterations=60, ground_friction=2.5,
-                                     toi_loop=True, toi_position_iterations=20, toi_from_touching=True, edge_contacts=2,
-                                     toi_events=events)
-        m = physics2d.make_model(1, [physics2d.Polygon(0, tuple(map(tuple, box(hx, hy))), 1.0, 0.2)], (), cfg)
-        w = physics2d.init_world(m, physics2d.bodies_from_origin(m, [origin], [0.0], vel=[list(speed)]))
-
-        def body_fn(w, _):
-            w, _ = physics2d.step(m, w, ground, -10.0, boxes=boxes, box_valid=ok)
-            return w, jnp.concatenate([physics2d.body_origin(m, w.bodies)[0], w.bodies.angle[:1]])
-
-        out = jax.jit(lambda w: jax.lax.scan(body_fn, w, None, length=10)[1])(w)
-        return np.abs(np.asarray(out) - ref).max(1)  # per step: the largest error in x, y, angle
+    def run(events):  # per step: the largest error in x, y, angle
+        return np.abs(_shin_at_stump(origin, speed, 10, toi_events=events)[0] - ref).max(1)
 
     two, one = run(2), run(1)
     assert two[0] < 0.02 and two.max() < 0.06
