@@ -323,6 +323,23 @@ def on_mesh(state, placed: Placed):
     return jax.device_put(state, sharding.batch_sharding(placed.mesh))
 
 
+def lower_from_clean_caches(jitted, *args, **lower_kwargs):
+    """``jitted.trace(*args).lower(**lower_kwargs)`` after emptying JAX's tracing caches, so the lowered program is the same
+    whatever this process traced before (a fresh run's initial state, a resume's restore target).
+
+    A jitted helper (many ``jnp`` functions are) is traced once per process and its cached equations
+    keep the source locations of that first call. Outside a kernel the persistent compilation cache
+    ignores locations; inside a Pallas kernel they are part of the Triton IR the program embeds, so a
+    fresh run and its resume lowered different programs and every first resume of a 2-D walker run
+    missed the cache (7 minutes of compile on an H200). Tracing from empty caches makes the locations
+    those of the chunk's own calls.
+    """
+    import jax
+
+    jax.clear_caches()
+    return jitted.trace(*args).lower(**lower_kwargs)
+
+
 def chunk_sizes(chunk: int, done: int, total: int) -> list[int]:
     """The distinct chunk lengths a run from ``done`` to ``total`` calls: full chunks, then a shorter last one."""
     left = total - done
@@ -358,7 +375,7 @@ def compile_batch(batch: Batch, placed: Placed, done: int, state=None, say: Call
         if state is None:
             init = sharding.sharded_init(batch_init(batch.init, batch.method), placed.mesh)
             state = init(*sharding.put_batch(placed.inputs, placed.mesh))
-        return state, {n: run_chunk.lower(state, n, done).compile() for n in sizes}
+        return state, {n: lower_from_clean_caches(run_chunk, state, n, done).compile() for n in sizes}
 
     state, compiled = in_worker(lambda: compile_all(state), heartbeat=HEARTBEAT_S)
     say(f"[shed_jax] compiled in {time.time() - t0:.1f} s")

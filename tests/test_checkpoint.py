@@ -413,6 +413,30 @@ def test_config_differences_and_tree_helpers():
     assert ck.tree_digest(x) != ck.tree_digest({"b": np.arange(3, dtype=np.int32)})
 
 
+def test_chunks_are_lowered_from_empty_tracing_caches():
+    # A jitted helper keeps the equations, and so the source locations, of its first trace. Pallas
+    # kernels embed those locations in their Triton IR, which the compilation cache's key keeps: a
+    # fresh run (its initial state traced first) and its resume (a restore target traced first)
+    # lowered different 2-D walker chunks (experiments/lowering_determinism.py). The driver lowers
+    # every chunk through lower_from_clean_caches, which traces the helpers again inside the chunk.
+    traces = []
+
+    @jax.jit
+    def helper(x):
+        traces.append(x.shape)  # Python runs once per trace
+        return x * 2.0
+
+    chunk = jax.jit(lambda x: helper(x) + 1.0)
+    x = jnp.ones(3)
+    helper(x)
+    chunk.lower(x)
+    assert len(traces) == 1  # the chunk reused the helper's first trace
+    lowered = driver.lower_from_clean_caches(chunk, x, lowering_platforms=("cpu",))
+    assert len(traces) == 2  # traced again, inside the chunk
+    np.testing.assert_array_equal(lowered.compile()(x), np.full(3, 3.0, np.float32))
+    assert lowered.as_text() == chunk.lower(x).as_text()
+
+
 def test_no_initial_state_holds_a_weak_typed_leaf():
     # A restored checkpoint's arrays are strongly typed. A weakly typed leaf in the fresh state (e.g.
     # jnp.full(n, -jnp.inf)) would make every resume lower a different program from the fresh run's,
