@@ -415,9 +415,11 @@ def test_no_nan_under_random_actions_on_insane(sim):
 def test_light_reset_is_the_full_reset_step():
     """``light_reset`` (the default) skips the edge manifolds in the reset's physics step because the
     feet are created 0.27 m above every level's flat start: the same observation and state as the
-    full step (flags exactly, floats to rounding), on obstacle levels, sampled ones and both extreme pushes (the legs land through
-    the time of impact in that step, which both run)."""
-    light, full = envs.make("bipedal"), envs.make("bipedal", light_reset=False)
+    full step (flags exactly, floats to rounding), on obstacle levels, sampled ones and both extreme
+    pushes. Both programs run without the time of impact: it is the same code in both (the legs land
+    through it, checked with the default options in ``test_reset_shapes_and_created_pose``) and about
+    two thirds of each reset's compile."""
+    light, full = envs.make("bipedal", continuous=False), envs.make("bipedal", light_reset=False, continuous=False)
     names = ["BipedalWalker", "Hardcore", "Insane", "PitGap", "Stairs", "Stump"]
     ps = [LEVELS[n](terrain_seed=i, fixed_terrain=True) for i, n in enumerate(names)]
     sampled = light.param_space.sample(jax.random.PRNGKey(5), (2,))
@@ -432,7 +434,6 @@ def test_light_reset_is_the_full_reset_step():
         else:  # two programs round the joints' arithmetic differently (5e-7 of 0.86 seen; op by op,
             # under jax.disable_jit, the two are bitwise equal)
             np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
-    assert np.all(np.asarray(out_l[0][:, [8, 13]]) == 1.0)  # both feet landed in that step
 
 
 def test_parity_summary_splits_lengths_by_falls():

@@ -46,8 +46,10 @@ def test_policy_episodes_in_both_engines_respect_the_limit(tmp_path):
     act = jax.jit(lambda o: student.act(state, None, o, True))
     gym = parity.gym_episodes("BipedalWalker-v3", 2, seed=3, policy=lambda s: np.asarray(act(jnp.asarray(s, jnp.float32))),
                               max_steps=30)
+    # the harness's contract does not depend on the physics options; without the time of impact (half
+    # the walker's program) the episode scan compiles in a third of the time
     ours, = parity.jax_episodes("BipedalWalker", 2, seed=3, chunk=2, controller=parity.policy_controller(student),
-                                thetas=[state], max_steps=30)
+                                thetas=[state], max_steps=30, continuous=False)
     for d in (gym, ours):
         assert d["ret"].shape == (2,) and np.all(np.isfinite(d["ret"]))
         assert np.all((d["length"] >= 1) & (d["length"] <= 30))
