@@ -415,8 +415,8 @@ def test_no_nan_under_random_actions_on_insane(sim):
 def test_light_reset_is_the_full_reset_step():
     """``light_reset`` (the default) skips the edge manifolds in the reset's physics step because the
     feet are created 0.27 m above every level's flat start: the same observation and state as the
-    full step (flags exactly, floats to rounding), on obstacle levels, sampled ones and both extreme
-    pushes. Both programs run without the time of impact: it is the same code in both (the legs land
+    full step (flags exactly, floats to rounding), on obstacle levels and sampled ones, each with its
+    own random push. Both programs run without the time of impact: it is the same code in both (the legs land
     through it, checked with the default options in ``test_reset_shapes_and_created_pose``) and about
     two thirds of each reset's compile."""
     light, full = envs.make("bipedal", continuous=False), envs.make("bipedal", light_reset=False, continuous=False)
