@@ -13,7 +13,8 @@ Variants change only the solver's configuration (the same env otherwise):
 ``default`` (Box2D's passes), ``passes_1_1`` (1 velocity / 1 position pass), ``toi_unrolled``
 (the time-of-impact passes unrolled instead of looped), ``no_toi`` (no time of impact: not the walker,
 its cost only), ``xla`` (no Pallas kernel), ``no_skip`` (the kernels compute every contact
-point and time of impact, also in blocks of worlds none of which needs it), ``full_reset`` (the
+point and time of impact, also in blocks of worlds none of which needs it), ``no_early_stop`` (all
+of Box2D's position passes in every block, solved or not: the solver before 2026-12-02), ``full_reset`` (the
 env's ``light_reset=False``: the reset's physics step with its edge manifolds), ``profile_obstacles``
 (the env's ``obstacles="profile"``: obstacles as the height profile's edges, the model before Box2D
 polygons), ``terrain_loop`` (the env's ``terrain_kernel="xla"``: the terrain's 200-column loop as an
@@ -42,6 +43,7 @@ VARIANTS = {
     "no_toi": {"continuous": False},
     "xla": {"kernel": "xla"},
     "no_skip": {"skip_untouched": False},
+    "no_early_stop": {"position_early_stop": False},
     "full_reset": {},  # env options below: the reset's physics step with its edge manifolds
     "profile_obstacles": {},  # the height profile's edges at obstacles instead of Box2D polygons
     "terrain_loop": {},  # the terrain generator as an XLA loop instead of one kernel

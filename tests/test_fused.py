@@ -84,6 +84,46 @@ def test_when_skips_per_kernel_block_and_never_on_the_xla_path():
         fused.when(jnp.float32(1.0), lambda v: v, jnp.float32(0.0))
 
 
+def counted(c, s):
+    """x <- a x + b until a world's own ``k`` passes are done (then frozen: ``done``'s contract), with a
+    ``runs`` counter that breaks the contract on purpose: it counts every pass the loop really ran."""
+    x, cnt, runs = s
+    go = cnt < c["k"]
+    return jnp.where(go, c["a"] * x + 1.0, x), jnp.where(go, cnt + 1.0, cnt), runs + 1.0
+
+
+@pytest.mark.parametrize("mode", ["xla", "interpret"] + (["pallas"] if jax.default_backend() == "gpu" else []))
+def test_loop_with_done_stops_early_with_the_same_result(mode):
+    """``done``: every world ends where the full loop leaves it (x after min(k, n) passes); the loop
+    stops per world on the XLA path (a vmapped while freezes each world once done) and per kernel block
+    of 128 worlds in the kernel (130 worlds: the first block runs all n passes, as world 5 needs 20, the
+    second its slowest world's 4; its padding worlds, whose flag never rises, must not keep it going).
+    On a GPU machine the compiled kernel ("pallas") runs too."""
+    n, w = 12, 130
+    k = jnp.asarray([i % 9 + 1 for i in range(w)], jnp.float32).at[5].set(20.0)  # world 5 needs more than n
+    a = jnp.linspace(0.1, 0.9, w, dtype=jnp.float32)
+    done = lambda s: jnp.where((s[1] >= s[3]) & (s[3] > 0.0), 1.0, 0.0)  # noqa: E731
+
+    def one(a, k, stop=True):
+        body = lambda c, s: counted(c, s[:3]) + (s[3],)  # noqa: E731
+        z = jnp.float32(0.0)
+        return fused.per_world_fori_loop(n, body, dict(a=a, k=k), (z, z, z, k), mode=mode,
+                                         done=done if stop else None)
+
+    x, cnt, runs, _ = jax.jit(jax.vmap(one))(a, k)
+    x_full, cnt_full, runs_full, _ = jax.jit(jax.vmap(lambda a, k: one(a, k, False)))(a, k)
+    np.testing.assert_array_equal(np.asarray(x), np.asarray(x_full))
+    np.testing.assert_array_equal(np.asarray(cnt), np.minimum(np.asarray(k), n))
+    np.testing.assert_array_equal(np.asarray(runs_full), np.full(w, n))
+    if mode == "xla":  # the kernel's paths: interpret, pallas
+        want = np.minimum(np.asarray(k), n)
+    else:
+        want = np.concatenate([np.full(128, n), np.full(2, 4.0)])  # block 0 holds world 5 (k = 20 > n)
+    np.testing.assert_array_equal(np.asarray(runs), want)
+    # unbatched: one world's own count
+    assert [float(v) for v in one(jnp.float32(0.5), jnp.float32(3.0))[1:3]] == [3.0, 3.0]
+
+
 def leaky(c, s, x):
     """A scan body with per-iteration inputs and two outputs: s <- a s + u_i, emitting s and sign(s - 1/2) i."""
     y = c["a"] * s + x["u"]

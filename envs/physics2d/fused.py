@@ -78,11 +78,22 @@ def _is_flag(x) -> bool:
     return isinstance(x, BlockAny)
 
 
-def per_world_fori_loop(n: int, body, consts, carry, *, mode: str = "auto", unroll: int = 1):
-    """``carry = body(consts, carry)`` ``n`` times, for one world; see the module docstring."""
-    xla = lambda c, s, _: (lax.fori_loop(0, n, lambda _, x: body(c, x), s, unroll=unroll), ())  # noqa: E731
+def per_world_fori_loop(n: int, body, consts, carry, *, mode: str = "auto", unroll: int = 1, done=None):
+    """``carry = body(consts, carry)`` ``n`` times, for one world; see the module docstring.
+
+    ``done(carry)``, optional: a per-world 0/1 flag (e.g. Box2D's "position solved"). The caller
+    guarantees that once it is 1, ``body`` returns the carry unchanged and it stays 1; the loop may then
+    stop early with the same result. The XLA paths stop a batch when every world is done (a vmapped
+    ``while_loop``), the kernel a block of ``BLOCK`` worlds when all of its worlds are. ``unroll``
+    applies only without ``done``."""
+    if done is None:
+        xla = lambda c, s, _: (lax.fori_loop(0, n, lambda _, x: body(c, x), s, unroll=unroll), ())  # noqa: E731
+    else:
+        def xla(c, s, _):
+            cond = lambda x: (x[0] < n) & (done(x[1]) < 0.5)  # noqa: E731
+            return lax.while_loop(cond, lambda x: (x[0] + 1, body(c, x[1])), (jnp.int32(0), s))[1], ()
     step = lambda c, s, _: (body(c, s), ())  # noqa: E731
-    return _per_world(n, step, xla, consts, carry, (), mode)[0]
+    return _per_world(n, step, xla, consts, carry, (), mode, done)[0]
 
 
 def per_world_scan(body, consts, carry, xs, *, mode: str = "auto"):
@@ -102,9 +113,9 @@ def per_world_scan(body, consts, carry, xs, *, mode: str = "auto"):
     return _per_world(n, body, xla, consts, carry, xs, mode)
 
 
-def _per_world(n, step, xla, consts, carry, xs, mode):
+def _per_world(n, step, xla, consts, carry, xs, mode, done=None):
     """Shared by the loop and the scan: ``xla(consts, carry, xs)`` is the reference, ``step`` one
-    iteration ``(consts, carry, x_i) -> (carry, y_i)`` for the kernel."""
+    iteration ``(consts, carry, x_i) -> (carry, y_i)`` for the kernel, ``done`` the loop's early stop."""
     mode = resolve_mode(mode)
     if mode == "xla" or n == 0:
         return xla(consts, carry, xs)
@@ -129,7 +140,7 @@ def _per_world(n, step, xla, consts, carry, xs, mode):
         return tuple(jax.tree_util.tree_leaves(s)) + tuple(jax.tree_util.tree_leaves(y))
 
     def run_many(*leaves):  # per-world leaves (W,), per-iteration leaves (W, n)
-        return tuple(_kernel(n, step, c_tree, s_tree, x_tree, y_tree, nc, ns, leaves, mode == "interpret"))
+        return tuple(_kernel(n, step, c_tree, s_tree, x_tree, y_tree, nc, ns, leaves, mode == "interpret", done))
 
     many = _flattening(run_many)
     one = jax.custom_batching.custom_vmap(run_one)
@@ -165,9 +176,10 @@ def _pow2(k: int) -> int:
     return 1 << max(0, (k - 1).bit_length())
 
 
-def _kernel(n, step, c_tree, s_tree, x_tree, y_tree, nc, ns, leaves, interpret):
+def _kernel(n, step, c_tree, s_tree, x_tree, y_tree, nc, ns, leaves, interpret, done=None):
     """All ``n`` iterations for W worlds in one ``pallas_call`` over blocks of ``BLOCK`` worlds:
-    per-world inputs and outputs as (fields, worlds) rows, per-iteration ones as (fields, n, worlds)."""
+    per-world inputs and outputs as (fields, worlds) rows, per-iteration ones as (fields, n, worlds).
+    With ``done``, a block stops once every world in it is done (padding worlds count as done)."""
     from jax.experimental import pallas as pl
 
     w = leaves[0].shape[0]
@@ -208,7 +220,12 @@ def _kernel(n, step, c_tree, s_tree, x_tree, y_tree, nc, ns, leaves, interpret):
 
         _TRACING.in_kernel = True
         try:
-            s = lax.fori_loop(0, n, iteration, s)
+            if done is None:
+                s = lax.fori_loop(0, n, iteration, s)
+            else:
+                real = pl.program_id(0) * BLOCK + lax.broadcasted_iota(jnp.int32, (BLOCK,), 0) < w
+                cond = lambda x: (x[0] < n) & (jnp.min(jnp.where(real, done(x[1]), 1.0)) < 0.5)  # noqa: E731
+                s = lax.while_loop(cond, lambda x: (x[0] + 1, iteration(x[0], x[1])), (jnp.int32(0), s))[1]
         finally:
             _TRACING.in_kernel = False
         for g, v in enumerate(jax.tree_util.tree_leaves(s)):

@@ -110,6 +110,9 @@ class SolverConfig:
     # in the fused kernel, skip an edge contact point's position correction, and a body's time-of-impact
     # passes, in blocks of worlds none of which needs them (speed knob; results equal up to the sign of zero)
     skip_untouched: bool = True
+    # stop the position passes once every world (of a kernel block, or of an XLA batch) is solved, as
+    # Box2D's island solver breaks out of them (speed knob: a solved world's passes change nothing)
+    position_early_stop: bool = True
     # how the iteration loops run: "auto" (one fused Pallas kernel per loop on GPU, XLA elsewhere),
     # "xla", "pallas" or "interpret" (the kernel through Pallas' interpreter); see physics2d/fused.py
     kernel: str = "auto"

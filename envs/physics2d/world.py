@@ -332,7 +332,7 @@ def step(model: Model, world: WorldState, ground, gravity, force=None, torque=No
             com, ang, solved = fused.per_world_fori_loop(
                 n_pos, ppass,
                 pconsts, (tuple(V2.of(c) for c in com), tuple(ang), jnp.zeros((), f32)),
-                mode=cfg.kernel, unroll=cfg.unroll)
+                mode=cfg.kernel, unroll=cfg.unroll, done=_position_solved if cfg.position_early_stop else None)
         com, ang, solved = [c.array() for c in com], list(ang), solved > 0.5
     else:
         solved = jnp.zeros((), bool)
@@ -765,6 +765,12 @@ def _velocity_pass(model: Model, slots, c, carry):
         vel[i] = vel[i] + inv_m[i] * p
         omg[i] = omg[i] + inv_i[i] * arm.cross(p)
     return tuple(vel), tuple(omg), tuple(jimp), tuple(jmot), tuple(ln), tuple(lt)
+
+
+def _position_solved(carry):
+    """Box2D's early stop of the position passes (``b2Island::Solve`` breaks once contacts and joints
+    are solved): the passes' carry ``(com, angle, solved)`` -> ``solved``."""
+    return carry[2]
 
 
 def _position_pass(model: Model, slots, c, carry):
