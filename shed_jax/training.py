@@ -169,6 +169,11 @@ def train_fixed_level(args) -> dict:
     hps = PPOHyperparams.stack([hp] * args.seeds)
     t0 = time.perf_counter()
     states, metrics, timing = train_seeds(student, keys, hps, level, num_updates, args.chunks)
+    # the policy first: the evaluation compiles a program of its own (minutes for a walker), and a run
+    # stopped during it must not lose what it trained
+    save_policy(out / "policy.msgpack", states)
+    print(f"trained; wrote {out / 'policy.msgpack'}; final evaluation: {args.eval_episodes} episodes per seed "
+          "(its compile comes first)", flush=True)
 
     levels = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[None], level)
     eval_keys = jax.vmap(lambda k: jax.random.fold_in(k, 2))(keys)
@@ -205,7 +210,6 @@ def train_fixed_level(args) -> dict:
                   "mean_return": np.nanmean(curve, axis=0)[:: max(1, len(x) // 200)].tolist()},
     }
     (out / "summary.json").write_text(json.dumps(summary, indent=2, default=float))
-    save_policy(out / "policy.msgpack", states)
     print(f"final return per seed: {np.round(final.mean(axis=1), 1).tolist()}  "
           f"({timing['env_steps_per_seed']:.3g} steps/seed, {timing['env_steps_per_s']:.3g} steps/s, wall {wall:.1f}s)")
     print(f"wrote {out / 'summary.json'}, {out / 'learning_curve.png'} and {out / 'policy.msgpack'}")
