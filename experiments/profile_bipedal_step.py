@@ -78,6 +78,35 @@ def reset_scan(env, batch: int, steps: int):
     return run
 
 
+def heuristic_scan(env, batch: int, steps: int, step_fn):
+    """As ``bench_latency.random_action_scan``, but Gymnasium's scripted gait (``envs.bipedal.heuristic``)
+    on the flat level (its own terrain seed per env): a walking batch, where most worlds' position passes
+    are solved in a few passes, instead of random actions, where many never are."""
+    from envs.bipedal.heuristic import heuristic, heuristic_init
+    from envs.walker import levels as LV
+
+    flat = LV.LEVELS["BipedalWalker"](terrain_seed=0)
+    levels = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (batch,) + jnp.shape(x)), flat)
+    levels = levels.replace(terrain_seed=jnp.arange(batch, dtype=jnp.int32))
+
+    @jax.jit
+    def run(key):
+        obs, state = jax.vmap(env.reset)(jax.random.split(key, batch), levels)
+        h = jax.vmap(lambda _: heuristic_init())(jnp.arange(batch))
+
+        def body(c, k):
+            obs, state, h = c
+            a, h = jax.vmap(heuristic)(h, obs)
+            obs, state, r, d, _ = jax.vmap(step_fn)(jax.random.split(k, batch), state, a, levels)
+            h = jax.tree_util.tree_map(lambda x, y: jnp.where(d, x, y), jax.vmap(lambda _: heuristic_init())(h.phase), h)
+            return (obs, state, h), r.sum()
+
+        _, r = jax.lax.scan(body, (obs, state, h), jax.random.split(key, steps))
+        return r.sum()
+
+    return run
+
+
 def terrain_check(n: int) -> dict:
     """The env's terrain (its ``terrain_kernel``, one kernel on a GPU) against the XLA loop's on ``n``
     sampled levels (a fifth of them Gymnasium's Hardcore), new terrains: worlds whose column kinds, box
@@ -163,6 +192,8 @@ def main(argv=None) -> int:
     p.add_argument("--variants", default="default")
     p.add_argument("--step", default="step_without_reset", choices=("step_without_reset", "step", "reset"),
                    help="what each scan iteration runs: a step without or with its auto-reset, or a reset alone")
+    p.add_argument("--actions", default="random", choices=("random", "heuristic"),
+                   help="random actions on sampled levels, or Gymnasium's scripted gait on the flat level")
     p.add_argument("--trace", action="store_true", help="trace the first variant's scans (jax.profiler)")
     p.add_argument("--terrain-check", type=int, default=0, metavar="N",
                    help="first compare the terrain kernel with the XLA loop on N sampled levels")
@@ -175,7 +206,7 @@ def main(argv=None) -> int:
     from experiments.bench_latency import random_action_scan
     from shed_jax.runtime import provenance
 
-    rec = {**provenance("experiments.profile_bipedal_step", argv), "step": args.step, "rows": []}
+    rec = {**provenance("experiments.profile_bipedal_step", argv), "step": args.step, "actions": args.actions, "rows": []}
 
     def write():
         os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
@@ -190,8 +221,9 @@ def main(argv=None) -> int:
     for i, v in enumerate(variants):
         env = make_env(v)
         for b in (int(x) for x in args.batches.split(",")):
+            scan = heuristic_scan if args.actions == "heuristic" else random_action_scan
             run = (reset_scan(env, b, args.steps) if args.step == "reset"
-                   else random_action_scan(env, b, args.steps, getattr(env, args.step)))
+                   else scan(env, b, args.steps, getattr(env, args.step)))
             compile_s, best = time_scan(run)
             row = {"variant": v, "batch": b, "steps": args.steps, "compile_s": round(compile_s, 1),
                    "ms_per_step": 1e3 * best / args.steps, "steps_per_second": b * args.steps / best}
