@@ -1,0 +1,25 @@
+#!/bin/bash
+# One piece of the 2-D walker's ACCEL run at DCD's budget, on a machine lent for limited calls
+# (docs/running.md, "A run longer than one machine's lease"). Run from the repository root:
+#   bash docs/results/bipedal_dcd_accel_inflight/piece.sh SECONDS
+# It installs the device's wheels from .whl if present, unpacks this folder's checkpoint (ckpt.tgz)
+# and compilation cache (cache.tgz.*), resumes with --time-limit SECONDS (counted from the start of
+# this script), and writes the new ckpt.tgz, cache.tgz.* and run.log into $OUT. Copy those back over
+# this folder's files before the next piece. The training command itself is the last line of README.md.
+set -u
+dir=docs/results/bipedal_dcd_accel_inflight
+t0=$(date +%s)
+if ls .whl/*.whl >/dev/null 2>&1; then
+  python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || exit 3
+  export PYTHONPATH=$PWD:/tmp/site
+fi
+export PYTHONUNBUFFERED=1 SHED_JAX_CACHE=$PWD/.cache/device
+mkdir -p runs .cache
+tar xzf $dir/ckpt.tgz
+cat $dir/cache.tgz.* | tar xzf -
+lim=$(( $1 - ($(date +%s) - t0) ))
+timeout -k 10 $(( lim + 25 )) python -m shed_jax run --resume runs/dcd_accel --keep 1 --no-gif --time-limit $lim > $OUT/run.log 2>&1
+echo "rc $? after $(( $(date +%s) - t0 )) s"
+tar czf $OUT/ckpt.tgz runs/dcd_accel
+tar czf - .cache/device | split -b 15M - $OUT/cache.tgz.
+tail -c 2000 $OUT/run.log | tr '\r' '\n' | grep -v '^ *$' | tail -4
