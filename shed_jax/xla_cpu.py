@@ -45,10 +45,10 @@ Two XLA flags are older guards, chosen before the cause was known:
 same) and ``--xla_cpu_use_xnnpack=false`` (``make run ENV=lander`` on a CPU hung in 4 of 4 tries
 without it, 0 of 1 with it). Neither touches the LAPACK path, which is why hangs went on. They stay
 because the CPU runs behind this project's numbers used them; whether they still help is untested.
-The XNNPACK one is not free: the test suite took 13 min 8 s with it against 10 min 14 s without
+The XNNPACK one looked costly: the test suite took 13 min 8 s with it against 10 min 14 s without
 (one run each, 2026-11-23), so it is the first to drop once it is shown not to matter: with the
 QR fix in place, that lander run finished with XNNPACK on (1 of 1, docs/log/benchmarks.md "The XLA:CPU deadlock").
-That cost has not come back since the suite's own flags (below): on 2026-12-03 three of the slowest
+That cost did not reproduce under the suite's own flags (below): on 2026-12-03 three of the slowest
 test files (the 2-D walker's environment, the lander's parity and the evaluation rollouts, 32 tests,
 two workers, an empty cache, one run each, 2-core Intel Xeon) took 276 s with the flag and 295 s
 with XNNPACK on, so dropping it would not shorten the suite. GPU runs are unaffected by both flags,

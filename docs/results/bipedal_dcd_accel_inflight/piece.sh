@@ -5,7 +5,7 @@
 # It installs the device's wheels from .whl if present, unpacks this folder's checkpoint (ckpt.tgz)
 # and compilation cache (cache.tgz.*), resumes with --time-limit SECONDS (counted from the start of
 # this script), and writes the new ckpt.tgz, cache.tgz.* and run.log into $OUT. Copy those back over
-# this folder's files before the next piece. The training command itself is the last line of README.md.
+# this folder's files (old cache.tgz.* parts removed first) before the next piece. The training command itself is the last line of README.md.
 set -u
 dir=docs/results/bipedal_dcd_accel_inflight
 t0=$(date +%s)
