@@ -54,10 +54,11 @@ def test_per_episode_keys_repeat_a_row_of_a_larger_run():
     levels = make_params(max_steps=np.full(3, 30), gravity=g, enable_wind=np.zeros(3, bool),
                          wind_power=np.full(3, 15.0), turbulence_power=np.full(3, 1.5))
     key = jax.random.PRNGKey(4)
+    built = parity._episodes_program.cache_info()
     # two lanes: the third episode starts on a lane after the first episode there has ended
     whole = parity.jax_episodes(False, levels, key, max_steps=30, lanes=2)
     # the same rows in another order, each with the key it had: the third row runs first, the first
-    # row last (the same program, so the second call is a persistent-cache hit, not a compile)
+    # row last (the same setting, so the second call reuses the first one's jitted program)
     perm = np.array([2, 0, 1])
     shuffled = parity.jax_episodes(False, jax.tree_util.tree_map(lambda x: x[perm], levels),
                                    jax.random.split(key, 3)[perm], max_steps=30, lanes=2)
@@ -69,6 +70,8 @@ def test_per_episode_keys_repeat_a_row_of_a_larger_run():
     # those episodes keep their zeros (the same program as `whole`: only the levels' values differ)
     longer = parity.jax_episodes(False, levels.replace(max_steps=levels.max_steps * 10), key, max_steps=30, lanes=2)
     assert np.all(longer["length"] == 0) and np.all(longer["ret"] == 0) and not longer["truncated"].any()
+    info = parity._episodes_program.cache_info()
+    assert (info.misses - built.misses, info.hits - built.hits) == (1, 2)  # one program for the three runs
     with pytest.raises(ValueError, match="2 episode keys for 3 levels"):
         parity.jax_episodes(False, levels, jax.random.split(key, 2), max_steps=30)
 

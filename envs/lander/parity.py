@@ -12,6 +12,7 @@ vmapped lanes, `jax_episodes`).
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import re
 import time
@@ -58,12 +59,22 @@ def jax_episodes(continuous: bool, levels, key, max_steps: int = 1000, lanes: in
     idle. Episodes last 130 to 600 steps on average and a few run to the limit, so a batch of every
     episode run to ``max_steps`` did about 3.5x the work (a minute per action type on a 2-core CPU).
     """
-    env = LunarLander(continuous=continuous, **env_kwargs)
     n = levels.gravity.shape[0]
     keys = key if jnp.ndim(key) == 2 else jax.random.split(key, n)
     if keys.shape[0] != n:
         raise ValueError(f"{keys.shape[0]} episode keys for {n} levels")
-    lanes = min(int(lanes), n)
+    run = _episodes_program(bool(continuous), int(n), int(max_steps), min(int(lanes), n),
+                            tuple(sorted(env_kwargs.items())), jax.jit)
+    return jax.tree_util.tree_map(np.asarray, run(keys, levels))
+
+
+@functools.lru_cache(maxsize=16)
+def _episodes_program(continuous: bool, n: int, max_steps: int, lanes: int, env_kwargs: tuple, jit):
+    """``jax_episodes``' program for ``n`` levels, jitted by ``jit``, built once per setting: later calls
+    with the same setting (other levels or keys) skip its tracing as well as its compile. ``jit`` is
+    whatever ``jax.jit`` is at the call, part of the key (the tests swap it for one with other
+    compiler options)."""
+    env = LunarLander(continuous=continuous, **dict(env_kwargs))
     take = lambda tree, idx: jax.tree_util.tree_map(lambda x: x[idx], tree)  # noqa: E731
 
     def run(keys, levels):
@@ -106,8 +117,7 @@ def jax_episodes(continuous: bool, levels, key, max_steps: int = 1000, lanes: in
         carry = (episode, jnp.zeros(lanes, jnp.int32), obs, state, take(levels, episode), jnp.int32(lanes), out)
         return jax.lax.while_loop(lambda c: (c[0] < n).any(), body, carry)[-1]
 
-    out = jax.jit(run)(keys, levels)
-    return jax.tree_util.tree_map(np.asarray, out)
+    return jit(run)
 
 
 def jax_stats(continuous: bool, settings=SETTINGS, episodes: int = 100, seed: int = 0, max_steps: int = 1000,
