@@ -276,8 +276,8 @@ def test_heuristic_matches_gymnasiums_controller():
 def test_parity_fall_sites_count_the_nearest_obstacle():
     """The parity harness's falls by obstacle: runs of non-grass columns are obstacles; a fall counts
     for the nearest one within 3 terrain steps of the hull, else for grass; episodes that did not
-    fall are not counted."""
-    from envs.bipedal.parity import column_obstacles, fall_sites
+    fall are not counted; the episodes at the time limit without a fall are counted the same way."""
+    from envs.bipedal.parity import column_obstacles, end_sites, site_fields
 
     S = C.TERRAIN_STEP
     kinds = np.array([C.GRASS, C.STUMP, C.GRASS, C.GRASS, C.PIT, C.PIT, C.PIT, C.STAIRS, C.STAIRS, C.GRASS])
@@ -288,7 +288,12 @@ def test_parity_fall_sites_count_the_nearest_obstacle():
     assert column_obstacles(np.array([C.GRASS, C.PIT]), np.array([0.0, S]))[0][2] == "pit"  # a run at the end
     x = [1.5 * S, 5 * S, 2.9 * S, 30 * S, 3 * S]
     fell = [True, True, True, True, False]
-    assert fall_sites(x, fell, [obs] * 5) == {"stump": 2, "stairs": 0, "pit": 1, "grass": 1}
+    assert end_sites(x, fell, [obs] * 5) == {"stump": 2, "stairs": 0, "pit": 1, "grass": 1}
+    # episode 1 stands in the pit until the limit, episode 4 ends early without a fall (not counted)
+    d = dict(x=x, fall=[True, False, True, True, False], length=[10, 2000, 10, 10, 40], obstacles=[obs] * 5)
+    sites = site_fields("ours", d, limit=2000)
+    assert sites["ours_fall_sites"] == {"stump": 2, "stairs": 0, "pit": 0, "grass": 1}
+    assert sites["ours_limit_sites"] == {"stump": 0, "stairs": 0, "pit": 1, "grass": 0}
 
 
 def test_parity_reads_gymnasiums_obstacles_from_its_polygons():

@@ -65,6 +65,9 @@ def test_policy_rows_are_added_to_an_existing_record(tmp_path):
     row = rec["parity"]["policy_flat"]
     assert row["seeds"] == 1 and row["episodes_per_seed"] == 1 and np.isfinite(row["gym_mean"])
     assert "ours_mean" not in row and row["command"].startswith("python -m envs.bipedal.parity --policy")
+    # where its episode ended: one fall site or one time-limit site at most, counted once
+    assert sum(row["gym_fall_sites"].values()) == round(row["gym_fall"])
+    assert sum(row["gym_fall_sites"].values()) + sum(row["gym_limit_sites"].values()) <= 1
 
 
 def test_gait_rows_replace_the_header_and_keep_the_rest(tmp_path):

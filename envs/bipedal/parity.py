@@ -17,7 +17,8 @@ level's time limit (1600 steps flat, 2000 Hardcore, as Gymnasium registers them)
 termination with reward -100 (hull contact or x < 0). Bar (docs/bipedal.md "Parity"): mean return
 within 15 % of Gymnasium's or within 2 standard errors of the difference, whichever is wider, and
 fall rate within 0.1. Each row also counts the falls by the obstacle nearest to where the hull was
-(``*_fall_sites``: stump, stairs, pit, or grass when none is within 3 terrain steps).
+(``*_fall_sites``: stump, stairs, pit, or grass when none is within 3 terrain steps), and the same for
+the episodes that reached the time limit without falling (``*_limit_sites``: where the walker stood).
 """
 from __future__ import annotations
 
@@ -161,17 +162,28 @@ def gym_obstacles(env) -> list[tuple[float, float, str]]:
     return [ob[:3] for ob in merged]
 
 
-def fall_sites(x, fall, obstacles, reach: float = 3 * C.TERRAIN_STEP) -> dict:
-    """Falls counted by the kind of obstacle nearest to the hull's x at the fall (``grass`` when none
-    is within ``reach``): per episode its end x, fall flag and obstacle list (x0, x1, kind)."""
+def end_sites(x, mask, obstacles, reach: float = 3 * C.TERRAIN_STEP) -> dict:
+    """The episodes where ``mask`` holds counted by the kind of obstacle nearest to the hull's x at their
+    end (``grass`` when none is within ``reach``): per episode its end x, mask flag and obstacle list
+    (x0, x1, kind). With ``mask`` the fall flags these are the fall sites; with "reached the time limit
+    without falling", where the walker stood (or was stuck) when time ran out."""
     counts = {"stump": 0, "stairs": 0, "pit": 0, "grass": 0}
-    for xe, f, obs in zip(x, fall, obstacles):
+    for xe, f, obs in zip(x, mask, obstacles):
         if not f:
             continue
         dist = [max(a - xe, xe - b, 0.0) for a, b, _ in obs]
         j = int(np.argmin(dist)) if dist else -1
         counts[obs[j][2] if j >= 0 and dist[j] <= reach else "grass"] += 1
     return counts
+
+
+def site_fields(side: str, d: dict, limit: int) -> dict:
+    """A side's ``*_fall_sites`` and ``*_limit_sites`` (the episodes that reached ``limit`` steps without
+    falling) from its episodes ``d`` (``x``, ``fall``, ``length``, ``obstacles``)."""
+    fall = np.asarray(d["fall"], bool)
+    at_limit = ~fall & (np.asarray(d["length"]) >= limit)
+    return {f"{side}_fall_sites": end_sites(d["x"], fall, d["obstacles"]),
+            f"{side}_limit_sites": end_sites(d["x"], at_limit, d["obstacles"])}
 
 
 def _as_chain(walker_cls):
@@ -307,6 +319,7 @@ def main(argv=None) -> int:
         return policy_main(args, names, record)
     for name in names:
         level, gym_id = SETTINGS[name]
+        limit = int(LEVELS[level]().max_steps)
         row = {"episodes": args.episodes}
         if not args.jax_only:
             t = time.time()
@@ -316,7 +329,7 @@ def main(argv=None) -> int:
                   f"len {g['length']:.0f}", flush=True)
             row.update(gym_mean=g["mean"], gym_se=g["se"], gym_std=g["std"], gym_fall=g["fall"], gym_length=g["length"],
                        gym_length_fell=g["length_fell"], gym_length_other=g["length_other"],
-                       gym_quartiles=g["quartiles"], gym_fall_sites=fall_sites(d["x"], d["fall"], d["obstacles"]))
+                       gym_quartiles=g["quartiles"], **site_fields("gym", d, limit))
         if not args.gym_only:
             t = time.time()
             d = jax_episodes(level, args.episodes, args.seed, min(args.chunk, args.episodes), **opts)[0]
@@ -325,8 +338,7 @@ def main(argv=None) -> int:
                   f"len {o['length']:.0f}", flush=True)
             row.update(ours_mean=o["mean"], ours_se=o["se"], ours_std=o["std"], ours_fall=o["fall"],
                        ours_length=o["length"], ours_length_fell=o["length_fell"], ours_length_other=o["length_other"],
-                       ours_quartiles=o["quartiles"],
-                       ours_fall_sites=fall_sites(d["x"], d["fall"], d["obstacles"]))
+                       ours_quartiles=o["quartiles"], **site_fields("ours", d, limit))
         if "gym_mean" in row and "ours_mean" in row:
             row["pass"] = passes(dict(mean=row["gym_mean"], se=row["gym_se"], fall=row["gym_fall"]),
                                  dict(mean=row["ours_mean"], se=row["ours_se"], fall=row["ours_fall"]))
@@ -369,7 +381,8 @@ def policy_main(args, names, record) -> int:
     rows = {}
     for name in names:
         level, gym_id = SETTINGS[name]
-        pooled = {side: {"ret": [], "length": [], "fall": []} for side in ("gym", "ours")}
+        limit = int(LEVELS[level]().max_steps)
+        pooled = {side: {"ret": [], "length": [], "fall": [], "x": [], "obstacles": []} for side in ("gym", "ours")}
         per_seed = []
         ours = ([None] * seeds if args.gym_only else
                 jax_episodes(level, args.episodes, args.seed, min(args.chunk, args.episodes), controller, thetas))
@@ -382,7 +395,7 @@ def policy_main(args, names, record) -> int:
                 sides["ours"] = ours[i]
             for side, d in sides.items():
                 for k in pooled[side]:
-                    pooled[side][k].append(d[k])
+                    pooled[side][k].append(d[k] if k != "obstacles" else list(d[k]))
             per_seed.append({f"{side}_mean": float(np.mean(d["ret"])) for side, d in sides.items()})
             print(f"{name} seed {i}: " + "  ".join(f"{k} {v:.1f}" for k, v in per_seed[-1].items()), flush=True)
         row = {"episodes_per_seed": args.episodes, "seeds": seeds, "policy": args.policy, "deterministic": True,
@@ -391,6 +404,8 @@ def policy_main(args, names, record) -> int:
             if d["ret"]:
                 o = summarize(*(np.concatenate(d[k]) for k in ("ret", "length", "fall")))
                 row.update({f"{side}_{k}": o[k] for k in ("mean", "se", "std", "fall", "length", "quartiles")})
+                row.update(site_fields(side, {k: (sum(v, []) if k == "obstacles" else np.concatenate(v))
+                                              for k, v in d.items()}, limit))
         if "gym_mean" in row and "ours_mean" in row:
             row["pass"] = passes(dict(mean=row["gym_mean"], se=row["gym_se"], fall=row["gym_fall"]),
                                  dict(mean=row["ours_mean"], se=row["ours_se"], fall=row["ours_fall"]))
