@@ -2,11 +2,15 @@
 # One piece of the 2-D walker's ACCEL run at DCD's budget, on a machine lent for limited calls
 # (docs/running.md, "A run longer than one machine's lease"). Run from the repository root:
 #   bash docs/results/bipedal_dcd_accel_inflight/piece.sh SECONDS
-# It installs the device's wheels from .whl if present, unpacks this folder's checkpoint (ckpt.tgz)
+# It installs the device's wheels from .whl if present, puts the run's own sources in place (src.tgz:
+# shed_jax/, envs/ and experiments/ at commit d1d275c, so later edits to the tree change neither the
+# program it resumes nor its cache keys), unpacks this folder's checkpoint (ckpt.tgz)
 # and compilation cache (cache.tgz.*), resumes with --time-limit SECONDS (counted from the start of
 # this script), and writes the new ckpt.tgz, cache.tgz.* and run.log into $OUT. Copy those back over
 # this folder's files (old cache.tgz.* parts removed first) before the next piece. The training command itself is the last line of README.md.
 set -u
+# it replaces this tree's sources with the run's: only on the device's copy of the tree, where OUT is set
+: "${OUT:?piece.sh runs on the device machine (OUT unset here): it replaces shed_jax/, envs/ and experiments/ in place}"
 dir=docs/results/bipedal_dcd_accel_inflight
 t0=$(date +%s)
 if ls .whl/*.whl >/dev/null 2>&1; then
@@ -14,6 +18,7 @@ if ls .whl/*.whl >/dev/null 2>&1; then
   export PYTHONPATH=$PWD:/tmp/site
 fi
 export PYTHONUNBUFFERED=1 SHED_JAX_CACHE=$PWD/.cache/device
+rm -rf shed_jax envs experiments && tar xzf $dir/src.tgz || exit 4
 mkdir -p runs .cache
 tar xzf $dir/ckpt.tgz
 cat $dir/cache.tgz.* | tar xzf -
