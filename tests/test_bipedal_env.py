@@ -91,7 +91,14 @@ def test_registered_options_and_spaces():
         BipedalWalker(obstacles="box")
     with pytest.raises(ValueError, match="window_boxes"):
         BipedalWalker(window_boxes=65)
+    with pytest.raises(ValueError, match="toi_velocity_iterations"):
+        BipedalWalker(toi_velocity_iterations=0)
     m = env.model
+    # a leg's time-of-impact solve: 4 velocity passes by default; None gives it the step's, as
+    # b2World::SolveTOI gives its sub-step
+    assert m.config.toi_iterations == 4 and m.config.toi_position_iterations == 20
+    assert BipedalWalker(toi_velocity_iterations=None).model.config.toi_iterations == 180
+    assert BipedalWalker(toi_velocity_iterations=None, velocity_iterations=90).model.config.toi_iterations == 90
     # legs against Box2D-style separate terrain edges by default; the vertex model on request
     assert m.config.edge_contacts == BM.EDGE_CONTACTS and m.edge_polygons == (0, 1, 3, 4)  # not the hull (sensor)
     assert BipedalWalker(contacts="vertex").model.config.edge_contacts == 0

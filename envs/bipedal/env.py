@@ -68,6 +68,11 @@ class BipedalOptions:
                         for diagnostics (``envs.bipedal.parity --no-toi``).
     toi_events:         time-of-impact events per leg and step (``SolverConfig.toi_events``; Box2D
                         allows up to 8 per contact); each is another copy of the search and its solve.
+    toi_velocity_iterations: velocity passes of a leg's time-of-impact solve (``SolverConfig.toi_iterations``);
+                        None: Box2D's, the step's ``velocity_iterations`` (``b2World::SolveTOI`` gives
+                        its sub-step the step's velocity iterations and 20 position iterations). The
+                        default stays 4: Box2D's 180 brings a lone shin's trajectory closer to pybox2d's
+                        but not the walker's gait parity (docs/bipedal.md, "A lone shin thrown at a stump").
     window_boxes:       obstacle boxes the physics collides with per step ("polygon"): the first ones
                         that reach into the window (8 covers DCD's FULL space; ``tests/test_bipedal_env.py``).
     """
@@ -87,6 +92,7 @@ class BipedalOptions:
     window_boxes: int = 8
     continuous: bool = True
     toi_events: int = 1
+    toi_velocity_iterations: int | None = 4
 
     def __post_init__(self):
         ints = dict(velocity_iterations=(1, 1000), position_iterations=(0, 1000), terrain_resolution=(1, 32),
@@ -106,6 +112,10 @@ class BipedalOptions:
             raise ValueError(f"BipedalOptions.contacts must be one of {CONTACTS}, got {self.contacts!r}")
         if self.obstacles not in OBSTACLES:
             raise ValueError(f"BipedalOptions.obstacles must be one of {OBSTACLES}, got {self.obstacles!r}")
+        v = self.toi_velocity_iterations
+        if v is not None and (not isinstance(v, int) or isinstance(v, bool) or not 1 <= v <= 1000):
+            raise ValueError(f"BipedalOptions.toi_velocity_iterations must be None (Box2D's: velocity_iterations) "
+                             f"or an int in [1, 1000], got {v!r}")
         if self.window_boxes > self.max_boxes:
             raise ValueError(f"BipedalOptions.window_boxes must be <= max_boxes ({self.max_boxes}), got {self.window_boxes}")
 
@@ -144,7 +154,8 @@ class BipedalWalker(WalkerInterface, Environment):
             raise ValueError(f"bipedal: unknown option(s) {sorted(unknown)}; valid: {sorted(fields)}")
         self.options = o = BipedalOptions(**options)
         self.model = M.walker_model(o.velocity_iterations, o.position_iterations, o.unroll, o.solver_kernel,
-                                    M.EDGE_CONTACTS if o.contacts == "edge" else 0, o.continuous, o.toi_events)
+                                    M.EDGE_CONTACTS if o.contacts == "edge" else 0, o.continuous, o.toi_events,
+                                    o.velocity_iterations if o.toi_velocity_iterations is None else o.toi_velocity_iterations)
         self.grid = T.make_grid(o.terrain_resolution)
         self._start = M.initial_pose()
 
