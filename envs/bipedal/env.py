@@ -155,7 +155,7 @@ class BipedalWalker(WalkerInterface, Environment):
         self.options = o = BipedalOptions(**options)
         self.model = M.walker_model(o.velocity_iterations, o.position_iterations, o.unroll, o.solver_kernel,
                                     M.EDGE_CONTACTS if o.contacts == "edge" else 0, o.continuous, o.toi_events,
-                                    o.velocity_iterations if o.toi_velocity_iterations is None else o.toi_velocity_iterations)
+                                    o.toi_velocity_iterations)
         self.grid = T.make_grid(o.terrain_resolution)
         self._start = M.initial_pose()
 

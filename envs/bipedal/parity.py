@@ -382,7 +382,7 @@ def policy_main(args, names, record) -> int:
     for name in names:
         level, gym_id = SETTINGS[name]
         limit = int(LEVELS[level]().max_steps)
-        pooled = {side: {"ret": [], "length": [], "fall": [], "x": [], "obstacles": []} for side in ("gym", "ours")}
+        per_side = {"gym": [], "ours": []}  # each seed's episodes
         per_seed = []
         ours = ([None] * seeds if args.gym_only else
                 jax_episodes(level, args.episodes, args.seed, min(args.chunk, args.episodes), controller, thetas))
@@ -394,18 +394,18 @@ def policy_main(args, names, record) -> int:
             if not args.gym_only:
                 sides["ours"] = ours[i]
             for side, d in sides.items():
-                for k in pooled[side]:
-                    pooled[side][k].append(d[k] if k != "obstacles" else list(d[k]))
+                per_side[side].append(d)
             per_seed.append({f"{side}_mean": float(np.mean(d["ret"])) for side, d in sides.items()})
             print(f"{name} seed {i}: " + "  ".join(f"{k} {v:.1f}" for k, v in per_seed[-1].items()), flush=True)
         row = {"episodes_per_seed": args.episodes, "seeds": seeds, "policy": args.policy, "deterministic": True,
                "per_seed": per_seed, **{k: record[k] for k in PROVENANCE}}
-        for side, d in pooled.items():
-            if d["ret"]:
-                o = summarize(*(np.concatenate(d[k]) for k in ("ret", "length", "fall")))
+        for side, ds in per_side.items():
+            if ds:
+                d = {k: np.concatenate([e[k] for e in ds]) for k in ("ret", "length", "fall", "x")}
+                d["obstacles"] = [ob for e in ds for ob in e["obstacles"]]
+                o = summarize(d["ret"], d["length"], d["fall"])
                 row.update({f"{side}_{k}": o[k] for k in ("mean", "se", "std", "fall", "length", "quartiles")})
-                row.update(site_fields(side, {k: (sum(v, []) if k == "obstacles" else np.concatenate(v))
-                                              for k, v in d.items()}, limit))
+                row.update(site_fields(side, d, limit))
         if "gym_mean" in row and "ours_mean" in row:
             row["pass"] = passes(dict(mean=row["gym_mean"], se=row["gym_se"], fall=row["gym_fall"]),
                                  dict(mean=row["ours_mean"], se=row["ours_se"], fall=row["ours_fall"]))
