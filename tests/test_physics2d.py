@@ -4,7 +4,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from box2d_reference import box_trajectory
+from envs.physics2d.box2d_reference import box_trajectory
 from envs import physics2d
 from envs.lander import model as LM
 

@@ -121,7 +121,7 @@ def test_shin_tipping_over_a_stump_corner_follows_box2d():
     b2 = pytest.importorskip("Box2D")
     import jax
 
-    from box2d_reference import box_trajectory
+    from envs.physics2d.box2d_reference import box_trajectory
     from envs import physics2d
 
     hx, hy = SHIN

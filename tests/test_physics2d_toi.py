@@ -141,7 +141,7 @@ def test_shin_thrown_into_a_stump_tips_over_it_as_in_box2d(start, speed):
     flying shin ends its second step inside the stump (0.1 m past the face, upright; 0.3 m off Box2D
     after two steps)."""
     b2 = pytest.importorskip("Box2D")
-    from box2d_reference import box_trajectory
+    from envs.physics2d.box2d_reference import box_trajectory
     from envs import physics2d
 
     hx, hy = SHIN
@@ -166,7 +166,7 @@ def test_second_time_of_impact_in_a_step_stops_a_skimming_shin_at_the_stump():
     the first step, under 0.04 over 10 steps as it tips over the stump); with one, the rest of the
     first step runs into the stump (5e-2 off after one step, 0.2 after ten)."""
     b2 = pytest.importorskip("Box2D")
-    from box2d_reference import box_trajectory
+    from envs.physics2d.box2d_reference import box_trajectory
     from envs import physics2d
 
     hx, hy = SHIN
@@ -189,7 +189,7 @@ def test_time_of_impact_solve_with_the_steps_velocity_passes_follows_box2d():
     comparison with pybox2d) follows pybox2d to under 2.5 mm over two steps with 180 TOI velocity
     passes, and misses by more than 8 mm with 4 (the walker's default, docs/bipedal.md)."""
     b2 = pytest.importorskip("Box2D")
-    from box2d_reference import box_trajectory
+    from envs.physics2d.box2d_reference import box_trajectory
     from envs.bipedal import BipedalWalker
 
     box2d = BipedalWalker(toi_velocity_iterations=None).model.config.toi_iterations
