@@ -22,9 +22,9 @@ x: stopped before the stump's face, on top of it, beyond it), their 3 x 3 confus
 off-diagonal count, the position difference (median / p90 / max) at steps 1, 5 and 25, the cases
 more than 1 cm apart at step 25 and at any step, and each engine's deepest penetration into the stump
 (``penetration``; negative: never overlapping). Per grid it also holds Box2D's time-of-impact events
-per step (``box2d_toi_events``: a replay of every step, about 10 s a grid). physics2d's events are not
+per step (``box2d_toi_events``: a replay of every step, 5-7 s a grid). physics2d's events are not
 counted: that needs a second, TOI-less physics step beside every step. Nothing per case is kept.
-On a 2-core CPU the whole run takes about 6 minutes (8 physics2d compiles).
+On a 2-core CPU the whole run takes about 5 minutes (300 s on 2026-12-03; 8 physics2d compiles).
 """
 from __future__ import annotations
 
