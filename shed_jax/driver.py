@@ -737,6 +737,12 @@ def make_plots(exp, env, hist: dict, out: pathlib.Path) -> None:
                                   title=f"{exp.method} on {exp.env}: generated level parameters per budget step")
 
 
+def heartbeat_wait(thunk, what: str):
+    """``thunk()`` in a worker with a "still <what>" line every HEARTBEAT_S seconds (``in_worker``): the
+    ``wait`` of ``evaluation.evaluate_students``, whose compile and roll-outs can take minutes."""
+    return in_worker(thunk, "eval", heartbeat=HEARTBEAT_S, what=what)
+
+
 def final_eval(exp, env, student, student_state, num_seeds: int, resolved, out: pathlib.Path, step: int,
                episodes: int) -> None:
     """Evaluate the final students on one level set (as ``eval`` does) and write final_eval_<set>.json
@@ -754,7 +760,7 @@ def final_eval(exp, env, student, student_state, num_seeds: int, resolved, out: 
           f"episode(s) (compiling first)...", flush=True)
     try:
         body, text = evaluate_students(exp, env, student, student_state, num_seeds, resolved,
-                                       episodes=episodes, max_steps=exp.loop.test_max_steps)
+                                       episodes=episodes, max_steps=exp.loop.test_max_steps, wait=heartbeat_wait)
     except Exception as err:  # noqa: BLE001 - see the docstring
         print(f"[shed_jax] final evaluation on {resolved[2]!r} failed: {type(err).__name__}: {err}", file=sys.stderr)
         return

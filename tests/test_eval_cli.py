@@ -72,7 +72,11 @@ def test_table_math_by_hand():
         evaluation.level_table(r[0], 1.0)
 
 
-def test_eval_test_set_writes_json(run_dir, capsys):
+def test_eval_test_set_writes_json(run_dir, capsys, monkeypatch):
+    from shed_jax import driver
+
+    stages, original = [], driver.heartbeat_wait
+    monkeypatch.setattr(driver, "heartbeat_wait", lambda thunk, what: stages.append(what) or original(thunk, what))
     rc = eval_cli.main(parse(eval_cli, ["--run", str(run_dir), "--levels", "test", "--episodes", "3", "--max-steps", "30",
                                         "--solved-threshold", "15"]))
     assert rc == 0
@@ -93,6 +97,8 @@ def test_eval_test_set_writes_json(run_dir, capsys):
         assert row["cvar"] == pytest.approx(np.sort(returns[:, j].ravel())[0])  # ceil(0.1 * 6) = 1 episode
     assert res["overall"]["mean"] == pytest.approx(returns.mean())
     assert "| test-0 |" in out and "all levels" in out and "eval_test.json" in out
+    # a start line, then the compile and the roll-outs each in a heartbeat worker
+    assert "x 3 episode(s) (compiling first)..." in out and stages == ["compiling", "evaluating"]
 
 
 def test_eval_named_and_file_levels(run_dir, tmp_path, capsys):

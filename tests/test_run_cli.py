@@ -62,7 +62,7 @@ def finished(patched, tmp_path_factory):
     original_worker, original_bar = driver.in_worker, tqdm.tqdm
 
     def worker(fn, name="compile", **kwargs):
-        events.append("compile")
+        events.append((name, kwargs.get("what", "compiling")))
         return original_worker(fn, name)
 
     def bar(*args, **kw):
@@ -108,8 +108,9 @@ def test_progress_says_compiling_and_each_post_run_stage(finished):
     final = index("[shed_jax] final evaluation on 'test': 2 level(s) x 2 seed(s) x 3 episode(s)")
     gif = index("[shed_jax] rendering a GIF of seed 0's final student")
     assert index("step     4/4") < done < final < gif < index("no GIF: environment 'cartpole' has no renderer")
-    # the bar (its rate and ETA) starts after the compile, so neither counts it
-    assert finished["events"] == ["compile", "bar"]
+    # the bar (its rate and ETA) starts after the compile, so neither counts it; the final evaluation
+    # compiles and runs in workers too (a heartbeat line while either takes long)
+    assert finished["events"] == [("compile", "compiling"), "bar", ("eval", "compiling"), ("eval", "evaluating")]
 
 
 def test_chunk_sizes_compiled_ahead():
@@ -418,3 +419,11 @@ def test_compile_heartbeat_keeps_start_up_from_going_silent(capsys):
     lines = [l for l in capsys.readouterr().out.splitlines() if l.startswith("[shed_jax] still compiling")]
     assert 2 <= len(lines) <= 4, lines
     assert driver.in_worker(lambda: 8) == 8 and "still" not in capsys.readouterr().out  # no heartbeat asked
+
+
+def test_evaluation_heartbeat_names_its_stage(monkeypatch, capsys):
+    # evaluate_students' wait in run --final-eval and eval: "still evaluating" while the roll-outs run
+    monkeypatch.setattr(driver, "HEARTBEAT_S", 0.1)
+    assert driver.heartbeat_wait(lambda: time.sleep(0.35) or 9, "evaluating") == 9
+    lines = [l for l in capsys.readouterr().out.splitlines() if l.startswith("[shed_jax] still evaluating")]
+    assert 2 <= len(lines) <= 4, lines

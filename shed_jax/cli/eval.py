@@ -55,10 +55,14 @@ def _main(args) -> int:
 
     run_dir = pathlib.Path(args.run)
     exp, env, student, tests, num_seeds, step, students = evaluation.restore_students(run_dir, args.step)
+    from shed_jax.driver import heartbeat_wait
+
     resolved = evaluation.resolve_levels(args.levels, env, exp, tests)
+    print(f"[shed_jax] evaluating {run_dir} at budget step {step}: {len(resolved[1])} level(s) x {num_seeds} seed(s) x "
+          f"{args.episodes} episode(s) (compiling first)...", flush=True)
     body, text = evaluation.evaluate_students(exp, env, student, students, num_seeds, resolved, episodes=args.episodes,
                                               max_steps=args.max_steps, deterministic=args.deterministic,
-                                              seed=args.seed, solved_threshold=args.solved_threshold)
+                                              seed=args.seed, solved_threshold=args.solved_threshold, wait=heartbeat_wait)
     threshold = body["solved_threshold"]
     print(f"[shed_jax] {exp.method} on {exp.env}, {run_dir} at budget step {step}: {num_seeds} seed(s) x "
           f"{args.episodes} episode(s) per level, {'deterministic' if args.deterministic else 'stochastic'} policy, "
