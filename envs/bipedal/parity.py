@@ -242,6 +242,135 @@ def gym_episodes(gym_id: str, episodes: int, seed: int = 0, chain: bool = False,
                 obstacles=obstacles)
 
 
+# ------------------------------------------------------------------ a Box2D state handed into ours
+def gym_terrain(env, max_boxes: int = 64):
+    """A Gymnasium walker's terrain after its reset (``env`` unwrapped) as our ``Terrain``: its 200
+    polyline vertices and its polygon fixtures as boxes (x0, x1, y0, y1), sorted as our generator
+    emits them (``rasterise`` searches them by x0). ``kinds`` marks the columns under each box by the
+    box's kind (``gym_obstacles``), for ``column_obstacles``."""
+    from envs.walker import terrain as T
+
+    boxes = []
+    for body in env.terrain:
+        shape = body.fixtures[0].shape
+        if type(shape).__name__ == "b2PolygonShape":
+            v = np.asarray(shape.vertices, np.float64)
+            boxes.append((v[:, 0].min(), v[:, 0].max(), v[:, 1].min(), v[:, 1].max()))
+    boxes.sort(key=lambda b: (b[0], b[2]))
+    if len(boxes) > max_boxes:
+        raise ValueError(f"{len(boxes)} obstacle boxes, more than max_boxes={max_boxes}")
+    x = np.asarray(env.terrain_x, np.float64)
+    kinds = np.full(x.shape, C.GRASS, np.int32)
+    code = {v: k for k, v in OBSTACLE_KINDS.items()}
+    for x0, x1, kind in gym_obstacles(env):
+        kinds[(x >= x0 - 1e-4) & (x < x1 - 1e-4)] = code[kind]
+    b = np.zeros((max_boxes, 4), np.float32)
+    if boxes:
+        b[: len(boxes)] = boxes
+    return T.Terrain(x=jnp.asarray(x, jnp.float32), y=jnp.asarray(env.terrain_y, jnp.float32), boxes=jnp.asarray(b),
+                     box_valid=jnp.arange(max_boxes) < len(boxes), n_boxes=jnp.int32(len(boxes)),
+                     kinds=jnp.asarray(kinds))
+
+
+def gym_bodies(env) -> dict:
+    """The walker's Box2D state in our body order (hull, upper and lower leg -1, upper and lower leg +1):
+    centre of mass (5, 2), angle (5,), velocity of the centre of mass (5, 2), spin (5,), float64."""
+    bodies = [env.hull] + list(env.legs)  # Gymnasium's legs: upper -1, lower -1, upper +1, lower +1
+    return dict(com=np.array([tuple(b.worldCenter) for b in bodies]), angle=np.array([b.angle for b in bodies]),
+                vel=np.array([tuple(b.linearVelocity) for b in bodies]),
+                omega=np.array([b.angularVelocity for b in bodies]))
+
+
+def gym_state(env, walker: BipedalWalker, terrain=None, prev_angle=None, time: int = 0, episode_return: float = 0.0):
+    """Our ``BipedalState`` for a Gymnasium walker's current Box2D state (``env`` unwrapped, between two
+    steps), so that both engines can go on from the same physical state.
+
+    Handed over: every body's centre of mass, angle, velocity and spin; Box2D's accumulated joint
+    impulses (point, limit and motor: ``GetReactionForce`` etc. times the step) and contact impulses
+    (per fixture and ``b2ContactID`` key, on our manifolds at that pose), which warm start the next
+    step in both engines; the contact flags (Gymnasium's ``ground_contact``, per lower leg and edge or
+    box Box2D's ``IsTouching``); Gymnasium's ``prev_shaping``. A joint's limit state is the one Box2D
+    computed at the start of the last step: pass the bodies' angles then as ``prev_angle`` (5,), or the
+    current pose's is used (it differs only where a joint crossed its limit in that step). ``terrain``:
+    ``gym_terrain(env)`` (built when None). Not handed over: Box2D's sleep timers (the walker does not
+    sleep while it moves) and its cached time-of-impact state (reset at every step)."""
+    from envs import physics2d
+    from envs.bipedal import model as M
+    from envs.physics2d import joint as jnt
+    from envs.physics2d.world import BOX_KEY, edge_constraints
+    from envs.walker import terrain as T
+
+    model, o = walker.model, walker.options
+    if terrain is None:
+        terrain = gym_terrain(env, o.max_boxes)
+    g = gym_bodies(env)
+    f32 = lambda a: jnp.asarray(a, jnp.float32)  # noqa: E731
+    bodies = physics2d.BodyState(com=f32(g["com"]), angle=f32(g["angle"]), vel=f32(g["vel"]), omega=f32(g["omega"]))
+    world = physics2d.init_world(model, bodies)
+    inv_dt = 1.0 / model.config.dt
+    angle = np.asarray(g["angle"] if prev_angle is None else prev_angle, np.float64)
+    jimp, jmot, jstate = [], [], []
+    for k, J in enumerate(model.joints):
+        bj = env.joints[M.GYM_JOINT[k]]
+        f = bj.GetReactionForce(inv_dt)
+        jimp.append((f[0] / inv_dt, f[1] / inv_dt, bj.GetReactionTorque(inv_dt) / inv_dt))
+        jmot.append(bj.GetMotorTorque(inv_dt) / inv_dt)
+        q = angle[J.body_b] - angle[J.body_a] - J.reference_angle
+        jstate.append(jnt.AT_LOWER if q <= J.lower else (jnt.AT_UPPER if q >= J.upper else jnt.INACTIVE))
+    profile = T.rasterise(terrain, walker.grid)
+    hull_x = float(physics2d.body_origin(model, bodies)[M.HULL, 0])
+    ground, col = walker.ground_window(profile, jnp.float32(hull_x))
+    edges, valid, boxes, box_ok, box_index = walker.fixture_window(terrain, ground, col)
+    ec = edge_constraints(model, bodies, edges, valid, boxes, box_ok)
+    on, key = np.asarray(ec["on"]), np.asarray(ec["key"])
+    # Box2D's touching contacts of each leg: fixture key (ours: the edge's or box's x0) -> {feature key: impulses}
+    gym_bodies_ = [env.hull] + list(env.legs)
+    b2 = {}
+    xs, ys = np.asarray(env.terrain_x), np.asarray(env.terrain_y)
+    n_box = int(terrain.n_boxes)
+    tboxes = np.asarray(terrain.boxes)[:n_box]
+    leg_pairs = np.zeros((2, o.window_columns), bool)
+    leg_box_pairs = np.zeros((2, o.max_boxes), bool)
+    for i, body in enumerate(gym_bodies_):
+        for ce in body.contacts:
+            c = ce.contact
+            if not c.touching:
+                continue
+            leg_is_a = c.fixtureA.body == body  # Box2D orders two polygons by broad-phase proxy, ours the obstacle first
+            shape = (c.fixtureB if leg_is_a else c.fixtureA).shape
+            v = np.asarray(shape.vertices, np.float64)
+            x0 = np.float32(v[:, 0].min())
+            is_box = type(shape).__name__ == "b2PolygonShape"
+            fkey = int(BOX_KEY - np.round(x0 * np.float32(1000.0))) if is_box else int(np.round(x0 * np.float32(1000.0)))
+            swap = lambda k: ((k >> 8) & 255) | ((k & 255) << 8) | (((k >> 24) & 255) << 16) | (((k >> 16) & 255) << 24)  # noqa: E731
+            pts = {(swap(int(p.id.key)) if leg_is_a else int(p.id.key)): (p.normalImpulse, p.tangentImpulse)
+                   for p in c.manifold.points[: c.manifold.pointCount]}
+            b2.setdefault(i, {}).setdefault(fkey, {}).update(pts)
+            if i in M.LOWER:
+                side = M.LOWER.index(i)
+                if is_box:
+                    j = int(np.argmin(np.abs(tboxes[:, 0] - v[:, 0].min()) + np.abs(tboxes[:, 2] - v[:, 1].min())))
+                    leg_box_pairs[side, j] = True
+                else:
+                    j = int(np.argmin(np.abs(xs - v[0, 0]) + np.abs(ys - v[0, 1])))  # the edge's column
+                    if 0 <= j - int(col) < o.window_columns:
+                        leg_pairs[side, j - int(col)] = True
+    ln = np.zeros(on.shape, np.float32)
+    lt = np.zeros(on.shape, np.float32)
+    for e, i in enumerate(ec["body"]):
+        if on[e]:
+            ln[e], lt[e] = b2.get(i, {}).get(int(key[e, 0]), {}).get(int(key[e, 1]), (0.0, 0.0))
+    world = world.replace(normal_impulse=f32(ln), tangent_impulse=f32(lt), touching=jnp.asarray(on),
+                          contact_key=jnp.asarray(np.where(on[:, None], key, 0), jnp.int32),
+                          joint_impulse=f32(jimp), motor_impulse=f32(jmot), limit_state=jnp.asarray(jstate, jnp.int32))
+    from envs.bipedal.env import BipedalState
+    return BipedalState(time=jnp.int32(time), episode_return=jnp.float32(episode_return), world=world, profile=profile,
+                        prev_shaping=jnp.float32(env.prev_shaping),
+                        leg_contact=jnp.asarray([bool(env.legs[1].ground_contact), bool(env.legs[3].ground_contact)]),
+                        leg_pairs=jnp.asarray(leg_pairs), window=col, terrain=terrain,
+                        leg_box_pairs=jnp.asarray(leg_box_pairs))
+
+
 def passes(gym: dict, ours: dict) -> bool:
     """The parity bar: |mean difference| <= max(15 % of |Gymnasium's mean|, 2 SE of the difference),
     and |fall-rate difference| <= 0.1."""
