@@ -109,11 +109,21 @@ def named_level_entries(path: str, env: str) -> dict:
         preset = _json(config_file).get("experiment", {}).get("preset") if config_file.is_file() else args.get("preset")
         out[row["method"]] = {"seeds": row["seeds"], "preset": preset, "set": args.get("set", []), "levels": levels,
                               "student_env_steps_per_seed": summary.get("student_env_steps_last_episode"),
+                              "env_steps_per_seed": budget_steps(summary),
                               "dcd_six_solved_mean": sum(six) / len(six) if len(six) == len(DCD_TEST_LEVELS) else None,
                               "test_set_b": {"mean": row["final_test_return_mean"], "se": row["final_test_return_se"]},
                               "all_named": named.get("overall"), "final_eval_command": named.get("command"),
                               "wall_time_s": row.get("group_wall_time_s"), "sweep_args": args}
     return out
+
+
+def budget_steps(summary: dict) -> float | None:
+    """The env steps a run spent per seed, the student's training steps and the level scoring of
+    PLR and ACCEL (``eval_env_steps_total``) together: what DCD's budget counts. Runs whose summary
+    has no totals count their last episode's student steps."""
+    if "student_env_steps_total" in summary:
+        return summary["student_env_steps_total"] + summary.get("eval_env_steps_total", 0.0)
+    return summary.get("student_env_steps_last_episode")
 
 
 @functools.cache
@@ -132,8 +142,9 @@ def dcd_problem(entry: dict) -> str | None:
         return f"preset {entry.get('preset')}"
     if entry.get("set") != []:
         return f"settings apart from the preset: {entry.get('set')}"
-    if entry.get("student_env_steps_per_seed") != steps:
-        return f"{entry.get('student_env_steps_per_seed')} student steps per seed, not {steps:,}"
+    spent = entry.get("env_steps_per_seed")
+    if spent is None or abs(spent - steps) > 1.0:  # means over seeds: a float sum, exact to a step
+        return f"{spent} env steps per seed (training and level scoring), not {steps:,}"
     return None
 
 

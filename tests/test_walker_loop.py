@@ -166,13 +166,14 @@ def test_dcd_budget_runs_fill_the_bipedal_records_dcd_block_and_other_runs_are_r
     from experiments import baselines_record
     from shed_jax.presets import build_experiment
 
-    def run(name, method, preset, flat, steps=3360 * 196_608, **overrides):
+    def run(name, method, preset, flat, steps=3360 * 196_608, scored=0.0, **overrides):
         d = tmp_path / name
         d.mkdir()
         exp = build_experiment("bipedal", method, preset, **overrides).to_dict()
         (d / "config.json").write_text(json.dumps({"experiment": exp, "seeds": 5, "root_seed": 0}))
         (d / "summary.json").write_text(json.dumps({"method": method, "seeds": 5, "final_test_return_mean": 1.0,
-                                                    "final_test_return_se": 0.5, "student_env_steps_last_episode": steps}))
+                                                    "final_test_return_se": 0.5, "student_env_steps_last_episode": steps,
+                                                    "student_env_steps_total": steps, "eval_env_steps_total": scored}))
         _named_eval(d / "final_eval_named.json", [("BipedalWalker", flat, 3.0, 0.9), ("Stump", -10.0, 2.0, 0.0)])
         return str(d)
 
@@ -187,8 +188,10 @@ def test_dcd_budget_runs_fill_the_bipedal_records_dcd_block_and_other_runs_are_r
     common = ["--device", "H200", "--date", "2026-12-01", "--out", str(out), "--dcd-into", str(target)]
     assert baselines_record.main(["--bipedal", run("dr", "dr", "dcd", 266.0), *common]) == 0
     # a later call (another machine, another day) adds its method and keeps the first
-    assert baselines_record.main(["--keep", "--bipedal", run("accel", "accel", "dcd", 310.0), *common[:3], "2026-12-02",
-                                  *common[4:]]) == 0
+    # ACCEL spends DCD's budget on training and on scoring new levels (DCD's accounting): both count
+    trained = 292_505_955.4
+    accel = run("accel", "accel", "dcd", 310.0, steps=trained, scored=3360 * 196_608 - trained)
+    assert baselines_record.main(["--keep", "--bipedal", accel, *common[:3], "2026-12-02", *common[4:]]) == 0
     rec = json.loads(target.read_text())
     assert rec["parity"] == {"flat": {"gym_mean": 1.0}} and rec["device"] == "cpu"  # the record's other keys stay
     assert rec["dcd"]["dr"]["BipedalWalker"] == {"return": 266.0, "se": 3.0, "solved": 0.9}
@@ -198,7 +201,9 @@ def test_dcd_budget_runs_fill_the_bipedal_records_dcd_block_and_other_runs_are_r
     # not DCD's budget as the preset has it: another preset, a changed setting, a stopped-short run
     refused(["--bipedal", run("paper", "plr", "paper", 50.0), *common], "got plr (preset paper)")
     refused(["--bipedal", run("short", "plr", "dcd", 50.0, steps_per_episode=16), *common], "settings apart from the preset")
-    refused(["--bipedal", run("cut", "plr", "dcd", 50.0, steps=1000), *common], "1000 student steps per seed")
+    refused(["--bipedal", run("cut", "plr", "dcd", 50.0, steps=1000), *common], "1000.0 env steps per seed")
+    refused(["--bipedal", run("cut2", "plr", "dcd", 50.0, steps=1000, scored=3360 * 196_608), *common],
+            "env steps per seed (training and level scoring), not 660,602,880")
     assert "plr" not in json.loads(target.read_text())["dcd"]
     # a broken record to write into, or a summary without its fields: one line, and --out is not written
     bad, out2 = tmp_path / "bad.json", tmp_path / "out2.json"
