@@ -118,12 +118,14 @@ def named_level_entries(path: str, env: str) -> dict:
 
 
 def budget_steps(summary: dict) -> float | None:
-    """The env steps a run spent per seed, the student's training steps and the level scoring of
-    PLR and ACCEL (``eval_env_steps_total``) together: what DCD's budget counts. Runs whose summary
-    has no totals count their last episode's student steps."""
-    if "student_env_steps_total" in summary:
-        return summary["student_env_steps_total"] + summary.get("eval_env_steps_total", 0.0)
-    return summary.get("student_env_steps_last_episode")
+    """The env steps a run spent per seed in its last episode with the level scoring of PLR and
+    ACCEL counted (``eval_env_steps_total``: DCD's accounting, where scoring a new level spends the
+    budget); None without ``student_env_steps_last_episode``. The dcd preset runs one episode, so
+    the totals are that episode's."""
+    trained = summary.get("student_env_steps_last_episode")
+    if trained is None or summary.get("student_env_steps_total") != trained:
+        return trained  # several episodes (or no totals): the last episode's training steps
+    return trained + summary.get("eval_env_steps_total", 0.0)
 
 
 @functools.cache
@@ -142,9 +144,11 @@ def dcd_problem(entry: dict) -> str | None:
         return f"preset {entry.get('preset')}"
     if entry.get("set") != []:
         return f"settings apart from the preset: {entry.get('set')}"
-    spent = entry.get("env_steps_per_seed")
-    if spent is None or abs(spent - steps) > 1.0:  # means over seeds: a float sum, exact to a step
-        return f"{spent} env steps per seed (training and level scoring), not {steps:,}"
+    # DR and the teachers' students spend the budget on training steps; PLR and ACCEL on training and
+    # on scoring new levels (DCD's accounting). Means over seeds, so a float sum: exact to a step.
+    trained, spent = entry.get("student_env_steps_per_seed"), entry.get("env_steps_per_seed")
+    if not any(x is not None and abs(x - steps) <= 1.0 for x in (trained, spent)):
+        return (f"{trained} student steps per seed ({spent} with level scoring), not {steps:,}")
     return None
 
 

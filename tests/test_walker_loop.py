@@ -201,9 +201,12 @@ def test_dcd_budget_runs_fill_the_bipedal_records_dcd_block_and_other_runs_are_r
     # not DCD's budget as the preset has it: another preset, a changed setting, a stopped-short run
     refused(["--bipedal", run("paper", "plr", "paper", 50.0), *common], "got plr (preset paper)")
     refused(["--bipedal", run("short", "plr", "dcd", 50.0, steps_per_episode=16), *common], "settings apart from the preset")
-    refused(["--bipedal", run("cut", "plr", "dcd", 50.0, steps=1000), *common], "1000.0 env steps per seed")
+    refused(["--bipedal", run("cut", "plr", "dcd", 50.0, steps=1000), *common], "1000 student steps per seed (1000.0 with")
     refused(["--bipedal", run("cut2", "plr", "dcd", 50.0, steps=1000, scored=3360 * 196_608), *common],
-            "env steps per seed (training and level scoring), not 660,602,880")
+            "1000 student steps per seed (660603880 with level scoring), not 660,602,880")
+    # a teacher's student at the budget with its evaluation roll-outs on top: the training steps count
+    assert baselines_record.main(["--keep", "--bipedal", run("shed", "shed", "dcd", 5.0, scored=1e7), *common]) == 0
+    assert "shed" in json.loads(target.read_text())["dcd"]
     assert "plr" not in json.loads(target.read_text())["dcd"]
     # a broken record to write into, or a summary without its fields: one line, and --out is not written
     bad, out2 = tmp_path / "bad.json", tmp_path / "out2.json"
