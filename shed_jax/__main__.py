@@ -71,7 +71,9 @@ def main(argv=None) -> int:
         errors.report(err, args)
         return int(err.code)
     except SystemExit as err:  # a command's SystemExit("message"): a user error as well
-        if err.code is None or isinstance(err.code, int):
+        if isinstance(err.code, int):  # e.g. a second SIGTERM (143): returned, so that _exit ends the
+            return err.code            # process at once while a worker thread is still inside XLA
+        if err.code is None:
             raise
         errors.report(err, args)
         return errors.EXIT_USAGE

@@ -221,3 +221,18 @@ def test_run_help_names_every_registered_method(capsys):
     assert listed == list(METHODS)
     for m in METHODS:
         assert re.search(rf"(?<![\w-]){re.escape(m)}(?![\w-])", COMMANDS["run"]), m  # 'shed' not inside 'shed-x'
+
+
+def test_a_commands_exit_code_is_returned_so_the_process_can_end_at_once(monkeypatch):
+    # a second SIGTERM raises SystemExit(143) inside a command; main returns the code (and
+    # shed_jax.__main__._exit then ends the process at once if a worker thread is still in XLA)
+    from shed_jax.cli import eval as eval_cli
+
+    def second_signal(args):
+        raise SystemExit(143)
+
+    monkeypatch.setattr(eval_cli, "main", second_signal)
+    assert main(["eval", "--run", "nowhere"]) == 143
+    monkeypatch.setattr(eval_cli, "main", lambda args: (_ for _ in ()).throw(SystemExit(None)))
+    with pytest.raises(SystemExit):  # a bare exit still exits as before
+        main(["eval", "--run", "nowhere"])
