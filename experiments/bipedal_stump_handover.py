@@ -35,6 +35,7 @@ import argparse
 import json
 import pathlib
 import platform
+import sys
 import time
 
 import jax
@@ -42,16 +43,6 @@ import jax.numpy as jnp
 import numpy as np
 
 OUTCOMES = ("passed", "stopped", "fell")
-
-
-def cpu_model() -> str:
-    try:
-        for line in pathlib.Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
 
 
 def classify(xs, fell_at, x_pass) -> str:
@@ -301,9 +292,14 @@ def parse_options(text: str) -> dict:
     """``k=v,k=v`` -> BipedalOptions keyword arguments (ints, None, true/false)."""
     out = {}
     for item in filter(None, (t.strip() for t in text.split(","))):
-        k, v = item.split("=", 1)
+        k, eq, v = item.partition("=")
         v = v.strip()
-        out[k.strip()] = None if v == "None" else (v.lower() == "true" if v.lower() in ("true", "false") else int(v))
+        if not eq or not k.strip():
+            raise ValueError(f"expected K=V items separated by commas, got {item!r}")
+        try:
+            out[k.strip()] = None if v == "None" else (v.lower() == "true" if v.lower() in ("true", "false") else int(v))
+        except ValueError:
+            raise ValueError(f"{k.strip()}: expected an integer, None, true or false, got {v!r}") from None
     return out
 
 
@@ -326,11 +322,17 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     t_start = time.time()
     from envs.bipedal import BipedalWalker
+    from experiments.checkpoint_size import device_line
     from shed_jax.runtime import provenance
     from shed_jax.student import PPOConfig, make_student
     from shed_jax.training import load_policy
 
-    extra = [parse_options(o) for o in args.options]
+    if args.episodes < 1 or args.horizon < 1 or args.chunk < 1:
+        p.error("--episodes, --horizon and --chunk must be integers >= 1")
+    try:  # every walker is built before the long Box2D phase: a bad --options fails here, in one line
+        extra = [(opts, BipedalWalker(**opts)) for opts in map(parse_options, args.options)]
+    except (TypeError, ValueError) as err:
+        p.error(f"--options: {err}")
     walker = BipedalWalker()
     student = make_student(walker, PPOConfig.for_env("bipedal").replace(num_envs=1))
     states = load_policy(student, args.policy)
@@ -341,6 +343,10 @@ def main(argv=None) -> int:
                         args.pass_margin, walker)
     t_gym = time.time() - t
     print(f"[handover] {len(enc)} stump encounters, Box2D side {t_gym:.0f} s", flush=True)
+    if not enc:
+        print(f"[handover] no episode came within {args.before:g} m of a stump: nothing to compare (more --episodes?)",
+              file=sys.stderr)
+        return 1
     outcomes = {name: [e[name] for e in enc] for name in ("box2d", "box2d_perturbed", "box2d_our_lidar")}
     t = time.time()
     res = ours_runs(walker, student, thetas, enc, args.horizon,
@@ -349,9 +355,8 @@ def main(argv=None) -> int:
     t_ours = time.time() - t
     for name, r in res.items():
         outcomes[name] = ours_outcomes(r, enc, args.horizon)
-    for opts in extra:
+    for opts, w in extra:
         tag = "ours_" + "_".join(f"{k}={v}" for k, v in opts.items())
-        w = BipedalWalker(**opts)
         r2 = ours_runs(w, student, thetas, enc, args.horizon, [(tag, False, False), (tag + "_open_loop", False, True)],
                        args.chunk)
         for name, r in r2.items():
@@ -393,7 +398,7 @@ def main(argv=None) -> int:
     lid = np.concatenate([e["lidar_diff"] for e in enc])
     lid_snap = np.stack([e["lidar_diff"][0] for e in enc])
     summary = {name: counts(o) for name, o in outcomes.items()}
-    record = {**provenance("experiments.bipedal_stump_handover", argv), "device": f"cpu: {cpu_model()}",
+    record = {**provenance("experiments.bipedal_stump_handover", argv), "device": device_line(),
               "versions": versions(), "policy": args.policy, "episodes_per_seed": args.episodes,
               "seeds": len(thetas), "before_m": args.before, "horizon": args.horizon, "pass_margin_m": args.pass_margin,
               "perturb_m_s": args.perturb, "encounters": len(enc), "wall_s": {"box2d": round(t_gym), "ours": round(t_ours), "ours_whole_episodes": round(t_whole),
