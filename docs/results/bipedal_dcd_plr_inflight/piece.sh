@@ -5,11 +5,13 @@
 # It installs the device's wheels from .whl if present, puts the run's own sources in place (src.tgz:
 # shed_jax/, envs/ and experiments/ at commit d1d275c, the sources of ACCEL's run at the same budget, so
 # the two compare on one program and later edits to the tree change neither), then starts the run
-# (no ckpt.tgz here yet) or resumes it from this folder's checkpoint (ckpt.tgz) and compilation cache
-# (cache.tgz.*), with --time-limit SECONDS counted from the start of this script, and writes the new
-# ckpt.tgz, cache.tgz.* and run.log into $OUT. Copy those back over this folder's files (old
-# cache.tgz.* parts removed first) before the next piece.
+# (no ckpt.tgz.* here yet) or resumes it from this folder's checkpoint (ckpt.tgz.*, parts of one
+# archive) and compilation cache (cache.tgz.*), with --time-limit SECONDS counted from the start of
+# this script, and writes the new ckpt.tgz.*, cache.tgz.* and run.log into $OUT; it exits with the
+# run's exit code (75: stopped at the time limit and saved). Copy those back over this folder's files
+# (old parts removed first) before the next piece.
 set -u
+: "${1:?usage: bash docs/results/bipedal_dcd_plr_inflight/piece.sh SECONDS}"
 # it replaces this tree's sources with the run's: only on the device's copy of the tree, where OUT is set
 : "${OUT:?piece.sh runs on the device machine (OUT unset here): it replaces shed_jax/, envs/ and experiments/ in place}"
 dir=docs/results/bipedal_dcd_plr_inflight
@@ -22,8 +24,8 @@ fi
 export PYTHONUNBUFFERED=1 SHED_JAX_CACHE=$PWD/.cache/device
 rm -rf shed_jax envs experiments && tar xzf $dir/src.tgz || exit 4
 mkdir -p runs .cache
-if [ -f $dir/ckpt.tgz ]; then
-  tar xzf $dir/ckpt.tgz
+if ls $dir/ckpt.tgz.* >/dev/null 2>&1; then
+  cat $dir/ckpt.tgz.* | tar xzf - || exit 5
   what="--resume $run"
 else
   what="--env bipedal --method plr --preset dcd --seeds 5 --out $run"
@@ -31,7 +33,13 @@ fi
 if ls $dir/cache.tgz.* >/dev/null 2>&1; then cat $dir/cache.tgz.* | tar xzf -; fi
 lim=$(( $1 - ($(date +%s) - t0) ))
 timeout -k 10 $(( lim + 25 )) python -m shed_jax run $what --keep 1 --no-gif --time-limit $lim > $OUT/run.log 2>&1
-echo "rc $? after $(( $(date +%s) - t0 )) s"
-[ -d $run ] && tar czf $OUT/ckpt.tgz $run
+rc=$?
+echo "rc $rc after $(( $(date +%s) - t0 )) s"
+# the checkpoint in parts under the 16 MiB a call returns, written whole before it is put in $OUT
+if [ -d $run ]; then
+  tar czf /tmp/ckpt.tgz $run && gzip -t /tmp/ckpt.tgz && split -b 15M /tmp/ckpt.tgz $OUT/ckpt.tgz. || echo "no checkpoint packed"
+  ls -l $OUT/ckpt.tgz.*
+fi
 tar czf - .cache/device | split -b 15M - $OUT/cache.tgz.
 tail -c 2000 $OUT/run.log | tr '\r' '\n' | grep -v '^ *$' | tail -4
+exit $rc
