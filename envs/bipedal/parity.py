@@ -297,7 +297,7 @@ def gym_state(env, walker: BipedalWalker, terrain=None, prev_angle=None, time: i
     from envs import physics2d
     from envs.bipedal import model as M
     from envs.physics2d import joint as jnt
-    from envs.physics2d.world import BOX_KEY, edge_constraints
+    from envs.physics2d.world import edge_constraints, fixture_keys
     from envs.walker import terrain as T
 
     model, o = walker.model, walker.options
@@ -341,7 +341,7 @@ def gym_state(env, walker: BipedalWalker, terrain=None, prev_angle=None, time: i
             v = np.asarray(shape.vertices, np.float64)
             x0 = np.float32(v[:, 0].min())
             is_box = type(shape).__name__ == "b2PolygonShape"
-            fkey = int(BOX_KEY - np.round(x0 * np.float32(1000.0))) if is_box else int(np.round(x0 * np.float32(1000.0)))
+            fkey = int(fixture_keys(x0, box=is_box))
             swap = lambda k: ((k >> 8) & 255) | ((k & 255) << 8) | (((k >> 24) & 255) << 16) | (((k >> 16) & 255) << 24)  # noqa: E731
             pts = {(swap(int(p.id.key)) if leg_is_a else int(p.id.key)): (p.normalImpulse, p.tangentImpulse)
                    for p in c.manifold.points[: c.manifold.pointCount]}

@@ -60,6 +60,13 @@ def collide(model: Model, bodies: BodyState, ground):
 BOX_KEY = -1_000_000  # warm-start keys of box obstacles: BOX_KEY - round(1000 x0), apart from the edges'
 
 
+def fixture_keys(x0, box: bool = False):
+    """The warm-start keys of static fixtures whose left ends are at ``x0`` (float32): round(1000 x0) for
+    an edge, BOX_KEY - round(1000 x0) for a box obstacle (int32, ``x0``'s shape)."""
+    keys = jnp.round(jnp.asarray(x0, jnp.float32) * 1000.0).astype(jnp.int32)
+    return BOX_KEY - keys if box else keys
+
+
 def edge_constraints(model: Model, bodies: BodyState, edges, valid, boxes=None, box_valid=None):
     """Box2D's manifolds of every solid polygon against every ground edge (edge-vs-polygon) and every
     box obstacle (polygon-vs-polygon), the first ``config.edge_contacts`` touching ones per polygon
@@ -78,7 +85,7 @@ def edge_constraints(model: Model, bodies: BodyState, edges, valid, boxes=None, 
     lc = np.asarray(model.local_com, np.float64)
     n_box = 0 if boxes is None else boxes.shape[0]
     if n_box:
-        box_x0 = jnp.round(boxes[:, 0] * 1000.0).astype(jnp.int32)
+        box_keys = fixture_keys(boxes[:, 0], box=True)
     parts, pairs, box_pairs = [], [], []
     for k, poly in enumerate(model.polygons):
         if k not in model.edge_polygons:
@@ -93,12 +100,12 @@ def edge_constraints(model: Model, bodies: BodyState, edges, valid, boxes=None, 
         centroid = bodies.com[i] + rotate(bodies.angle[i], jnp.asarray(centroid - lc[i], jnp.float32))
         m = edg.polygon_edges_manifolds(edges, valid, verts, normals, centroid, cfg.contact_radius)
         pairs.append(m["on"][:, 0])
-        keys = jnp.round(edges[:, 0, 0] * 1000.0).astype(jnp.int32)
+        keys = fixture_keys(edges[:, 0, 0])
         if n_box:
             mb = pg.polygon_obstacles_manifolds(boxes, box_valid, verts, normals, centroid, cfg.contact_radius)
             box_pairs.append(mb["on"][:, 0])
             m = {name: jnp.concatenate([m[name], mb[name]]) for name in m}
-            keys = jnp.concatenate([keys, BOX_KEY - box_x0])
+            keys = jnp.concatenate([keys, box_keys])
         sel = edg.select_edges(m, k_edges)  # leaves (K, 2, ...) per point or (K, ...) per manifold
         edge_key = jnp.sum(jnp.where(jnp.arange(keys.shape[0])[None] == sel["edge"][:, None], keys[None], 0), 1)
         two = lambda a: jnp.repeat(a, 2, axis=0)  # per manifold -> per point
