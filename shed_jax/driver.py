@@ -368,7 +368,7 @@ def compile_batch(batch: Batch, placed: Placed, done: int, state=None, say: Call
     chunks = (f"a chunk of {sizes[0]} budget step(s)" if len(sizes) == 1 else
               f"chunks of {sizes[0]} and {sizes[1]} budget steps" if sizes else "")
     what = " and ".join(x for x in ("the initial state" if fresh else "", chunks) if x)
-    say(f"[shed_jax] compiling {what} (minutes for a large program on a CPU)...")
+    say(f"[shed_jax] compiling {what} (minutes for a large program)...")
     run_chunk = sharding.sharded_run(batch.run, placed.mesh)
 
     def compile_all(state):
