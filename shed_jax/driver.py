@@ -59,14 +59,26 @@ class StartupInterrupted(Exception):
         self.signum = signum
 
 
+class ResultsInterrupted(BaseException):
+    """SIGINT/SIGTERM while a finished run writes its results (plots, final evaluation, summary, GIF):
+    the run stops at once; its last checkpoint is saved, and a resume writes the results again. A
+    BaseException, so that the ``except Exception`` guards of the final evaluation and the GIF (whose
+    failures must not fail a run) let it through."""
+
+    def __init__(self, signum: int):
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
+
+
 class StopRequest:
     """SIGINT/SIGTERM set ``signum``; the loop finishes its chunk, saves and exits 128 + signum.
 
     While ``startup`` is true (validation, building, compiling: before the first chunk runs) a
     signal raises :class:`StartupInterrupted` in the main thread instead; the compile runs in a
-    worker thread meanwhile (``in_worker``), so this happens at once. A second signal aborts at
-    once (the last complete checkpoint stays). Handlers are installed only in the main thread and
-    restored on exit.
+    worker thread meanwhile (``in_worker``), so this happens at once. While ``results`` is true
+    (training is over and saved; the results are being written) it raises
+    :class:`ResultsInterrupted` likewise. A second signal aborts at once (the last complete
+    checkpoint stays). Handlers are installed only in the main thread and restored on exit.
     """
 
     SIGNALS = (signal.SIGINT, signal.SIGTERM)
@@ -74,6 +86,7 @@ class StopRequest:
     def __init__(self):
         self.signum: int | None = None
         self.startup = True
+        self.results = False
         self._previous: dict = {}
 
     def __enter__(self):
@@ -96,6 +109,8 @@ class StopRequest:
         self.signum = signum
         if self.startup:
             raise StartupInterrupted(signum)
+        if self.results:
+            raise ResultsInterrupted(signum)
         print(f"\n[shed_jax] {signal.Signals(signum).name}: finishing the current chunk, then saving "
               f"(send it again to stop at once without saving)", file=sys.stderr, flush=True)
 
@@ -163,6 +178,21 @@ def in_worker(fn, name: str = "compile", heartbeat: float | None = None, what: s
 # shutdown under them aborts ("terminate called ...", exit 134), so ``python -m shed_jax`` then ends
 # the process at once (shed_jax/__main__.py, ``_exit``).
 EXIT_AT_ONCE = threading.Event()
+
+
+def results_interrupted(signum: int, stage: str, out: pathlib.Path, saved: int | None) -> int:
+    """The line for a signal while a finished run writes its results: what was cut, what is kept; 128 + signum."""
+    EXIT_AT_ONCE.set()  # the final evaluation may be inside XLA in its worker thread
+    name = signal.Signals(signum).name
+    if (out / "summary.json").exists():
+        kept = "the run's results and summary.json are written; only the GIF is missing"
+    elif saved is not None:
+        kept = (f"training is finished and its checkpoint (budget step {saved}) is saved; write the plots, the "
+                f"final evaluation and summary.json with: {rundir.resume_command(out)}")
+    else:
+        kept = "the run wrote no checkpoint (--no-checkpoint), so these results cannot be written later"
+    print(f"[shed_jax] {name} while {stage}: stopped; {kept}", file=sys.stderr, flush=True)
+    return 128 + signum
 
 
 def startup_interrupted(signum: int, resume: str | None, made: list) -> int:
@@ -688,7 +718,7 @@ def write_results(batch: Batch, progress: Progress, out: Output, w: Writes, *, w
                 final_eval(batch.exp, batch.env, batch.student, students, batch.num_seeds, resolved, d, progress.done,
                            final_episodes)
             w.stage = f"writing summary.json{where(d)}"
-            (d / "summary.json").write_text(json.dumps(summary, indent=2))
+            rundir.write_atomic(d / "summary.json", json.dumps(summary, indent=2))
         summaries.append(summary)
     return summaries
 
@@ -767,8 +797,8 @@ def final_eval(exp, env, student, student_state, num_seeds: int, resolved, out: 
     path = out / f"final_eval_{body['levels']}.json"
     from shed_jax.runtime import provenance
 
-    path.write_text(json.dumps({"run": str(out), "budget_step": step, "wall_time_s": time.time() - t0,
-                                **provenance("shed_jax"), **body}, indent=2))
+    rundir.write_atomic(path, json.dumps({"run": str(out), "budget_step": step, "wall_time_s": time.time() - t0,
+                                          **provenance("shed_jax"), **body}, indent=2))
     solved = f"solved: return > {body['solved_threshold']:g}" if body["solved_threshold"] is not None else "no solved threshold"
     print(f"[shed_jax] final students on {body['levels']!r} ({num_seeds} seed(s) x {episodes} episode(s) per level, {solved}):")
     print(text)
@@ -820,8 +850,8 @@ class RunOptions:
     ppo: list = dataclasses.field(default_factory=list)
     out: str | None = None
     no_gif: bool | None = None  # None: the resumed run's choice, else False (OUTPUT_DEFAULTS)
-    final_eval: str | None = None
-    final_eval_episodes: int = 10
+    final_eval: str | None = None  # None: the resumed run's choice, else the env's own (OUTPUT_DEFAULTS)
+    final_eval_episodes: int | None = None  # None: the resumed run's, else 10
     resume: str | None = None
     from_step: int | None = None
     restart: bool = False
@@ -837,7 +867,7 @@ class RunOptions:
 
     #: how a run keeps its outputs: saved with the run (config.json's ``output``), so ``--resume`` goes on
     #: as the run started unless the flag is given again (the last one given is saved in turn)
-    OUTPUT_DEFAULTS = {"keep": 3, "checkpoint_every": 0.0, "no_gif": False}
+    OUTPUT_DEFAULTS = {"keep": 3, "checkpoint_every": 0.0, "no_gif": False, "final_eval": None, "final_eval_episodes": 10}
 
     @classmethod
     def from_args(cls, args) -> "RunOptions":
@@ -1013,15 +1043,20 @@ def _train_run(opts, plan, batch, compiled, progress, final_sets, stop) -> int:
                 print("[shed_jax] no checkpoint was written (--no-checkpoint): this run cannot be resumed")
         return code
     wall = progress.wall()
+    if stop.signals is not None:
+        stop.signals.results = True  # training is saved: a signal from here on stops at once
     with Writes(safe, "writing the plots") as w:
-        print(f"[shed_jax] training done ({progress.done}/{total} budget steps); writing the plots and summary.json...",
-              flush=True)
-        summary, = write_results(batch, progress, output, w, wall=wall, final_sets=final_sets,
-                                 final_episodes=opts.final_eval_episodes,
-                                 extras=[{"wall_time_per_chunk_s": progress.wall_per_chunk()}])
-        if not opts.no_gif:
-            w.stage = "writing final_student.gif"
-            gif(batch.env, batch.student, progress.state, batch.tests, out)
+        try:
+            print(f"[shed_jax] training done ({progress.done}/{total} budget steps); writing the plots and summary.json...",
+                  flush=True)
+            summary, = write_results(batch, progress, output, w, wall=wall, final_sets=final_sets,
+                                     final_episodes=opts.final_eval_episodes,
+                                     extras=[{"wall_time_per_chunk_s": progress.wall_per_chunk()}])
+            if not opts.no_gif:
+                w.stage = "writing final_student.gif"
+                gif(batch.env, batch.student, progress.state, batch.tests, out)
+        except ResultsInterrupted as sig:
+            return results_interrupted(sig.signum, w.stage, out, progress.saved)
     print(json.dumps({k: summary[k] for k in ("final_test_return_mean", "final_test_return_se", "wall_time_s")}, indent=2))
     print(f"[shed_jax] results in {out}")
     return 0

@@ -54,6 +54,14 @@ class RunPlan:
     finished: bool = False  # a resumed run that already wrote its summary: nothing to do once its checkpoint reads back
 
 
+def write_atomic(path: pathlib.Path, text: str) -> None:
+    """``path`` holds all of ``text`` or what it held before, never a part: a finished run's
+    ``summary.json`` marks it finished, so a kill mid-write must not leave half of one."""
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
 def plan_fresh(opts, backend: str) -> RunPlan:
     """The plan of a new run from ``opts`` (the run flags as attributes)."""
     import jax

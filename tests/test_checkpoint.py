@@ -168,14 +168,21 @@ def test_resume_is_bitwise_exact(runs, capsys):
         assert (b / name).exists()
     assert not (b / "final_student.gif").exists()
     with ck.RunCheckpointer(b, create=False) as reader:
-        assert reader.read_config()["output"] == {"keep": 2, "checkpoint_every": 0.0, "no_gif": True}
+        assert reader.read_config()["output"] == {"keep": 2, "checkpoint_every": 0.0, "no_gif": True, "final_eval": None,
+                                                  "final_eval_episodes": 10}
 
 
 def test_output_settings_come_from_the_flag_then_the_saved_run_then_the_default():
     opts = driver.RunOptions(keep=5).with_output({"keep": 1, "no_gif": True})
     assert (opts.keep, opts.checkpoint_every, opts.no_gif) == (5, 0.0, True)
-    assert driver.RunOptions().with_output(None).output() == {"keep": 3, "checkpoint_every": 0.0, "no_gif": False}
+    assert driver.RunOptions().with_output(None).output() == {"keep": 3, "checkpoint_every": 0.0, "no_gif": False,
+                                                              "final_eval": None, "final_eval_episodes": 10}
     assert driver.RunOptions(no_gif=False).with_output({"no_gif": True}).no_gif is False
+    # the final evaluation's level sets and episodes: a run saved before they were saved gets the defaults
+    saved = {"final_eval": "test", "final_eval_episodes": 3}
+    assert (lambda o: (o.final_eval, o.final_eval_episodes))(driver.RunOptions().with_output(saved)) == ("test", 3)
+    assert (lambda o: (o.final_eval, o.final_eval_episodes))(driver.RunOptions().with_output({"keep": 1})) == (None, 10)
+    assert driver.RunOptions(final_eval="none", final_eval_episodes=5).with_output(saved).final_eval_episodes == 5
 
 
 def test_config_mismatch_names_the_keys(runs, patched, capsys):

@@ -303,6 +303,60 @@ def test_signal_during_resume_startup_names_the_resume(finished, patched, tmp_pa
     assert snapshot(d / "checkpoints") == ckpts
 
 
+def test_signal_during_the_final_evaluation_stops_at_once_and_a_resume_writes_the_results(finished, patched, tmp_path,
+                                                                                          monkeypatch):
+    """Training is over and saved: a first signal in the final evaluation stops the run at once (the
+    evaluation may take an hour), not after it; nothing marks the run finished, and a resume
+    writes the results."""
+    d = copy_of(finished, tmp_path, "evaluating")
+    (d / "summary.json").unlink()
+    (d / "final_eval_test.json").unlink()
+    ckpts = snapshot(d / "checkpoints")
+    original = driver.in_worker
+
+    def worker(fn, name="compile", **kwargs):
+        if name == "eval":
+            return signal_during_compile(signal.SIGTERM)(fn, name)
+        return original(fn, name, **kwargs)
+
+    monkeypatch.setattr(driver, "in_worker", worker)
+    monkeypatch.setattr(driver, "EXIT_AT_ONCE", threading.Event())
+    again = ["--resume", str(d)]  # the run's --final-eval test --final-eval-episodes 3 are saved with it
+    code, out, err = run(again)
+    assert code == 143, out + err
+    assert driver.EXIT_AT_ONCE.is_set()  # the evaluation's worker may be inside XLA
+    assert (f"[shed_jax] SIGTERM while writing the final evaluation on 'test': stopped; training is finished and its "
+            f"checkpoint (budget step 4) is saved; write the plots, the final evaluation and summary.json with: "
+            f"python -m shed_jax run --resume {d}") in err
+    assert "final evaluation on 'test' failed" not in err and "Traceback" not in err
+    assert not (d / "summary.json").exists() and not (d / "final_eval_test.json").exists()
+    assert snapshot(d / "checkpoints") == ckpts
+    monkeypatch.setattr(driver, "in_worker", original)
+    code, out, err = run(again)
+    assert code == 0, err
+    unclocked = lambda path: {k: v for k, v in json.loads(path.read_text()).items() if "wall" not in k}  # noqa: E731
+    assert unclocked(d / "summary.json") == unclocked(finished["dir"] / "summary.json")
+    assert json.loads((d / "final_eval_test.json").read_text())["returns"] == \
+        json.loads((finished["dir"] / "final_eval_test.json").read_text())["returns"]
+
+
+def test_write_atomic_leaves_the_old_file_when_the_write_fails(tmp_path, monkeypatch):
+    path = tmp_path / "summary.json"
+    path.write_text("old")
+    rundir.write_atomic(path, "new")
+    assert path.read_text() == "new" and not (tmp_path / "summary.json.tmp").exists()
+
+    def cut(self, text):
+        open(self, "w").write(text[:2])
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(type(path), "write_text", cut)
+    with pytest.raises(OSError):
+        rundir.write_atomic(path, "newer")
+    monkeypatch.undo()
+    assert path.read_text() == "new"
+
+
 # ---- failed writes ------------------------------------------------------------------------------
 
 def failing_save(at_step, exc):

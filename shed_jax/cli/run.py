@@ -55,9 +55,11 @@ def add_arguments(p) -> None:
     p.add_argument("--final-eval", default=None, metavar="LEVELS",
                    help="after the last budget step, evaluate the final students on level sets as `eval --levels` "
                         "does (test | named | FILE.json, comma-separated, or none) and write final_eval_<set>.json; "
-                        "default: the env's own choice (its UEDSpec.final_eval): named on walker and bipedal, none elsewhere")
-    p.add_argument("--final-eval-episodes", type=count, default=10, metavar="N",
-                   help="episodes per level and seed of --final-eval (default 10); the episode cap is the test set's")
+                        "default: the env's own choice (its UEDSpec.final_eval): named on walker and bipedal, none elsewhere; "
+                        "saved with the run: --resume keeps it")
+    p.add_argument("--final-eval-episodes", type=count, default=None, metavar="N",
+                   help="episodes per level and seed of --final-eval (default 10; saved with the run: --resume keeps it); "
+                        "the episode cap is the test set's")
     g = p.add_argument_group("checkpoints and stopping")
     g.add_argument("--resume", default=None, metavar="DIR",
                    help="continue the run in DIR from its latest checkpoint (its saved configuration is used; "
