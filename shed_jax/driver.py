@@ -180,12 +180,14 @@ def in_worker(fn, name: str = "compile", heartbeat: float | None = None, what: s
 EXIT_AT_ONCE = threading.Event()
 
 
-def results_interrupted(signum: int, stage: str, out: pathlib.Path, saved: int | None) -> int:
-    """The line for a signal while a finished run writes its results: what was cut, what is kept; 128 + signum."""
+def results_interrupted(signum: int, stage: str, out: pathlib.Path, saved: int | None, gif: bool) -> int:
+    """The line for a signal after training, before or while a finished run writes its results: what
+    was cut, what is kept (``gif``: the run makes a GIF); 128 + signum."""
     EXIT_AT_ONCE.set()  # the final evaluation may be inside XLA in its worker thread
     name = signal.Signals(signum).name
     if (out / "summary.json").exists():
-        kept = "the run's results and summary.json are written; only the GIF is missing"
+        kept = "the run is finished (its results and summary.json are written)" + (
+            "; its GIF was not made, and a resume will not make it" if gif else "")
     elif saved is not None:
         kept = (f"training is finished and its checkpoint (budget step {saved}) is saved; write the plots, the "
                 f"final evaluation and summary.json with: {rundir.resume_command(out)}")
@@ -1043,8 +1045,11 @@ def _train_run(opts, plan, batch, compiled, progress, final_sets, stop) -> int:
                 print("[shed_jax] no checkpoint was written (--no-checkpoint): this run cannot be resumed")
         return code
     wall = progress.wall()
-    if stop.signals is not None:
-        stop.signals.results = True  # training is saved: a signal from here on stops at once
+    signals = stop.signals
+    if signals is not None:
+        if signals.signum is not None:  # it came during the last chunk (which finished and is saved)
+            return results_interrupted(signals.signum, "training the last budget step", out, progress.saved, not opts.no_gif)
+        signals.results = True  # training is saved: a signal from here on stops at once
     with Writes(safe, "writing the plots") as w:
         try:
             print(f"[shed_jax] training done ({progress.done}/{total} budget steps); writing the plots and summary.json...",
@@ -1055,8 +1060,10 @@ def _train_run(opts, plan, batch, compiled, progress, final_sets, stop) -> int:
             if not opts.no_gif:
                 w.stage = "writing final_student.gif"
                 gif(batch.env, batch.student, progress.state, batch.tests, out)
+            if signals is not None:
+                signals.results = False  # all is written: a signal now takes the ordinary path
         except ResultsInterrupted as sig:
-            return results_interrupted(sig.signum, w.stage, out, progress.saved)
+            return results_interrupted(sig.signum, w.stage, out, progress.saved, not opts.no_gif)
     print(json.dumps({k: summary[k] for k in ("final_test_return_mean", "final_test_return_se", "wall_time_s")}, indent=2))
     print(f"[shed_jax] results in {out}")
     return 0

@@ -58,8 +58,12 @@ def write_atomic(path: pathlib.Path, text: str) -> None:
     """``path`` holds all of ``text`` or what it held before, never a part: a finished run's
     ``summary.json`` marks it finished, so a kill mid-write must not leave half of one."""
     tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
+    try:
+        tmp.write_text(text)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
 
 
 def plan_fresh(opts, backend: str) -> RunPlan:

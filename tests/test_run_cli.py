@@ -340,6 +340,28 @@ def test_signal_during_the_final_evaluation_stops_at_once_and_a_resume_writes_th
         json.loads((finished["dir"] / "final_eval_test.json").read_text())["returns"]
 
 
+def test_signal_during_the_last_chunk_saves_it_and_stops_before_the_results(finished, patched, tmp_path, monkeypatch):
+    d = copy_of(finished, tmp_path, "last")
+    for name in ("summary.json", "final_eval_test.json"):
+        (d / name).unlink()
+    shutil.rmtree(d / "checkpoints" / "4")  # stopped at budget step 3: the resume runs the last chunk
+    real = driver.extend_history
+
+    def extend_history(*args, **kwargs):  # after a chunk ran, before it is saved
+        signal.raise_signal(signal.SIGTERM)  # the run's own handler
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(driver, "extend_history", extend_history)
+    monkeypatch.setattr(driver, "EXIT_AT_ONCE", threading.Event())
+    code, out, err = run(["--resume", str(d)])
+    assert code == 143, out + err
+    assert (f"SIGTERM while training the last budget step: stopped; training is finished and its checkpoint (budget "
+            f"step 4) is saved; write the plots, the final evaluation and summary.json with: python -m shed_jax run "
+            f"--resume {d}") in err
+    assert (d / "checkpoints" / "4").is_dir() and not (d / "summary.json").exists()
+    assert "training done" not in out  # no result was started
+
+
 def test_write_atomic_leaves_the_old_file_when_the_write_fails(tmp_path, monkeypatch):
     path = tmp_path / "summary.json"
     path.write_text("old")
@@ -354,7 +376,30 @@ def test_write_atomic_leaves_the_old_file_when_the_write_fails(tmp_path, monkeyp
     with pytest.raises(OSError):
         rundir.write_atomic(path, "newer")
     monkeypatch.undo()
-    assert path.read_text() == "new"
+    assert path.read_text() == "new" and not (tmp_path / "summary.json.tmp").exists()
+
+
+@pytest.mark.parametrize("case", ["saved", "finished", "finished-no-gif", "no-checkpoint"])
+def test_results_interrupted_says_what_is_kept(tmp_path, monkeypatch, capsys, case):
+    monkeypatch.setattr(driver, "EXIT_AT_ONCE", threading.Event())
+    if case.startswith("finished"):
+        (tmp_path / "summary.json").write_text("{}")
+    code = driver.results_interrupted(signal.SIGINT, "writing the plots", tmp_path, None if case == "no-checkpoint" else 7,
+                                      case != "finished-no-gif")
+    err = capsys.readouterr().err.strip()
+    assert code == 130 and driver.EXIT_AT_ONCE.is_set() and err.startswith("[shed_jax] SIGINT while writing the plots: stopped; ")
+    assert err.endswith({
+        "saved": f"checkpoint (budget step 7) is saved; write the plots, the final evaluation and summary.json with: "
+                 f"python -m shed_jax run --resume {tmp_path}",
+        "finished": "summary.json are written); its GIF was not made, and a resume will not make it",
+        "finished-no-gif": "the run is finished (its results and summary.json are written)",
+        "no-checkpoint": "the run wrote no checkpoint (--no-checkpoint), so these results cannot be written later"}[case])
+
+
+def test_final_evaluation_flags_default_to_the_saved_run():
+    """Not given, --final-eval and --final-eval-episodes parse to None, so a resume takes the run's own."""
+    args = parse(["--out", "x"])
+    assert args.final_eval is None and args.final_eval_episodes is None
 
 
 # ---- failed writes ------------------------------------------------------------------------------
