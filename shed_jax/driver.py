@@ -87,6 +87,7 @@ class StopRequest:
         self.signum: int | None = None
         self.startup = True
         self.results = False
+        self.finishing = "finishing the current chunk, then saving"  # what a first signal lets happen (its line)
         self._previous: dict = {}
 
     def __enter__(self):
@@ -111,7 +112,7 @@ class StopRequest:
             raise StartupInterrupted(signum)
         if self.results:
             raise ResultsInterrupted(signum)
-        print(f"\n[shed_jax] {signal.Signals(signum).name}: finishing the current chunk, then saving "
+        print(f"\n[shed_jax] {signal.Signals(signum).name}: {self.finishing} "
               f"(send it again to stop at once without saving)", file=sys.stderr, flush=True)
 
     def poll(self) -> int | None:
@@ -180,19 +181,17 @@ def in_worker(fn, name: str = "compile", heartbeat: float | None = None, what: s
 EXIT_AT_ONCE = threading.Event()
 
 
-def results_interrupted(signum: int, stage: str, out: pathlib.Path, saved: int | None, gif: bool) -> int:
-    """The line for a signal after training, before or while a finished run writes its results: what
-    was cut, what is kept (``gif``: the run makes a GIF); 128 + signum."""
+def results_interrupted(signum: int, stage: str, out: pathlib.Path, saved: int, gif: bool) -> int:
+    """The line for a signal after training (checkpoint ``saved``), before or while a finished run writes
+    its results: what was cut, what is kept (``gif``: the run makes a GIF); 128 + signum."""
     EXIT_AT_ONCE.set()  # the final evaluation may be inside XLA in its worker thread
     name = signal.Signals(signum).name
     if (out / "summary.json").exists():
         kept = "the run is finished (its results and summary.json are written)" + (
             "; its GIF was not made, and a resume will not make it" if gif else "")
-    elif saved is not None:
+    else:
         kept = (f"training is finished and its checkpoint (budget step {saved}) is saved; write the plots, the "
                 f"final evaluation and summary.json with: {rundir.resume_command(out)}")
-    else:
-        kept = "the run wrote no checkpoint (--no-checkpoint), so these results cannot be written later"
     print(f"[shed_jax] {name} while {stage}: stopped; {kept}", file=sys.stderr, flush=True)
     return 128 + signum
 
@@ -1046,10 +1045,12 @@ def _train_run(opts, plan, batch, compiled, progress, final_sets, stop) -> int:
         return code
     wall = progress.wall()
     signals = stop.signals
-    if signals is not None:
+    if signals is not None and progress.saved is not None:
         if signals.signum is not None:  # it came during the last chunk (which finished and is saved)
             return results_interrupted(signals.signum, "training the last budget step", out, progress.saved, not opts.no_gif)
         signals.results = True  # training is saved: a signal from here on stops at once
+    elif signals is not None:  # --no-checkpoint: the results are all there is, so a first signal lets them be written
+        signals.finishing = "writing the results first (no checkpoint was saved, so they cannot be written later)"
     with Writes(safe, "writing the plots") as w:
         try:
             print(f"[shed_jax] training done ({progress.done}/{total} budget steps); writing the plots and summary.json...",

@@ -362,6 +362,25 @@ def test_signal_during_the_last_chunk_saves_it_and_stops_before_the_results(fini
     assert "training done" not in out  # no result was started
 
 
+def test_without_checkpoints_a_signal_in_the_final_evaluation_lets_the_results_be_written(patched, tmp_path, monkeypatch):
+    """--no-checkpoint: nothing could write the results later, so the first signal does not cut them."""
+    e = tmp_path / "E"
+    original = driver.in_worker
+
+    def worker(fn, name="compile", **kwargs):
+        if name == "eval" and kwargs.get("what") == "compiling":
+            signal.raise_signal(signal.SIGINT)  # the run's own handler
+        return original(fn, name, **kwargs)
+
+    monkeypatch.setattr(driver, "in_worker", worker)
+    code, out, err = run(["--out", str(e), *BASE, "--no-checkpoint", "--no-gif", "--final-eval", "test",
+                          "--final-eval-episodes", "3"])
+    assert code == 0, out + err
+    assert ("SIGINT: writing the results first (no checkpoint was saved, so they cannot be written later) "
+            "(send it again to stop at once without saving)") in err
+    assert (e / "summary.json").exists() and (e / "final_eval_test.json").exists()
+
+
 def test_write_atomic_leaves_the_old_file_when_the_write_fails(tmp_path, monkeypatch):
     path = tmp_path / "summary.json"
     path.write_text("old")
@@ -379,21 +398,19 @@ def test_write_atomic_leaves_the_old_file_when_the_write_fails(tmp_path, monkeyp
     assert path.read_text() == "new" and not (tmp_path / "summary.json.tmp").exists()
 
 
-@pytest.mark.parametrize("case", ["saved", "finished", "finished-no-gif", "no-checkpoint"])
+@pytest.mark.parametrize("case", ["saved", "finished", "finished-no-gif"])
 def test_results_interrupted_says_what_is_kept(tmp_path, monkeypatch, capsys, case):
     monkeypatch.setattr(driver, "EXIT_AT_ONCE", threading.Event())
     if case.startswith("finished"):
         (tmp_path / "summary.json").write_text("{}")
-    code = driver.results_interrupted(signal.SIGINT, "writing the plots", tmp_path, None if case == "no-checkpoint" else 7,
-                                      case != "finished-no-gif")
+    code = driver.results_interrupted(signal.SIGINT, "writing the plots", tmp_path, 7, case != "finished-no-gif")
     err = capsys.readouterr().err.strip()
     assert code == 130 and driver.EXIT_AT_ONCE.is_set() and err.startswith("[shed_jax] SIGINT while writing the plots: stopped; ")
     assert err.endswith({
         "saved": f"checkpoint (budget step 7) is saved; write the plots, the final evaluation and summary.json with: "
                  f"python -m shed_jax run --resume {tmp_path}",
         "finished": "summary.json are written); its GIF was not made, and a resume will not make it",
-        "finished-no-gif": "the run is finished (its results and summary.json are written)",
-        "no-checkpoint": "the run wrote no checkpoint (--no-checkpoint), so these results cannot be written later"}[case])
+        "finished-no-gif": "the run is finished (its results and summary.json are written)"}[case])
 
 
 def test_final_evaluation_flags_default_to_the_saved_run():
