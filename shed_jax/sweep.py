@@ -402,9 +402,16 @@ def run_group(built: BuiltGroup, *, out: pathlib.Path, mesh, pad: bool = True, p
     extras = [dict(wall_time_per_seed_s=wall / (P * S), runs_in_group=P * S, group=group.label,
                    first_chunk_s=progress.first_chunk_s, wall_time_per_chunk_s=progress.wall_per_chunk(),
                    devices=mesh.size, point=p.name, values=p.values) for p in group.points]
-    with driver.Writes(safe) as w:
-        summaries = driver.write_results(batch, progress, output, w, wall=wall, plots=plots, final_sets=final_sets,
-                                         final_episodes=final_episodes, extras=extras)
+    signals, finishing = stop.signals, getattr(stop.signals, "finishing", None)
+    if signals is not None:  # the group is trained: a first signal lets its results be written, then the sweep stops
+        signals.finishing = f"writing the results of {group.label}, then stopping before the next group"
+    try:
+        with driver.Writes(safe) as w:
+            summaries = driver.write_results(batch, progress, output, w, wall=wall, plots=plots, final_sets=final_sets,
+                                             final_episodes=final_episodes, extras=extras)
+    finally:
+        if signals is not None:
+            signals.finishing = finishing
     return [_row(out, group, point, summary, S) for point, summary in zip(group.points, summaries)]
 
 

@@ -168,3 +168,22 @@ def test_signal_during_resume_startup_names_the_resume(tiny_sweep, tmp_path, mon
                             f"python -m shed_jax sweep --resume {h}") in err
     assert {k: v for k, v in snapshot(h).items() if k.startswith("checkpoints")} == \
         {k: v for k, v in before.items() if k.startswith("checkpoints")}
+
+
+def test_signal_while_a_group_writes_its_results_says_so_and_lets_them_be_written(tiny_sweep, tmp_path, monkeypatch):
+    from shed_jax import driver
+
+    s = tmp_path / "S"
+    original = driver.in_worker
+
+    def worker(fn, name="compile", **kwargs):
+        if name == "eval" and kwargs.get("what") == "compiling":
+            signal.raise_signal(signal.SIGTERM)  # the sweep's own handler
+        return original(fn, name, **kwargs)
+
+    monkeypatch.setattr(driver, "in_worker", worker)
+    code, out, err = run_sweep_cli(["--out", str(s), *BASE, "--final-eval", "test", "--final-eval-episodes", "2"])
+    assert "SIGTERM: writing the results of plr, then stopping before the next group" in err, out + err
+    assert "finishing the current chunk" not in err
+    assert (s / "plr" / "default" / "summary.json").exists() and (s / "plr" / "default" / "final_eval_test.json").exists()
+    assert code == 0, out + err  # the last group: nothing was left to stop
