@@ -362,17 +362,23 @@ def test_signal_during_the_last_chunk_saves_it_and_stops_before_the_results(fini
     assert "training done" not in out  # no result was started
 
 
-def test_without_checkpoints_a_signal_in_the_final_evaluation_lets_the_results_be_written(patched, tmp_path, monkeypatch):
-    """--no-checkpoint: nothing could write the results later, so the first signal does not cut them."""
-    e = tmp_path / "E"
+def signal_as_the_evaluation_compiles(signum):
+    """driver.in_worker that raises ``signum`` (handled by the command's own handler) as the final
+    evaluation starts to compile, then does its work as usual."""
     original = driver.in_worker
 
     def worker(fn, name="compile", **kwargs):
         if name == "eval" and kwargs.get("what") == "compiling":
-            signal.raise_signal(signal.SIGINT)  # the run's own handler
+            signal.raise_signal(signum)
         return original(fn, name, **kwargs)
 
-    monkeypatch.setattr(driver, "in_worker", worker)
+    return worker
+
+
+def test_without_checkpoints_a_signal_in_the_final_evaluation_lets_the_results_be_written(patched, tmp_path, monkeypatch):
+    """--no-checkpoint: nothing could write the results later, so the first signal does not cut them."""
+    e = tmp_path / "E"
+    monkeypatch.setattr(driver, "in_worker", signal_as_the_evaluation_compiles(signal.SIGINT))
     code, out, err = run(["--out", str(e), *BASE, "--no-checkpoint", "--no-gif", "--final-eval", "test",
                           "--final-eval-episodes", "3"])
     assert code == 0, out + err

@@ -25,7 +25,7 @@ from shed_jax.cli import sweep as sweep_cli
 
 # the tiny CartPole experiment, its test levels, the patched run CLI and the straight run are test_checkpoint's
 from test_checkpoint import cartpole_test_levels, patched, run_a, tiny_experiment  # noqa: E402,F401
-from test_run_cli import error_line, failing_save, signal_during_compile, snapshot  # noqa: E402
+from test_run_cli import error_line, failing_save, signal_as_the_evaluation_compiles, signal_during_compile, snapshot  # noqa: E402,E501
 
 SEEDS = 2
 BASE = ["--methods", "plr", "--seeds", str(SEEDS), "--chunk", "1"]
@@ -174,14 +174,7 @@ def test_signal_while_a_group_writes_its_results_says_so_and_lets_them_be_writte
     from shed_jax import driver
 
     s = tmp_path / "S"
-    original = driver.in_worker
-
-    def worker(fn, name="compile", **kwargs):
-        if name == "eval" and kwargs.get("what") == "compiling":
-            signal.raise_signal(signal.SIGTERM)  # the sweep's own handler
-        return original(fn, name, **kwargs)
-
-    monkeypatch.setattr(driver, "in_worker", worker)
+    monkeypatch.setattr(driver, "in_worker", signal_as_the_evaluation_compiles(signal.SIGTERM))
     code, out, err = run_sweep_cli(["--out", str(s), *BASE, "--final-eval", "test", "--final-eval-episodes", "2"])
     assert "SIGTERM: writing the results of plr, then stopping before the next group" in err, out + err
     assert "finishing the current chunk" not in err
