@@ -120,7 +120,9 @@ def test_reward_rules_and_auto_reset(sim):
         np.testing.assert_allclose(r, expect, atol=2e-5)
         prev = s1
     # Torque cost uses clip(|a|, 0, 1): an action of 2 costs like 1 (no progress -> only the cost).
-    o, s1, r, d, info = jax.tree_util.tree_map(np.asarray, step(jax.random.split(jax.random.PRNGKey(6), B), s1, jnp.full((B, 4), 2.0), p))
+    # (float32, not jnp.full's weakly typed default: a weak action would compile the step a second time)
+    o, s1, r, d, info = jax.tree_util.tree_map(np.asarray, step(jax.random.split(jax.random.PRNGKey(6), B), s1,
+                                                                jnp.full((B, 4), 2.0, jnp.float32), p))
     np.testing.assert_allclose(r, shaping(s1.qpos) - shaping(prev.qpos) - 0.028 * 4, atol=2e-5)
     s_rest = s1
     # x < 0 -> -100, terminated, and an auto-reset to a fresh episode of the same level.
@@ -249,7 +251,7 @@ def _dot_precisions(env):
     """The precision attribute of every dot in one lowered (traced, not compiled) walker step."""
     import re
 
-    s = env.reset(jax.random.PRNGKey(0), env.default_params)[1]
+    s = jax.eval_shape(env.reset, jax.random.PRNGKey(0), env.default_params)[1]  # lowering needs only the shapes
     text = jax.jit(env.step).lower(jax.random.PRNGKey(1), s, jnp.zeros(4), env.default_params).as_text()
     return re.findall(r"dot_general.*?precision = \[(\w+), (\w+)\]", text)
 
