@@ -77,16 +77,17 @@ def test_from_vector_clips_into_the_box():
 
 
 def test_wrong_actions_raise_at_trace_time():
-    obs, s = env(False).reset(jax.random.PRNGKey(0))
+    # traced only (jax.eval_shape), never run: the errors come while the step is traced
+    obs, s = jax.eval_shape(env(False).reset, jax.random.PRNGKey(0))
     with pytest.raises(TypeError):
-        env(False).step(jax.random.PRNGKey(0), s, jnp.float32(1.0))
+        jax.eval_shape(env(False).step, jax.random.PRNGKey(0), s, jnp.float32(1.0))
     with pytest.raises(ValueError):
-        env(False).step(jax.random.PRNGKey(0), s, jnp.zeros((2,), jnp.int32))
-    obs, s = env(True).reset(jax.random.PRNGKey(0))
+        jax.eval_shape(env(False).step, jax.random.PRNGKey(0), s, jnp.zeros((2,), jnp.int32))
+    obs, s = jax.eval_shape(env(True).reset, jax.random.PRNGKey(0))
     with pytest.raises(ValueError):
-        env(True).step(jax.random.PRNGKey(0), s, jnp.zeros((3,), jnp.float32))
+        jax.eval_shape(env(True).step, jax.random.PRNGKey(0), s, jnp.zeros((3,), jnp.float32))
     with pytest.raises(TypeError):
-        env(True).step(jax.random.PRNGKey(0), s, jnp.zeros((2,), jnp.int32))
+        jax.eval_shape(env(True).step, jax.random.PRNGKey(0), s, jnp.zeros((2,), jnp.int32))
 
 
 def test_reset_statistics_and_observation_normalisation():
@@ -264,8 +265,9 @@ def _random_rollout(n=256, t=32):
 
 def test_render_frame():
     e = env(False)
-    obs, s = e.reset(jax.random.PRNGKey(0))
-    f = e.render(s)
+    reset, _ = batched()  # the shared compiled reset (batch 4), not an op-by-op one; its first state
+    obs, s = reset(jnp.stack([jax.random.PRNGKey(0)] * 4), levels(4))
+    f = e.render(jax.tree_util.tree_map(lambda x: x[0], s))
     assert f.shape == (400, 600, 3) and f.dtype == np.uint8
     assert (f == 0).all(-1).mean() > 0.05 and (f == 255).all(-1).mean() > 0.3  # ground and sky
     assert ((f[..., 0] == 128) & (f[..., 1] == 102)).sum() > 200  # the lander's colour
