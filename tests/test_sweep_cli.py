@@ -80,11 +80,21 @@ def test_user_errors_are_one_line_exit_2_and_leave_no_sweep_dir(cwd, capsys, arg
     assert list(cwd.iterdir()) == []  # no runs/sweep-... directory for a sweep that never started
 
 
-def test_a_sweep_of_one_point_is_the_run(tiny_sweep, run_a, tmp_path):
-    """The sweep compiles and says so as run does, and its one point's records are the run's, byte for byte."""
+def test_a_sweep_of_one_point_is_the_run_and_a_signal_as_it_writes_its_results_lets_them_be_written(
+        tiny_sweep, run_a, tmp_path, monkeypatch):
+    """The sweep compiles and says so as run does, and its one point's records are the run's, byte for
+    byte. A signal as its group's final evaluation compiles (after training) says that the group's
+    results are written first, and they are (one sweep for both checks: the signal comes after every
+    record is written)."""
+    from shed_jax import driver
+
     s = tmp_path / "S"
-    code, out, err = run_sweep_cli(["--out", str(s), *BASE])
-    assert code == 0, err
+    monkeypatch.setattr(driver, "in_worker", signal_as_the_evaluation_compiles(signal.SIGTERM))
+    code, out, err = run_sweep_cli(["--out", str(s), *BASE, "--final-eval", "test", "--final-eval-episodes", "2"])
+    assert "SIGTERM: writing the results of plr, then stopping before the next group" in err, out + err
+    assert "finishing the current chunk" not in err
+    assert (s / "plr" / "default" / "summary.json").exists() and (s / "plr" / "default" / "final_eval_test.json").exists()
+    assert code == 0, out + err  # the last group: nothing was left to stop
     lines = out.splitlines()
 
     def index(text):
@@ -168,15 +178,3 @@ def test_signal_during_resume_startup_names_the_resume(tiny_sweep, tmp_path, mon
                             f"python -m shed_jax sweep --resume {h}") in err
     assert {k: v for k, v in snapshot(h).items() if k.startswith("checkpoints")} == \
         {k: v for k, v in before.items() if k.startswith("checkpoints")}
-
-
-def test_signal_while_a_group_writes_its_results_says_so_and_lets_them_be_written(tiny_sweep, tmp_path, monkeypatch):
-    from shed_jax import driver
-
-    s = tmp_path / "S"
-    monkeypatch.setattr(driver, "in_worker", signal_as_the_evaluation_compiles(signal.SIGTERM))
-    code, out, err = run_sweep_cli(["--out", str(s), *BASE, "--final-eval", "test", "--final-eval-episodes", "2"])
-    assert "SIGTERM: writing the results of plr, then stopping before the next group" in err, out + err
-    assert "finishing the current chunk" not in err
-    assert (s / "plr" / "default" / "summary.json").exists() and (s / "plr" / "default" / "final_eval_test.json").exists()
-    assert code == 0, out + err  # the last group: nothing was left to stop
