@@ -98,10 +98,42 @@ def run_a(patched, tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def runs(run_a):
-    """A, and B: the same run stopped after 2 chunks (resumed by the test)."""
+    """A, and B: the same run (--keep 2) stopped by a SIGTERM raised as its second chunk is called, so
+    after 2 chunks (resumed by test_resume_is_bitwise_exact). While B ran, the order of its chunks and
+    of its writer thread's first write was recorded (test_writes_overlap_the_next_chunk_and_a_stop_saves_the_last_one):
+    chunk 0's write waits until chunk 1 has started (a sequential loop would time out there)."""
+    import threading
+
+    from shed_jax import reporting
+
+    events, chunk1 = [], threading.Event()
+    real_compile, real_append = driver.compile_batch, reporting.append_jsonl
+
+    def compile_batch(*args, **kw):
+        state, compiled = real_compile(*args, **kw)
+
+        def wrap(f):
+            def call(state, done):
+                events.append(("chunk", int(done)))
+                if done == 1:
+                    chunk1.set()
+                    signal.raise_signal(signal.SIGTERM)  # handled at the chunk boundary
+                return f(state, done)
+            return call
+        return state, {n: wrap(f) for n, f in compiled.items()}
+
+    def append(path, records):
+        step = int(records[0]["step"])
+        if step == 0:
+            events.append(("chunk 1 started during write 0", chunk1.wait(timeout=60)))
+        real_append(path, records)
+
     b = run_a.parent / "B"
-    rc_stop = run_cli.main(parse(["--out", str(b), "--seeds", str(SEEDS), "--chunk", "1", "--no-gif", "--stop-after", "2", "--keep", "2"]))
-    return run_a, b, rc_stop, (b / "metrics.jsonl").read_text()
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(driver, "compile_batch", compile_batch)
+        mp.setattr(reporting, "append_jsonl", append)
+        rc_stop = run_cli.main(parse(["--out", str(b), "--seeds", str(SEEDS), "--chunk", "1", "--no-gif", "--keep", "2"]))
+    return run_a, b, rc_stop, (b / "metrics.jsonl").read_text(), {"events": events, "steps": steps_of(b)}
 
 
 def test_straight_run_writes_run_dir(run_a):
@@ -121,8 +153,8 @@ def test_straight_run_writes_run_dir(run_a):
 
 
 def test_resume_is_bitwise_exact(runs, capsys):
-    a, b, rc_stop, stopped_jsonl = runs
-    assert rc_stop == errors.EXIT_STOPPED
+    a, b, rc_stop, stopped_jsonl, _ = runs
+    assert rc_stop == 128 + signal.SIGTERM
     assert len(stopped_jsonl.splitlines()) == 2 * SEEDS  # steps 0 and 1
     # a crash after the jsonl append of step 2 but before its checkpoint, and a line cut by the kill
     lines = (a / "metrics.jsonl").read_text().splitlines(keepends=True)
@@ -291,54 +323,20 @@ def test_signal_stops_at_chunk_boundary_and_saves(runs, patched, tmp_path, capsy
         np.testing.assert_array_equal(v, ra.history[k][:, :1], err_msg=k)
 
 
-def test_writes_overlap_the_next_chunk_and_a_stop_saves_the_last_one(runs, patched, tmp_path, capsys):
+def test_writes_overlap_the_next_chunk_and_a_stop_saves_the_last_one(runs):
     """The writer thread writes chunk k's records while the main thread runs chunk k+1: chunk 0's
     write waits until chunk 1 has started (a sequential loop would time out here). A signal during
-    chunk 1 stops the run after chunk 1 with its records and checkpoint written, and resuming gives
-    the straight run's records and state bit for bit."""
-    import threading
-
-    from shed_jax import reporting
-
-    a = runs[0]
-    events, chunk1 = [], threading.Event()
-    real_compile, real_append = driver.compile_batch, reporting.append_jsonl
-
-    def compile_batch(*args, **kw):
-        state, compiled = real_compile(*args, **kw)
-
-        def wrap(f):
-            def call(state, done):
-                events.append(("chunk", int(done)))
-                if done == 1:
-                    chunk1.set()
-                    signal.raise_signal(signal.SIGTERM)  # handled at the chunk boundary
-                return f(state, done)
-            return call
-        return state, {n: wrap(f) for n, f in compiled.items()}
-
-    def append(path, records):
-        step = int(records[0]["step"])
-        if step == 0:
-            events.append(("chunk 1 started during write 0", chunk1.wait(timeout=60)))
-        real_append(path, records)
-
-    c = tmp_path / "C"
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(driver, "compile_batch", compile_batch)
-        mp.setattr(reporting, "append_jsonl", append)
-        rc = run_cli.main(parse(["--out", str(c), "--seeds", str(SEEDS), "--chunk", "1", "--no-gif"]))
+    chunk 1 stops the run after chunk 1 with its records and checkpoint written (run B of the
+    ``runs`` fixture); test_resume_is_bitwise_exact resumes B and checks that it gives the straight
+    run's records and state bit for bit."""
+    a, _, rc, stopped_jsonl, seen = runs
+    events = seen["events"]
     assert rc == 128 + signal.SIGTERM
     assert ("chunk 1 started during write 0", True) in events
     assert [e for e in events if e[0] == "chunk"] == [("chunk", 0), ("chunk", 1)]
-    assert steps_of(c)[-1] == 2
+    assert seen["steps"][-1] == 2
     lines = (a / "metrics.jsonl").read_text().splitlines(keepends=True)
-    assert (c / "metrics.jsonl").read_text() == "".join(lines[:2 * SEEDS])
-    capsys.readouterr()
-    assert run_cli.main(parse(["--resume", str(c), "--no-gif"])) == 0
-    assert (c / "metrics.jsonl").read_text() == (a / "metrics.jsonl").read_text()
-    target = target_for(tiny_experiment())
-    leaves_equal(restore(a, target).state, restore(c, target).state)
+    assert stopped_jsonl == "".join(lines[:2 * SEEDS])
 
 
 def test_nonfinite_guard_stops_and_keeps_last_good_checkpoint(runs, patched, tmp_path, capsys):
