@@ -88,12 +88,19 @@ def leaves_equal(a, b):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y), err_msg=ck.path_name(path))
 
 
+#: run A's directory, made once per test process: tests/test_sweep_cli.py imports run_a, and a module
+#: fixture of its own would start the very same run again (no test writes into A; they copy it)
+_RUN_A = []
+
+
 @pytest.fixture(scope="module")
 def run_a(patched, tmp_path_factory):
     """A: the tiny run, 4 chunks of one budget step, straight through (the compile happens here)."""
-    a = tmp_path_factory.mktemp("runs") / "A"
-    assert run_cli.main(parse(["--out", str(a), "--seeds", str(SEEDS), "--chunk", "1", "--no-gif"])) == 0
-    return a
+    if not _RUN_A:
+        a = tmp_path_factory.mktemp("runs") / "A"
+        assert run_cli.main(parse(["--out", str(a), "--seeds", str(SEEDS), "--chunk", "1", "--no-gif"])) == 0
+        _RUN_A.append(a)
+    return _RUN_A[0]
 
 
 @pytest.fixture(scope="module")
