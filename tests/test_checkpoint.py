@@ -88,19 +88,49 @@ def leaves_equal(a, b):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y), err_msg=ck.path_name(path))
 
 
-#: run A's directory, made once per test process: tests/test_sweep_cli.py imports run_a, and a module
-#: fixture of its own would start the very same run again (no test writes into A; they copy it)
-_RUN_A = []
+#: run A, made once per test process (its directory, output and recorded events): tests/test_run_cli.py
+#: (as ``finished``) and tests/test_sweep_cli.py use it too, and a module fixture of each would start the
+#: very same run again. No test writes into A: they copy it, or their resume is refused before it writes.
+_RUN_A = {}
+
+
+def straight_run(tmp_path_factory) -> dict:
+    """A: the tiny run straight through (4 chunks of 1 budget step, --final-eval test with 3 episodes,
+    the GIF attempted; the compile happens here), with its stdout and stderr and the order of its
+    compiles and of the progress bar's creation. The caller holds ``patched``."""
+    if not _RUN_A:
+        import contextlib
+        import io
+
+        import tqdm
+
+        a = tmp_path_factory.mktemp("runs") / "A"
+        events = []
+        original_worker, original_bar = driver.in_worker, tqdm.tqdm
+
+        def worker(fn, name="compile", **kwargs):
+            events.append((name, kwargs.get("what", "compiling")))
+            return original_worker(fn, name)
+
+        def bar(*args, **kw):
+            events.append("bar")
+            return original_bar(*args, **kw)
+
+        out, err = io.StringIO(), io.StringIO()
+        with pytest.MonkeyPatch.context() as mp, contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            mp.setattr(driver, "in_worker", worker)
+            mp.setattr(tqdm, "tqdm", bar)
+            code = run_cli.main(parse(["--out", str(a), "--seeds", str(SEEDS), "--chunk", "1", "--final-eval", "test",
+                                       "--final-eval-episodes", "3"]))
+        assert code == 0, err.getvalue()
+        _RUN_A.update(dir=a, out=out.getvalue(), err=err.getvalue(), events=events)
+    return _RUN_A
 
 
 @pytest.fixture(scope="module")
 def run_a(patched, tmp_path_factory):
-    """A: the tiny run, 4 chunks of one budget step, straight through (the compile happens here)."""
-    if not _RUN_A:
-        a = tmp_path_factory.mktemp("runs") / "A"
-        assert run_cli.main(parse(["--out", str(a), "--seeds", str(SEEDS), "--chunk", "1", "--no-gif"])) == 0
-        _RUN_A.append(a)
-    return _RUN_A[0]
+    """A's directory (straight_run)."""
+    return straight_run(tmp_path_factory)["dir"]
 
 
 @pytest.fixture(scope="module")
