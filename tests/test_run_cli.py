@@ -30,7 +30,7 @@ from shed_jax.cli import run as run_cli
 from shed_jax.loop import make_run
 
 # the tiny CartPole experiment, its test levels and the patched CLI are test_checkpoint's
-from test_checkpoint import cartpole_test_levels, parse, patched, tiny_experiment  # noqa: E402,F401
+from test_checkpoint import cartpole_test_levels, parse, patched, straight_run, tiny_experiment  # noqa: E402,F401
 
 SEEDS = 2
 BASE = ["--seeds", str(SEEDS), "--chunk", "1"]
@@ -54,27 +54,9 @@ def error_line(err: str) -> str:
 @pytest.fixture(scope="module")
 def finished(patched, tmp_path_factory):
     """A: the tiny run straight through (4 chunks of 1 step, --final-eval test, the GIF attempted),
-    with the order of the compile and of the progress bar's creation recorded."""
-    import tqdm
-
-    a = tmp_path_factory.mktemp("run") / "A"
-    events = []
-    original_worker, original_bar = driver.in_worker, tqdm.tqdm
-
-    def worker(fn, name="compile", **kwargs):
-        events.append((name, kwargs.get("what", "compiling")))
-        return original_worker(fn, name)
-
-    def bar(*args, **kw):
-        events.append("bar")
-        return original_bar(*args, **kw)
-
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(driver, "in_worker", worker)
-        mp.setattr(tqdm, "tqdm", bar)
-        code, out, err = run(["--out", str(a), *BASE, "--final-eval", "test", "--final-eval-episodes", "3"])
-    assert code == 0, err
-    return {"dir": a, "out": out, "err": err, "events": events}
+    with the order of the compile and of the progress bar's creation recorded: test_checkpoint's run
+    A (made once per process, shared with test_checkpoint and test_sweep_cli)."""
+    return straight_run(tmp_path_factory)
 
 
 def copy_of(finished, tmp_path, name="copy"):
