@@ -165,12 +165,21 @@ def runs(run_a):
             events.append(("chunk 1 started during write 0", chunk1.wait(timeout=60)))
         real_append(path, records)
 
+    import contextlib
+    import io
+
     b = run_a.parent / "B"
-    with pytest.MonkeyPatch.context() as mp:
+    before = signal.getsignal(signal.SIGTERM)
+    out, err = io.StringIO(), io.StringIO()
+    with pytest.MonkeyPatch.context() as mp, contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
         mp.setattr(driver, "compile_batch", compile_batch)
         mp.setattr(reporting, "append_jsonl", append)
         rc_stop = run_cli.main(parse(["--out", str(b), "--seeds", str(SEEDS), "--chunk", "1", "--no-gif", "--keep", "2"]))
-    return run_a, b, rc_stop, (b / "metrics.jsonl").read_text(), {"events": events, "steps": steps_of(b)}
+    # what the stop left, before a test resumes B
+    seen = {"events": events, "steps": steps_of(b), "out": out.getvalue(), "err": err.getvalue(),
+            "handler restored": signal.getsignal(signal.SIGTERM) == before,
+            "history": restore(b, target_for(tiny_experiment())).history}
+    return run_a, b, rc_stop, (b / "metrics.jsonl").read_text(), seen
 
 
 def test_straight_run_writes_run_dir(run_a):
@@ -333,31 +342,21 @@ def test_damaged_or_missing_checkpoints_raise(runs, patched, tmp_path):
     gc.collect()
 
 
-def test_signal_stops_at_chunk_boundary_and_saves(runs, patched, tmp_path, capsys):
-    a = runs[0]
-
-    class SelfSignal(driver.StopRequest):
-        def poll(self):
-            if self.signum is None:
-                signal.raise_signal(signal.SIGTERM)  # handled by the run's own handler
-            return super().poll()
-
-    c = tmp_path / "C"
-    before = signal.getsignal(signal.SIGTERM)
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(driver, "StopRequest", SelfSignal)
-        assert run_cli.main(parse(["--out", str(c), "--seeds", str(SEEDS), "--chunk", "1", "--no-gif"])) == 128 + signal.SIGTERM
-    captured = capsys.readouterr()
-    assert "SIGTERM" in captured.err and f"--resume {c}" in captured.out
-    assert signal.getsignal(signal.SIGTERM) == before  # handlers restored
-    # the chunk was finished and saved: step 1's checkpoint and records equal the straight run's
-    # (resuming from it is the same path as test_resume_is_bitwise_exact)
-    assert steps_of(c) == [1]
-    assert (c / "metrics.jsonl").read_text() == "".join((a / "metrics.jsonl").read_text().splitlines(keepends=True)[:SEEDS])
-    rc = restore(c, target_for(tiny_experiment()))
+def test_signal_stops_at_chunk_boundary_and_saves(runs):
+    """Run B of the ``runs`` fixture: a SIGTERM (handled by the run's own handler) while its second
+    chunk runs stops it at that chunk's end, with the chunk saved."""
+    a, b, rc, stopped_jsonl, seen = runs
+    assert rc == 128 + signal.SIGTERM
+    assert "SIGTERM" in seen["err"] and f"--resume {b}" in seen["out"]
+    assert seen["handler restored"]  # handlers restored
+    # the chunk was finished and saved: step 2's checkpoint and records equal the straight run's
+    # (test_resume_is_bitwise_exact resumes from it)
+    assert seen["steps"] == [1, 2]  # --keep 2
+    assert stopped_jsonl == "".join((a / "metrics.jsonl").read_text().splitlines(keepends=True)[:2 * SEEDS])
     ra = restore(a, target_for(tiny_experiment()))
-    for k, v in rc.history.items():
-        np.testing.assert_array_equal(v, ra.history[k][:, :1], err_msg=k)
+    assert sorted(seen["history"]) == sorted(ra.history)
+    for k, v in seen["history"].items():
+        np.testing.assert_array_equal(v, ra.history[k][:, :2], err_msg=k)
 
 
 def test_writes_overlap_the_next_chunk_and_a_stop_saves_the_last_one(runs):
