@@ -56,8 +56,9 @@ def test_preact_penalty_adds_lambda_mean_z_squared_to_the_actor_loss():
     batch, lam = _batch(), 0.5
     plain, pen = DDPGConfig(3, 2), DDPGConfig(3, 2, preact_penalty=lam)
     st = ddpg_init(plain, jax.random.PRNGKey(0))
-    _, m0 = ddpg_update(plain, st, batch)
-    _, m1 = ddpg_update(pen, st, batch)  # same networks: the critic step is the same, the actor loss gains the term
+    # one jitted program for both updates (not op by op); the two updates' critic parts are the same
+    # computation, the actor loss gains the term
+    (_, m0), (_, m1) = jax.jit(lambda st, batch: (ddpg_update(plain, st, batch), ddpg_update(pen, st, batch)))(st, batch)
     _, z = Actor(2).apply(st.actor_params, batch.s, preact=True)
     assert float(m1["actor_loss"] - m0["actor_loss"]) == pytest.approx(lam * float(jnp.mean(z ** 2)), rel=1e-4)
     assert float(m1["critic_loss"]) == float(m0["critic_loss"])
@@ -67,7 +68,7 @@ def test_zero_actor_output_init_acts_zero_everywhere_and_still_learns():
     cfg = DDPGConfig(3, 2, actor_out_init="zeros")
     st = ddpg_init(cfg, jax.random.PRNGKey(0))
     np.testing.assert_array_equal(ddpg_act(cfg, st, jax.random.normal(jax.random.PRNGKey(2), (5, 3))), np.zeros((5, 2)))
-    st2, _ = ddpg_update(cfg, st, _batch())
+    st2, _ = jax.jit(lambda st, batch: ddpg_update(cfg, st, batch))(st, _batch())  # one program, not op by op
     assert np.any(np.asarray(ddpg_act(cfg, st2, _batch().s)) != 0)
     # the default keeps flax's initialiser: nonzero actions
     d = DDPGConfig(3, 2)
@@ -148,8 +149,10 @@ def test_box_action_hand_computed_and_untrained_teacher_is_uniform_over_theta():
 
 # hmdp-x runs with the reward-noise check on (and episodes long enough for CartPole's returns to vary),
 # shed-x with it off; the check only adds evaluations, so the step test holds with it on and one compile
-# serves both tests
-CHECKED = {"hmdp-x": dict(reward_noise_check=True, eval_max_steps=64), "shed-x": {}}
+# serves both tests. shed-x runs with policy synthetic actions (its default) at syn_sigma 0: the noise is
+# still drawn and scaled in the program (sigma is a constant of it, not a branch), none of the step test's
+# checks reads the synthetic actions, and the one run also serves the synthetic-action test below
+CHECKED = {"hmdp-x": dict(reward_noise_check=True, eval_max_steps=64), "shed-x": dict(syn_action="policy", syn_sigma=0.0)}
 
 
 @functools.lru_cache(maxsize=None)
@@ -188,9 +191,10 @@ def test_reward_noise_check_rewards_the_same_students_again_with_a_second_key():
     ext = info.extras
     states = np.concatenate([np.asarray(s0)[None], np.asarray(ext["teacher_state"])])
     k2 = jax.random.fold_in(m.eval_key, 2)  # CRN: the step's key is the episode's; the check folds in 2
+    performance = jax.jit(method.performance)  # one compile for the six evaluations below
     for t in range(1, 4):  # the student before step t's training is the one step t - 1 returned
         before, after = (jax.tree_util.tree_map(lambda x, i=i: x[i], students) for i in (t - 1, t))
-        s2, s_next2 = method.performance(k2, before)[0], method.performance(k2, after)[0]
+        s2, s_next2 = performance(k2, before)[0], performance(k2, after)[0]
         np.testing.assert_allclose(ext["reward_again"][t], (s_next2 - s2).sum() / 100.0, rtol=1e-4, atol=1e-5)
         np.testing.assert_allclose(ext["reward_crossed"][t], (s_next2 - states[t]).sum() / 100.0, rtol=1e-4, atol=1e-5)
         np.testing.assert_allclose(ext["reward_crossed_back"][t], (states[t + 1] - s2).sum() / 100.0, rtol=1e-4, atol=1e-5)
@@ -260,7 +264,7 @@ def test_heldout_loss_is_the_training_loss_on_unseen_transitions_and_falls_with_
 def test_grow_passes_the_policy_with_syn_sigma_and_reports_the_heldout_loss_of_the_new_transitions():
     method = _build("shed-x", syn_action="policy", syn_sigma=0.3)
     synth = method.synthesiser
-    m = method.init(jax.random.PRNGKey(0))
+    m = jax.jit(method.init)(jax.random.PRNGKey(0))  # one program, not op by op
     tr, real = _linear_buffer(jax.random.PRNGKey(1), n=16, m=method.state_dim, da=method.action_dim)
     new = jax.tree_util.tree_map(lambda x: x[-2:], tr)  # the step's transitions, already in B_real
     policy = lambda k, s, sigma: jnp.full((s.shape[0], method.action_dim), sigma)  # marks the sigma it got
@@ -281,7 +285,7 @@ def test_grow_passes_the_policy_with_syn_sigma_and_reports_the_heldout_loss_of_t
 def test_syn_loss_bar_gates_mixed_updates_on_the_heldout_loss():
     from shed_jax.teacher.buffers import buffer_add_many, buffer_init, make_transition
     method = _build("shed-x", ddpg_batch=8, syn_threshold=3, syn_loss_bar=0.5)
-    m = method.init(jax.random.PRNGKey(0))
+    m = jax.jit(method.init)(jax.random.PRNGKey(0))  # one program, not op by op (as free's rule below)
     d, a = method.state_dim, method.action_dim
     fill = lambda n: buffer_add_many(buffer_init(make_transition(d, a), 16), make_transition(d, a, (n,)).replace(
         r=jnp.arange(n, dtype=jnp.float32), s_next=jnp.ones((n, d))))
@@ -294,16 +298,16 @@ def test_syn_loss_bar_gates_mixed_updates_on_the_heldout_loss():
     assert int(rule(jnp.nan)) == 1  # no held-out loss yet: real only
     # without a bar (SHED's rule) the held-out loss is not read
     free = _build("shed-x", ddpg_batch=8, syn_threshold=3).synthesiser
-    assert int(free.updates(jax.random.PRNGKey(3), method.teacher, m.ddpg, real, m.synth.replace(syn=syn), 0.75,
-                            jnp.nan)[1]) == 2
+    assert int(jax.jit(lambda held: free.updates(jax.random.PRNGKey(3), method.teacher, m.ddpg, real, m.synth.replace(syn=syn),
+                                                 0.75, held)[1])(jnp.nan)) == 2
 
 
 def test_policy_synthetic_actions_in_the_loop_come_from_the_actor_before_its_update():
     """syn_sigma 0: the first synthetic batch (step 2, before the first DDPG update) holds the untrained
     actor's actions, exactly 0 with the zero-initialised output layer (uniform ones are 0 with
-    probability 0)."""
-    method = _build("shed-x", syn_action="policy", syn_sigma=0.0)
-    m, _, info, _ = _run(method)
+    probability 0). The run is the step test's (``CHECKED``), so this test compiles nothing."""
+    method, (m, _, info, _) = _checked_run("shed-x")
+    assert (method.config.syn_action, method.config.syn_sigma) == ("policy", 0.0)
     n = method.synthesiser.num_syn
     np.testing.assert_array_equal(np.asarray(m.synth.syn.data.u[:n]), 0.0)
     held = np.asarray(info.extras["diffusion_heldout_loss"])
