@@ -102,6 +102,10 @@ def test_hmdp_has_no_diffusion_and_two_real_updates():
     np.testing.assert_array_equal(info.extras["syn_size"], [0] * 4)  # recorded as 0, as SHED's keys
     assert int(m.ddpg.num_updates) == 6
     assert method.teacher.capacity == 16
+    # the state-noise check off (the default; test_teacher_switches.py's diagnostics test turns it on):
+    # NaN, and one evaluation per step
+    assert np.all(np.isnan(info.extras["state_noise_sd"]))
+    np.testing.assert_array_equal(info.env_steps_eval, [160, 80, 80, 80])
 
 
 def test_shed_and_hmdp_are_one_process_until_the_teacher_learns():
@@ -153,14 +157,14 @@ def test_composition_hmdp_is_the_teacher_alone_and_shed_mixes_floor_psi_b_real_i
     psi taken from the hyperparameters; below the synthetic threshold it runs 3 real updates."""
     env, student, eval_levels = _cartpole()
     hmdp = _build("hmdp", env, student, eval_levels)
-    m = hmdp.init(jax.random.PRNGKey(0))
+    m = jax.eval_shape(hmdp.init, jax.random.PRNGKey(0))  # what it holds, not its values: traced only
     assert m.synth is None and type(m.hparams) is TeacherHyperparams and hmdp.hparam_names == (
         "eta", "actor_lr", "critic_lr", "explore_sigma")
     with pytest.raises(TypeError, match="hparams must be a TeacherHyperparams, got SHEDHyperparams"):
         hmdp.init(jax.random.PRNGKey(0), SHEDHyperparams())
 
     shed = _build("shed", env, student, eval_levels, ddpg_batch=8, syn_threshold=3)
-    m = shed.init(jax.random.PRNGKey(0), SHEDHyperparams(psi=0.4))
+    m = jax.jit(shed.init)(jax.random.PRNGKey(0), SHEDHyperparams(psi=0.4))  # jitted: one program, not op by op
     assert "psi" in shed.hparam_names and float(m.hparams.psi) == pytest.approx(0.4)
     assert int(m.synth.syn.count) == 0 and m.synth.syn.capacity == 16
     ex = make_transition(shed.state_dim, shed.action_dim)
@@ -173,11 +177,16 @@ def test_composition_hmdp_is_the_teacher_alone_and_shed_mixes_floor_psi_b_real_i
     st, branch = rule(m.ddpg, syn, 0.4)
     assert int(branch) == 2 and int(st.num_updates) == 2
     expect = m.ddpg
-    for k in jax.random.split(key, 2):  # by hand: floor(0.4 * 8) = 3 real items, 5 synthetic
+
+    @jax.jit
+    def by_hand(st, k):
         batch, mask = sample_mixed(real, syn, k, 8, 0.4)
+        return teacher.update(st, batch, mask), batch, mask
+
+    for k in jax.random.split(key, 2):  # by hand: floor(0.4 * 8) = 3 real items, 5 synthetic
+        expect, batch, mask = by_hand(expect, k)
         np.testing.assert_array_equal(mask, [True] * 3 + [False] * 5)
         assert np.all(np.asarray(batch.r[3:]) <= 0) and np.all(np.asarray(batch.r[:3]) >= 0)
-        expect = teacher.update(expect, batch, mask)
     for a, b in zip(jax.tree_util.tree_leaves(st), jax.tree_util.tree_leaves(expect)):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-6, atol=1e-7)
 
