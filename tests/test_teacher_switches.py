@@ -15,20 +15,29 @@ from shed_jax.teacher.buffers import Transition, buffer_add_many, buffer_init, m
 from shed_jax.teacher.reward import RewardConfig, teacher_reward
 
 
+# h-MDP's run with t/T in the state also has the noise check on: the two switches touch different parts of
+# a step (the stored state and the actor's input; a second evaluation of the same student), so one compiled
+# run serves the time-in-state test and the diagnostics test below. Its four steps run on past T = 2 (the
+# run calls begin_episode once, as the test_shed_method runs). SHED's run keeps the noise check off and its
+# one teacher episode of T = 2.
+TIMED = {"hmdp": dict(steps=4, time_in_state=True, state_noise_check=True), "shed": dict(steps=2, time_in_state=True)}
+
+
 @pytest.mark.parametrize("name", ["hmdp", "shed"])
 def test_time_in_state_appends_t_over_T_and_the_reward_ignores_it(name):
-    method, (m, s0, info, _) = _run(name, steps=2, time_in_state=True)  # one teacher episode of T = 2
+    method, (m, s0, info, _) = _run(name, **TIMED[name])
     scale = method.config.state_scale
     assert method.teacher.state_dim == 11 and m.s.shape == (10,)  # m = 10 evaluation levels + t/T
     if name == "shed":
         assert method.synthesiser.model.config.state_dim == 11
-    # steps t = 0, 1 store t/T and (t + 1)/T, times state_scale (the networks see s / scale)
-    np.testing.assert_allclose(m.real.data.s[:2, -1], np.array([0, 0.5]) * scale, rtol=1e-6)
-    np.testing.assert_allclose(m.real.data.s_next[:2, -1], np.array([0.5, 1.0]) * scale, rtol=1e-6)
+    # steps t = 0, 1, ... store t/T and (t + 1)/T, times state_scale (the networks see s / scale)
+    n = TIMED[name]["steps"]
+    np.testing.assert_allclose(m.real.data.s[:n, -1], np.arange(n) / 2 * scale, rtol=1e-6)
+    np.testing.assert_allclose(m.real.data.s_next[:n, -1], np.arange(1, n + 1) / 2 * scale, rtol=1e-6)
     states = np.concatenate([np.asarray(s0)[None], np.asarray(info.extras["teacher_state"])])
-    np.testing.assert_allclose(m.real.data.s[:2, :10], states[:-1], rtol=1e-6)
+    np.testing.assert_allclose(m.real.data.s[:n, :10], states[:-1], rtol=1e-6)
     expect = teacher_reward(RewardConfig(), states[:-1], None, states[1:])  # the performance part only
-    np.testing.assert_allclose(m.real.data.r[:2], expect, rtol=1e-5)
+    np.testing.assert_allclose(m.real.data.r[:n], expect, rtol=1e-5)
     np.testing.assert_allclose(info.teacher_reward, expect, rtol=1e-5)
     # the actor acts on [s / scale, t/T]: the stored action of step 1 is mu of that input plus noise, so
     # the time entry must change what the deterministic actor gives
@@ -39,8 +48,16 @@ def test_time_in_state_appends_t_over_T_and_the_reward_ignores_it(name):
 
 
 def test_time_in_state_off_keeps_the_state_m_wide():
-    method, (m, _, _, _) = _run("hmdp")
-    assert method.teacher.state_dim == 10 and m.real.data.s.shape == (16, 10)
+    # shapes only: a step traced after begin_episode (eval_shape; nothing is compiled or run)
+    env, student, eval_levels = _cartpole()
+    method = _build("hmdp", env, student, eval_levels)
+
+    def step(key):
+        m, s = method.begin_episode(key, method.init(key), student.init(key))
+        return method.step(key, m, s)[0]
+
+    m = jax.eval_shape(step, jax.random.PRNGKey(0))
+    assert method.teacher.state_dim == 10 and m.real.data.s.shape == (16, 10) and m.s.shape == (10,)
 
 
 def test_reward_norm_none_gives_the_critic_raw_rewards():
@@ -49,12 +66,13 @@ def test_reward_norm_none_gives_the_critic_raw_rewards():
     env, student, eval_levels = _cartpole()
     for norm in ("batch", "none"):
         method = _build("hmdp", env, student, eval_levels, reward_norm=norm)
-        m = method.init(jax.random.PRNGKey(0))  # the critic's target needs the update alone, not a run
         assert method.teacher.ddpg.config.reward_norm is (norm == "batch")
         b = 4
         batch = Transition(s=jnp.ones((b, 10)), u=jnp.zeros((b, 15)), r=jnp.full((b,), 5.0), s_next=jnp.ones((b, 10)),
                            done=jnp.ones((b,)))
-        targets[norm] = float(method.teacher.ddpg.update(m.ddpg, batch)[1]["target_mean"])
+        # the critic's target needs the update alone, not a run; jitted: one program, not op by op
+        target = jax.jit(lambda key, batch: method.teacher.ddpg.update(method.init(key).ddpg, batch)[1]["target_mean"])
+        targets[norm] = float(target(jax.random.PRNGKey(0), batch))
     assert targets["batch"] == pytest.approx(0.0, abs=1e-5)
     assert targets["none"] == pytest.approx(5.0)
 
@@ -90,7 +108,7 @@ def test_buffer_zscore_and_noise_sd():
 
 
 def test_diagnostics_are_logged_every_step():
-    method, (m, s0, info, _) = _run("hmdp", state_noise_check=True)
+    method, (m, s0, info, _) = _run("hmdp", **TIMED["hmdp"])  # the noise check on (and t/T in the state)
     ext = info.extras
     np.testing.assert_allclose(ext["at_bound_fraction"], [float(at_bound_fraction(method.codec.space, v)) for v in info.levels])
     assert ext["td_error_heldout"].shape == (4,) and np.all(np.isfinite(ext["td_error_heldout"]))
@@ -103,6 +121,5 @@ def test_diagnostics_are_logged_every_step():
     # the noise check: a second evaluation (10 levels x 1 episode x 8 steps) per step, and a finite SD
     np.testing.assert_array_equal(info.env_steps_eval, [240, 160, 160, 160])
     assert np.all(np.isfinite(ext["state_noise_sd"])) and np.all(ext["state_noise_sd"] >= 0)
-    _, (_, _, off, _) = _run("hmdp")
-    assert np.all(np.isnan(off.extras["state_noise_sd"]))
-    np.testing.assert_array_equal(off.env_steps_eval, [160, 80, 80, 80])
+    # with the check off (NaN, one evaluation per step): test_shed_method.py::test_hmdp_has_no_diffusion_and_two_real_updates,
+    # on its plain h-MDP run, so this file compiles no plain run of its own
