@@ -108,22 +108,24 @@ def test_the_ddpg_teacher_stores_and_scores_a_batch_as_its_transitions_one_by_on
     from shed_jax.teacher.ddpg_teacher import DDPGTeacher
 
     teacher = DDPGTeacher(make_ddpg(DDPGConfig(3, 2, hidden=(8, 8))), capacity=4, batch_size=2)
-    st, buf = teacher.init(jax.random.PRNGKey(0))
+    st, buf = jax.jit(teacher.init)(jax.random.PRNGKey(0))
+    # jitted: one program per call shape, not op by op (a store copies values, so the bitwise checks hold)
+    store, td_error = jax.jit(teacher.store), jax.jit(teacher.td_error)
     k = jax.random.split(jax.random.PRNGKey(1), 3)
     batch = Transition(s=jax.random.normal(k[0], (3, 3)) * 50, u=jax.random.uniform(k[1], (3, 2), minval=-1),
                        r=jnp.array([1.0, -2.0, 0.5]), s_next=jax.random.normal(k[2], (3, 3)) * 50, done=jnp.array([0.0, 0.0, 1.0]))
     item = lambda i: jax.tree_util.tree_map(lambda x: x[i], batch)
     one_by_one = buf
     for i in range(3):
-        one_by_one = teacher.store(one_by_one, item(i))
-    at_once = teacher.store(teacher.store(buf, item(0)), jax.tree_util.tree_map(lambda x: x[1:], batch))
+        one_by_one = store(one_by_one, item(i))
+    at_once = store(store(buf, item(0)), jax.tree_util.tree_map(lambda x: x[1:], batch))
     jax.tree_util.tree_map(np.testing.assert_array_equal, at_once, one_by_one)
-    both = teacher.store(at_once, jax.tree_util.tree_map(lambda x: x[:2], batch))  # wraps round: FIFO
+    both = store(at_once, jax.tree_util.tree_map(lambda x: x[:2], batch))  # wraps round: FIFO
     np.testing.assert_array_equal(both.data.r, [-2.0, -2.0, 0.5, 1.0])
     assert int(both.count) == 4 and int(both.pos) == 1
-    td = teacher.td_error(st, batch, batch.r)
+    td = td_error(st, batch, batch.r)
     assert td.shape == (3,)
-    np.testing.assert_allclose(td, [teacher.td_error(st, item(i), batch.r[i]) for i in range(3)], rtol=1e-5)
+    np.testing.assert_allclose(td, [td_error(st, item(i), batch.r[i]) for i in range(3)], rtol=1e-5)
 
 
 def test_pool_init_and_evaluate_per_student():
@@ -153,6 +155,7 @@ def test_each_step_stores_one_transition_per_student(two):
     real, ext = m.real, info.extras
     assert int(real.count) == k * steps and int(real.pos) == k * steps
     mdim = cfg.num_eval_levels
+    act, performance = jax.jit(base.teacher.act), jax.jit(base.performance)  # one compile each for the calls below
     for t in range(steps):
         k_act = jax.random.split(step_keys[t], 6)[0]
         for i, key_i in enumerate(student_keys(k_act, k)):
@@ -166,7 +169,7 @@ def test_each_step_stores_one_transition_per_student(two):
             assert float(ext["teacher_reward_per_student"][t, i]) == float(real.data.r[row])
             assert float(real.data.done[row]) == float(t == cfg.budget_steps - 1)
             # the student's own action: the shared actor at its own state plus its own exploration noise
-            u = base.teacher.act(_at(ms.ddpg, t), ts, key_i, cfg.explore_sigma)
+            u = act(_at(ms.ddpg, t), ts, key_i, cfg.explore_sigma)
             np.testing.assert_allclose(real.data.u[row], u, rtol=1e-5, atol=1e-6)
             if t + 1 < steps:
                 np.testing.assert_array_equal(ms.s[t + 1, i], ext["teacher_state_per_student"][t, i])
@@ -192,7 +195,7 @@ def test_each_step_stores_one_transition_per_student(two):
     # common random numbers per student: s' is the evaluation of that student with its own episode key
     assert not np.array_equal(m.eval_key[0], m.eval_key[1])
     for i in range(k):
-        np.testing.assert_allclose(base.performance(m.eval_key[i], StudentPool.member(s, i))[0], m.s[i], rtol=1e-5)
+        np.testing.assert_allclose(performance(m.eval_key[i], StudentPool.member(s, i))[0], m.s[i], rtol=1e-5)
 
 
 def test_students_are_independent_and_student_0_is_the_lone_students_run(two):
