@@ -116,7 +116,7 @@ def test_dr_episode_level_switch_runs_episodes_across_rollouts(setup):
     env, student = setup
     method = make_method("dr", env, student, {"updates_per_step": 2, "level_switch": "episode"})
     k = jax.random.split(jax.random.PRNGKey(5), 4)
-    m, s0 = method.begin_episode(k[0], method.init(k[1]), student.init(k[2]))
+    m, s0 = jax.jit(lambda k: method.begin_episode(k[0], method.init(k[1]), student.init(k[2])))(k)  # one program, not op by op
     lo, hi = method.codec.space.low, method.codec.space.high
     start = np.asarray(method.codec.space.to_vector(s0.levels))
     assert np.all((start >= lo - 1e-6) & (start <= hi + 1e-6)) and len(np.unique(start, axis=0)) == E  # DR draws
