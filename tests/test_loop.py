@@ -55,7 +55,7 @@ def _cartpole_loop(spec: LoopSpec):
     method = _UniformLevels(env, student)
     test_levels = env.param_space.sample(jax.random.PRNGKey(7), (2,))
     init, run = make_run(student, method, test_levels, spec)
-    return init, jax.jit(run, static_argnums=1)
+    return jax.jit(init), jax.jit(run, static_argnums=1)
 
 
 @pytest.fixture(scope="module")
@@ -89,10 +89,11 @@ def test_chunks_equal_one_run_and_compile_once(setup):
 
 def test_student_reinitialised_each_episode(setup):
     init, run = setup
-    _, m = run(init(jax.random.PRNGKey(1)), 4, 0)
-    # one PPO update per step, counter restarts with the fresh student of episode 2
-    np.testing.assert_array_equal(np.asarray(m["info"].extras["update_step"]), [1, 2, 1, 2])
-    np.testing.assert_array_equal(np.asarray(m["info"].extras["episodes"]), [1, 1, 2, 2])
+    # six steps in one scan: the program test_skipping_test_episodes_and_recording_one_level_change_only_the_records runs too
+    _, m = run(init(jax.random.PRNGKey(1)), 6, 0)
+    # one PPO update per step, counter restarts with the fresh student of each episode
+    np.testing.assert_array_equal(np.asarray(m["info"].extras["update_step"]), [1, 2, 1, 2, 1, 2])
+    np.testing.assert_array_equal(np.asarray(m["info"].extras["episodes"]), [1, 1, 2, 2, 3, 3])
     assert np.all(np.isfinite(np.asarray(m["test_return"])))
     assert np.all(np.asarray(m["test_return"]) >= 1.0)  # cartpole pays 1 per step
 
@@ -103,7 +104,7 @@ def test_vmapped_seeds_match_single_runs(setup):
     run_batch = jax.jit(jax.vmap(run, in_axes=(0, None, None)), static_argnums=1)
     _, m_batch = run_batch(jax.jit(jax.vmap(init))(keys), 2, 0)
     for i in range(2):
-        _, m_i = run(jax.jit(init)(keys[i]), 2, 0)
+        _, m_i = run(init(keys[i]), 2, 0)  # the fixture's init is jitted
         np.testing.assert_allclose(np.asarray(m_batch["test_return"][i]), np.asarray(m_i["test_return"]), rtol=1e-5, atol=1e-5)
         np.testing.assert_array_equal(np.asarray(m_batch["info"].levels[i]), np.asarray(m_i["info"].levels))
     # different seeds do different things
@@ -132,19 +133,29 @@ def test_tests_at_schedule():
         LoopSpec(2, 4, test_episode_every=0)
 
 
-def test_skipping_test_episodes_changes_only_the_test_metrics(setup):
-    """Episodes without a test run give NaN test returns and leave training exactly as it was."""
+def test_skipping_test_episodes_and_recording_one_level_change_only_the_records(setup):
+    """Episodes without a test run give NaN test returns, a record of at most max_recorded_levels = 1 keeps
+    each step's first level, and neither changes training. One loop with both switches (they touch
+    different parts of a step's output: the test returns' cond and thin_levels on the record) against the
+    fixture's loop, which tests at every step and records both of a step's levels (its
+    max_recorded_levels, 64 by default, is above the 2 levels a step draws, so thin_levels returns the
+    record itself, as None does; test_thin_levels_keeps_evenly_spaced_rows_and_aligned_extras)."""
     init_all, run_all = setup
     init, run = _cartpole_loop(LoopSpec(steps_per_episode=2, num_episodes=3, test_episodes=1, test_max_steps=20,
-                                        test_episode_every=2))
+                                        test_episode_every=2, max_recorded_levels=1))
     key = jax.random.PRNGKey(5)
     s_all, m_all = run_all(init_all(key), 6, 0)  # the fixture's loop tests at every step
     s_skip, m_skip = run(init(key), 6, 0)
     ret_all, ret_skip = np.asarray(m_all["test_return"]), np.asarray(m_skip["test_return"])
     np.testing.assert_array_equal(np.isnan(ret_skip), [False, False, True, True, False, False])
     np.testing.assert_array_equal(ret_skip[[0, 1, 4, 5]], ret_all[[0, 1, 4, 5]])
-    np.testing.assert_array_equal(np.asarray(m_skip["info"].levels), np.asarray(m_all["info"].levels))
-    _allclose_trees(s_skip.student.params, s_all.student.params)
+    lv, lv_all = np.asarray(m_skip["info"].levels), np.asarray(m_all["info"].levels)
+    assert lv.shape == (6, 1, lv_all.shape[-1]) and lv_all.shape[1] == 2
+    np.testing.assert_array_equal(lv[:, 0], lv_all[:, 0])  # the kept row is the step's first level
+    _allclose_trees(s_skip.student.params, s_all.student.params)  # training untouched, bit for bit
+    for bad in (0, -3, 2.5, True):
+        with pytest.raises(ValueError, match="max_recorded_levels"):
+            LoopSpec(steps_per_episode=1, num_episodes=1, max_recorded_levels=bad)
 
 
 def test_thin_levels_keeps_evenly_spaced_rows_and_aligned_extras():
@@ -163,19 +174,3 @@ def test_thin_levels_keeps_evenly_spaced_rows_and_aligned_extras():
     assert thin_levels(info, None) is info and thin_levels(info, 10) is info
     # jittable: the rows are static
     np.testing.assert_array_equal(np.asarray(jax.jit(lambda i: thin_levels(i, 4))(info).levels), np.asarray(levels)[rows])
-
-
-def test_loop_records_at_most_max_recorded_levels():
-    init, run = _cartpole_loop(LoopSpec(steps_per_episode=2, num_episodes=1, test_episodes=1, test_max_steps=20,
-                                        max_recorded_levels=1))
-    _, m = run(init(jax.random.PRNGKey(0)), 2, 0)
-    init_all, run_all = _cartpole_loop(LoopSpec(steps_per_episode=2, num_episodes=1, test_episodes=1, test_max_steps=20,
-                                                max_recorded_levels=None))
-    _, m_all = run_all(init_all(jax.random.PRNGKey(0)), 2, 0)
-    assert m["info"].levels.shape == (2, 1, m_all["info"].levels.shape[-1]) and m_all["info"].levels.shape[1] == 2
-    # the kept row is the step's first level; training is untouched by what is recorded
-    np.testing.assert_array_equal(np.asarray(m["info"].levels[:, 0]), np.asarray(m_all["info"].levels[:, 0]))
-    np.testing.assert_array_equal(np.asarray(m["test_return"]), np.asarray(m_all["test_return"]))
-    for bad in (0, -3, 2.5, True):
-        with pytest.raises(ValueError, match="max_recorded_levels"):
-            LoopSpec(steps_per_episode=1, num_episodes=1, max_recorded_levels=bad)
