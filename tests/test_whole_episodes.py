@@ -24,8 +24,8 @@ def _episode_steps(name: str, config: dict, seed: int, steps: int):
     student = make_student(env, PPOConfig.for_env("cartpole", **SMALL))
     m = make_method(name, env, student, {"updates_per_step": 1, "level_switch": "episode", **config})
     key = jax.random.PRNGKey(seed)
-    s, ms = student.init(key), m.init(key)
-    ms, s = jax.jit(m.begin_episode)(key, ms, s)
+    # init and begin_episode as one program (not op by op); the same calls on the same keys
+    ms, s = jax.jit(lambda key: m.begin_episode(key, m.init(key), student.init(key)))(key)
     step = jax.jit(m.step)
     for i in range(steps):
         before = (ms, s)
@@ -82,23 +82,25 @@ def _student(num_envs=4, num_steps=16):
 def test_masked_update_ignores_masked_transitions_and_all_true_is_the_plain_update():
     env, student = _student()
     key = jax.random.PRNGKey(0)
-    s = student.init(key)
-    s, traj = student.rollout(s, key)
+    s, traj = jax.jit(lambda key: student.rollout(student.init(key), key))(key)
     mask = jnp.zeros((16, 4), bool).at[:, :2].set(True)  # slots 0 and 1 trainable
     # changing what the masked-out slots did (their actions and old log-probs) changes nothing
     other = traj.replace(actions=traj.actions.at[:, 2:].set(1 - traj.actions[:, 2:]),
                          log_probs=traj.log_probs.at[:, 2:].add(-3.0))
-    a, _ = student.update(s, key, traj, mask=mask)
-    b, _ = student.update(s, key, other, mask=mask)
+    # jitted: two programs (masked, plain) for the five updates, not each update op by op
+    masked = jax.jit(lambda traj, mask: student.update(s, key, traj, mask=mask))
+    plain = jax.jit(lambda traj: student.update(s, key, traj))
+    a, _ = masked(traj, mask)
+    b, _ = masked(other, mask)
     for x, y in zip(jax.tree_util.tree_leaves(a.params), jax.tree_util.tree_leaves(b.params)):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
     # ... while it does change the unmasked update
-    c, _ = student.update(s, key, other)
+    c, _ = plain(other)
     assert any(not np.array_equal(np.asarray(x), np.asarray(y))
                for x, y in zip(jax.tree_util.tree_leaves(a.params), jax.tree_util.tree_leaves(c.params)))
     # an all-True mask is the plain update (to float rounding)
-    d, md = student.update(s, key, traj, mask=jnp.ones((16, 4), bool))
-    e, me = student.update(s, key, traj)
+    d, md = masked(traj, jnp.ones((16, 4), bool))
+    e, me = plain(traj)
     for x, y in zip(jax.tree_util.tree_leaves(d.params), jax.tree_util.tree_leaves(e.params)):
         np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(float(md["loss"]), float(me["loss"]), rtol=1e-5, atol=1e-6)
