@@ -159,13 +159,14 @@ def test_fused_evaluation_equals_separate_ones(cart):
 
 def test_vmapped_seeds_run_until_the_last_one_is_done(cart):
     env, student, s = cart
-    states = jax.vmap(student.init)(jax.random.split(jax.random.PRNGKey(1), 3))
+    states = jax.jit(jax.vmap(student.init))(jax.random.split(jax.random.PRNGKey(1), 3))  # one program, not op by op
     keys = jax.random.split(jax.random.PRNGKey(2), 3)
     levels = env.param_space.sample(jax.random.PRNGKey(3), (2,))
     R, info = jax.jit(jax.vmap(lambda s, k: student.evaluate_with_info(s, k, levels, 3)))(states, keys)
+    ref = jax.jit(lambda s, k: full_scan_evaluate(student, s, k, levels, 3))  # one compile for the three seeds
     for i in range(3):
         s_i = jax.tree_util.tree_map(lambda x: x[i], states)
-        R_ref, L_ref = jax.jit(lambda s, k: full_scan_evaluate(student, s, k, levels, 3))(s_i, keys[i])
+        R_ref, L_ref = ref(s_i, keys[i])
         _eq(R[i], R_ref)
         _eq(info["lengths"][i], L_ref)
         assert int(info["steps_run"][i]) == 16 * -(-int(np.max(L_ref)) // 16)  # each seed's own count
@@ -204,6 +205,8 @@ def test_lander_early_stop_equals_the_full_scan():
 
 
 def _shed_loop(fused: bool, spec):
+    """The h-MDP loop's ``init`` and ``run`` (vmapped over seeds, jitted) on a tiny cartpole student, with
+    the test set fused into the teacher's evaluation or run after the step."""
     from shed_jax.loop import make_run
     from shed_jax.methods.hierarchical import HierarchicalTeacher, HMDPConfig
 
@@ -219,23 +222,44 @@ def _shed_loop(fused: bool, spec):
                                                                eval_levels=env.param_space.sample(jax.random.PRNGKey(42), (3,)))
     assert method.fuses_test_eval is fused
     init, run = make_run(student, method, env.param_space.sample(jax.random.PRNGKey(7), (2,)), spec)
-    run = jax.jit(jax.vmap(run, in_axes=(0, None, None)), static_argnums=1)
-    return jax.jit(jax.vmap(init))(jax.random.split(jax.random.PRNGKey(3), 2)), run
+    return jax.vmap(init), jax.jit(jax.vmap(run, in_axes=(0, None, None)), static_argnums=1)
 
 
-@pytest.mark.optimized  # bitwise: two programs
-@pytest.mark.parametrize("test_episode_every", [1, 2])  # 1: static "always test"; 2: a traced schedule
-def test_loop_fused_test_set_equals_separate_evaluation(test_episode_every):
+@pytest.mark.optimized  # bitwise: two programs per comparison
+def test_loop_fused_test_set_equals_separate_evaluation():
+    """The loop with the test set fused into h-MDP's evaluation equals the loop that evaluates it after the
+    step, bit for bit: every metric and the whole run state, with the static "always test"
+    (test_episode_every 1) and with a traced schedule (test_episode_every 2, NaN where nothing was tested).
+
+    Three programs, not four: the reference for both is the separate evaluation testing at every step.
+    A schedule that skips test episodes leaves everything but the test metrics as they were, bit for bit
+    (the loop's cond on ``tests_at``; test_loop.py::test_skipping_test_episodes_and_recording_one_level_change_only_the_records),
+    so the separate run with the schedule is the always-testing one with NaN test metrics off the schedule."""
     from shed_jax.loop import LoopSpec
 
-    spec = LoopSpec(steps_per_episode=2, num_episodes=3, test_episodes=3, test_max_steps=None,
-                    test_episode_every=test_episode_every)
-    s_f, run_f = _shed_loop(True, spec)
-    s_s, run_s = _shed_loop(False, spec)
-    out_f, m_f = run_f(s_f, 6, 0)
-    out_s, m_s = run_s(s_s, 6, 0)
-    for a, b in zip(jax.tree_util.tree_leaves((out_f, m_f)), jax.tree_util.tree_leaves((out_s, m_s))):
-        _eq(a, b)  # every metric and the whole run state, NaN where nothing was tested
-    tested = np.isfinite(np.asarray(m_f["test_return"]))
-    np.testing.assert_array_equal(tested, np.broadcast_to(spec.tests_at(np.arange(6)), (2, 6)))
-    assert np.all(np.asarray(m_f["test_return"])[tested] >= 1.0)  # cartpole pays 1 per step
+    def spec(every):
+        return LoopSpec(steps_per_episode=2, num_episodes=3, test_episodes=3, test_max_steps=None, test_episode_every=every)
+
+    def eq_trees(x, y):
+        for a, b in zip(jax.tree_util.tree_leaves(x), jax.tree_util.tree_leaves(y), strict=True):
+            _eq(a, b)
+
+    init, run_s = _shed_loop(False, spec(1))
+    # one initial state for the three runs (the two methods' init is the same code: the class differs
+    # only in fuses_test_eval)
+    s0 = jax.jit(init)(jax.random.split(jax.random.PRNGKey(3), 2))
+    out_s, m_s = run_s(s0, 6, 0)
+    test_metrics = ("test_return", "test_return_per_level")
+    for every in (1, 2):  # 1: static "always test"; 2: a traced schedule
+        _, run_f = _shed_loop(True, spec(every))
+        out_f, m_f = run_f(s0, 6, 0)
+        eq_trees(out_f, out_s)  # the whole run state
+        eq_trees({k: v for k, v in m_f.items() if k not in test_metrics}, {k: v for k, v in m_s.items() if k not in test_metrics})
+        tested = spec(every).tests_at(np.arange(6))
+        for k in test_metrics:  # the test metrics where tested, NaN elsewhere
+            f, ref = np.asarray(m_f[k]), np.asarray(m_s[k])
+            _eq(f[:, tested], ref[:, tested])
+            assert np.all(np.isnan(f[:, ~tested])) and np.all(np.isfinite(ref))
+        np.testing.assert_array_equal(np.isfinite(np.asarray(m_f["test_return"])), np.broadcast_to(tested, (2, 6)))
+        assert np.all(np.asarray(m_f["test_return"])[:, tested] >= 1.0)  # cartpole pays 1 per step
+    assert not spec(2).tests_at(np.arange(6)).all()  # the schedule skips some steps
