@@ -104,6 +104,11 @@ class StopRequest:
 
     def _handle(self, signum, frame):
         if self.signum is not None:
+            # the chunk's worker may be inside XLA (and an interrupted join can report it finished):
+            # python -m shed_jax ends the process with os._exit, not an interpreter shutdown under it
+            EXIT_AT_ONCE.set()
+            print(f"\n[shed_jax] {signal.Signals(signum).name} again: stopped at once, without saving (what was "
+                  f"saved before stays)", file=sys.stderr, flush=True)
             if signum == signal.SIGINT:
                 raise KeyboardInterrupt
             raise SystemExit(128 + signum)
@@ -589,8 +594,23 @@ def extend_history(history: dict, chunk: dict) -> dict:
     return out
 
 
-def _chunk_loop(batch, compiled, progress, out, stop, reporter, ckpt, w, writes) -> tuple[int, str] | None:
+def run_chunk(fn: Callable, state, done: int, rows: int) -> tuple:
+    """``fn(state, done)``: the new state and the chunk's metrics on the host, flattened (padding cut
+    to ``rows``). It runs in a worker thread (``in_worker``) because XLA holds the calling thread until
+    the results are ready and Python runs signal handlers only in the main thread: run there, a signal
+    would wait for the chunk to end (minutes for a long chunk on a CPU), so the first one's line would
+    come late and a second one could not stop the run at once."""
     from shed_jax import reporting, sharding
+
+    def work():
+        new_state, metrics = fn(state, done)
+        return new_state, reporting.flatten_tree(sharding.unpad(sharding.to_host(metrics), rows))
+
+    return in_worker(work, name="chunk")
+
+
+def _chunk_loop(batch, compiled, progress, out, stop, reporter, ckpt, w, writes) -> tuple[int, str] | None:
+    from shed_jax import reporting
     from shed_jax.checkpoint import find_nonfinite
 
     S, total = batch.num_seeds, batch.total
@@ -601,8 +621,7 @@ def _chunk_loop(batch, compiled, progress, out, stop, reporter, ckpt, w, writes)
         done = progress.done
         n = min(batch.chunk, total - done)
         t_chunk = time.time()
-        new_state, metrics = compiled[n](progress.state, done)
-        flat = reporting.flatten_tree(sharding.unpad(sharding.to_host(metrics), batch.num_points * S))
+        new_state, flat = run_chunk(compiled[n], progress.state, done, batch.num_points * S)
         progress.chunk_s.append(time.time() - t_chunk)
         if progress.first_chunk_s is None:
             progress.first_chunk_s = time.time() - progress.t0

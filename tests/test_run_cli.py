@@ -91,8 +91,10 @@ def test_progress_says_compiling_and_each_post_run_stage(finished):
     gif = index("[shed_jax] rendering a GIF of seed 0's final student")
     assert index("step     4/4") < done < final < gif < index("no GIF: environment 'cartpole' has no renderer")
     # the bar (its rate and ETA) starts after the compile, so neither counts it; the final evaluation
-    # compiles and runs in workers too (a heartbeat line while either takes long)
-    assert finished["events"] == [("compile", "compiling"), "bar", ("eval", "compiling"), ("eval", "evaluating")]
+    # compiles and runs in workers too (a heartbeat line while either takes long); each of the 4 chunks
+    # runs in a worker, so that a signal is handled while XLA holds the thread that waits for it
+    assert finished["events"] == [("compile", "compiling"), "bar", *[("chunk", "compiling")] * 4,
+                                  ("eval", "compiling"), ("eval", "evaluating")]
 
 
 def test_chunk_sizes_compiled_ahead():
@@ -342,6 +344,52 @@ def test_signal_during_the_last_chunk_saves_it_and_stops_before_the_results(fini
             f"--resume {d}") in err
     assert (d / "checkpoints" / "4").is_dir() and not (d / "summary.json").exists()
     assert "training done" not in out  # no result was started
+
+
+def test_a_signal_during_a_chunk_is_handled_at_once_and_a_second_one_stops_the_run(capsys, monkeypatch):
+    """A chunk holds its thread inside XLA until its results are ready, and Python runs handlers only
+    in the main thread: ``run_chunk`` waits in a worker, so the first signal's line comes while the
+    chunk runs (not when it ends, minutes later for a long chunk on a CPU) and a second one stops at
+    once. The stand-in chunk is 4 s of one host callback inside a compiled program."""
+    ended = threading.Event()
+
+    def slow(x):
+        time.sleep(4.0)
+        ended.set()
+        return x
+
+    shape = jax.ShapeDtypeStruct((1, 1), jnp.float32)
+    fn = jax.jit(lambda state, done: (state, {"m": jax.pure_callback(slow, shape, state)})).lower(
+        jnp.ones((1, 1)), 0).compile()
+    monkeypatch.setattr(driver, "EXIT_AT_ONCE", threading.Event())
+    pid, seen = os.getpid(), {}
+    timers = [threading.Timer(0.2, os.kill, (pid, signal.SIGTERM)),
+              threading.Timer(1.0, lambda: seen.update(signum=signals.signum, ended=ended.is_set())),
+              threading.Timer(1.2, os.kill, (pid, signal.SIGTERM))]
+    with driver.StopRequest() as signals:
+        signals.startup = False  # training: a first signal lets the chunk finish
+        t0 = time.time()
+        for t in timers:
+            t.start()
+        with pytest.raises(SystemExit) as stop:
+            driver.run_chunk(fn, jnp.ones((1, 1)), 0, rows=1)
+        elapsed, still_running = time.time() - t0, not ended.is_set()
+    for t in timers:
+        t.join()
+    assert seen == {"signum": signal.SIGTERM, "ended": False}  # the first one was handled while the chunk ran
+    assert stop.value.code == 143 and still_running, elapsed  # the second did not wait for the chunk to end
+    assert driver.EXIT_AT_ONCE.is_set()  # python -m shed_jax then ends with os._exit, XLA still at work
+    err = capsys.readouterr().err
+    assert "SIGTERM: finishing the current chunk, then saving (send it again to stop at once without saving)" in err
+    assert "SIGTERM again: stopped at once, without saving (what was saved before stays)" in err
+    assert ended.wait(10)  # the stand-in chunk ends (os._exit would not wait for it)
+
+
+def test_run_chunk_returns_the_state_and_the_host_metrics_cut_to_the_rows():
+    fn = jax.jit(lambda state, done: (state + done, {"a": {"b": jnp.arange(6.0).reshape(3, 2)}}))
+    state, flat = driver.run_chunk(fn, jnp.float32(1), 2, rows=2)
+    assert float(state) == 3.0 and list(flat) == ["a/b"]
+    assert isinstance(flat["a/b"], np.ndarray) and flat["a/b"].tolist() == [[0.0, 1.0], [2.0, 3.0]]
 
 
 def signal_as_the_evaluation_compiles(signum):
