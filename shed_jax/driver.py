@@ -153,10 +153,16 @@ class StopRules:
         return False
 
 
-def in_worker(fn, name: str = "compile", heartbeat: float | None = None, what: str = "compiling"):
+def _say(text: str) -> None:
+    print(f"[shed_jax] {text}", flush=True)
+
+
+def in_worker(fn, name: str = "compile", heartbeat: float | None = None, what: str = "compiling",
+              say: Callable[[str], None] = _say):
     """``fn()`` in a worker thread while the main thread waits, so that SIGINT/SIGTERM are handled at
     once (a compile inside XLA would hold off the Python handlers until it returns). With
-    ``heartbeat`` (seconds), a "still <what>" line every so often, so the run is never silent longer."""
+    ``heartbeat`` (seconds), a "still <what>" line every so often (through ``say``, e.g. a progress
+    bar's writer), so the run is never silent longer."""
     box: dict = {}
 
     def work():
@@ -172,7 +178,7 @@ def in_worker(fn, name: str = "compile", heartbeat: float | None = None, what: s
     while worker.is_alive():
         worker.join(0.1)
         if time.time() >= beat and worker.is_alive():
-            print(f"[shed_jax] still {what} ({time.time() - start:.0f} s)...", flush=True)
+            say(f"still {what} ({time.time() - start:.0f} s)...")
             beat += heartbeat
     if "error" in box:
         raise box["error"]
@@ -594,19 +600,21 @@ def extend_history(history: dict, chunk: dict) -> dict:
     return out
 
 
-def run_chunk(fn: Callable, state, done: int, rows: int) -> tuple:
+def run_chunk(fn: Callable, state, done: int, rows: int, what: str = "training a chunk",
+              say: Callable[[str], None] = _say) -> tuple:
     """``fn(state, done)``: the new state and the chunk's metrics on the host, flattened (padding cut
     to ``rows``). It runs in a worker thread (``in_worker``) because XLA holds the calling thread until
     the results are ready and Python runs signal handlers only in the main thread: run there, a signal
     would wait for the chunk to end (minutes for a long chunk on a CPU), so the first one's line would
-    come late and a second one could not stop the run at once."""
+    come late and a second one could not stop the run at once. A chunk longer than ``HEARTBEAT_S``
+    says "still <what>" through ``say`` meanwhile."""
     from shed_jax import reporting, sharding
 
     def work():
         new_state, metrics = fn(state, done)
         return new_state, reporting.flatten_tree(sharding.unpad(sharding.to_host(metrics), rows))
 
-    return in_worker(work, name="chunk")
+    return in_worker(work, name="chunk", heartbeat=HEARTBEAT_S, what=what, say=say)
 
 
 def _chunk_loop(batch, compiled, progress, out, stop, reporter, ckpt, w, writes) -> tuple[int, str] | None:
@@ -621,7 +629,10 @@ def _chunk_loop(batch, compiled, progress, out, stop, reporter, ckpt, w, writes)
         done = progress.done
         n = min(batch.chunk, total - done)
         t_chunk = time.time()
-        new_state, flat = run_chunk(compiled[n], progress.state, done, batch.num_points * S)
+        new_state, flat = run_chunk(compiled[n], progress.state, done, batch.num_points * S,
+                                    what=f"training budget steps {done + 1}-{done + n} of {total}"
+                                    + (f" ({out.label})" if out.label else ""),
+                                    say=reporter.note)
         progress.chunk_s.append(time.time() - t_chunk)
         if progress.first_chunk_s is None:
             progress.first_chunk_s = time.time() - progress.t0

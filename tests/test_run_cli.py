@@ -93,7 +93,8 @@ def test_progress_says_compiling_and_each_post_run_stage(finished):
     # the bar (its rate and ETA) starts after the compile, so neither counts it; the final evaluation
     # compiles and runs in workers too (a heartbeat line while either takes long); each of the 4 chunks
     # runs in a worker, so that a signal is handled while XLA holds the thread that waits for it
-    assert finished["events"] == [("compile", "compiling"), "bar", *[("chunk", "compiling")] * 4,
+    assert finished["events"] == [("compile", "compiling"), "bar",
+                                  *[("chunk", f"training budget steps {i}-{i} of 4") for i in range(1, 5)],
                                   ("eval", "compiling"), ("eval", "evaluating")]
 
 
@@ -350,7 +351,8 @@ def test_a_signal_during_a_chunk_is_handled_at_once_and_a_second_one_stops_the_r
     """A chunk holds its thread inside XLA until its results are ready, and Python runs handlers only
     in the main thread: ``run_chunk`` waits in a worker, so the first signal's line comes while the
     chunk runs (not when it ends, minutes later for a long chunk on a CPU) and a second one stops at
-    once. The stand-in chunk is 4 s of one host callback inside a compiled program."""
+    once; a long chunk says it is still training. The stand-in chunk is 4 s of one host callback inside
+    a compiled program."""
     ended = threading.Event()
 
     def slow(x):
@@ -362,7 +364,8 @@ def test_a_signal_during_a_chunk_is_handled_at_once_and_a_second_one_stops_the_r
     fn = jax.jit(lambda state, done: (state, {"m": jax.pure_callback(slow, shape, state)})).lower(
         jnp.ones((1, 1)), 0).compile()
     monkeypatch.setattr(driver, "EXIT_AT_ONCE", threading.Event())
-    pid, seen = os.getpid(), {}
+    monkeypatch.setattr(driver, "HEARTBEAT_S", 0.5)
+    pid, seen, said = os.getpid(), {}, []
     timers = [threading.Timer(0.2, os.kill, (pid, signal.SIGTERM)),
               threading.Timer(1.0, lambda: seen.update(signum=signals.signum, ended=ended.is_set())),
               threading.Timer(1.2, os.kill, (pid, signal.SIGTERM))]
@@ -372,13 +375,14 @@ def test_a_signal_during_a_chunk_is_handled_at_once_and_a_second_one_stops_the_r
         for t in timers:
             t.start()
         with pytest.raises(SystemExit) as stop:
-            driver.run_chunk(fn, jnp.ones((1, 1)), 0, rows=1)
+            driver.run_chunk(fn, jnp.ones((1, 1)), 0, rows=1, what="training the stand-in", say=said.append)
         elapsed, still_running = time.time() - t0, not ended.is_set()
     for t in timers:
         t.join()
     assert seen == {"signum": signal.SIGTERM, "ended": False}  # the first one was handled while the chunk ran
     assert stop.value.code == 143 and still_running, elapsed  # the second did not wait for the chunk to end
     assert driver.EXIT_AT_ONCE.is_set()  # python -m shed_jax then ends with os._exit, XLA still at work
+    assert said and all(re.fullmatch(r"still training the stand-in \(\d+ s\)\.\.\.", line) for line in said), said
     err = capsys.readouterr().err
     assert "SIGTERM: finishing the current chunk, then saving (send it again to stop at once without saving)" in err
     assert "SIGTERM again: stopped at once, without saving (what was saved before stays)" in err
