@@ -1,5 +1,6 @@
 """BipedalWalker on physics2d: shapes, per-env isolation in one vmapped batch, motors and joint limits
-(hand-computed), lidar on a hand-made terrain, reward identity, termination, no NaN on Insane.
+(hand-computed), lidar on a hand-made terrain, reward identity, termination, no NaN on Insane, and
+the drawing (each body where the solver holds it).
 
 The walker's physics step compiles slowly on CPU, so every walker test reuses one jitted
 ``vmap(step)`` at batch 4; initial states come from that same program (an episode at its time limit
@@ -349,6 +350,40 @@ def test_reset_shapes_and_created_pose(sim):
     # fixed terrains replay: the same level gives the same profile
     _, s2 = reset(jax.random.PRNGKey(9), params)
     np.testing.assert_array_equal(np.asarray(s.profile), np.asarray(s2.profile))
+
+
+def test_render_draws_the_bodies_where_the_solver_holds_them(sim):
+    """The frame shows each body at its own position and angle, not a skeleton rebuilt from the
+    joint angles: joints are soft constraints (a knee is 0.23 m apart after the reset step)."""
+    from envs.walker import render as R
+
+    env, reset, step = sim
+    params = levels(["BipedalWalker", "Stump", "Insane", "Hardcore"])
+    _, s = reset(jax.random.PRNGKey(0), params)
+    _, out = rollout(step, s, params, np.zeros((30, B, 4), np.float32))
+    s0 = take(out[-1][1], 0)
+    polys = env.body_polygons(s0)
+    assert sorted(polys) == ["hull", "lower0", "lower1", "upper0", "upper1"]
+    # the hull by hand: origin + R(angle) local vertex, local vertices Gymnasium's (scaled)
+    x, a = hull_x_angle(env, jax.tree_util.tree_map(lambda v: v[None], s0.world))
+    z = float(env.hull_origin(s0.world)[1])
+    rot = np.array([[np.cos(a[0]), -np.sin(a[0])], [np.sin(a[0]), np.cos(a[0])]])
+    hull = np.asarray(C.HULL_POLY, np.float64) / C.SCALE @ rot.T + [x[0], z]
+    np.testing.assert_allclose(np.sort(polys["hull"], 0), np.sort(hull, 0), atol=1e-5)
+    # standing for 30 steps the joints hold: the skeleton from the joint angles is the same picture
+    ang = np.asarray(s0.world.bodies.angle)
+    q = [x[0], z, ang[0], ang[1] - ang[0], ang[2] - ang[1], ang[3] - ang[0], ang[4] - ang[3]]
+    skeleton = R.body_polygons(q)
+    for name, poly in polys.items():
+        gap = max(np.min(np.linalg.norm(skeleton[name] - v, axis=1)) for v in poly)
+        assert gap < 0.01, (name, gap)
+    # a knee pulled apart by 0.5 m (angles unchanged): the drawn shin moves with it
+    moved = s0.replace(world=s0.world.replace(bodies=s0.world.bodies.replace(
+        com=jnp.asarray(s0.world.bodies.com).at[BM.LOWER[0], 0].add(0.5))))
+    np.testing.assert_allclose(env.body_polygons(moved)["lower0"], polys["lower0"] + [0.5, 0.0], atol=1e-5)
+    frame, frame_moved = env.render(s0), env.render(moved)
+    assert frame.shape == (267, 400, 3) and frame.dtype == np.uint8
+    assert np.count_nonzero(np.any(frame != frame_moved, -1)) > 100  # the shin's pixels moved
 
 
 def test_per_env_isolation(sim):

@@ -35,8 +35,11 @@ def body_polygons(qpos) -> dict:
     return out
 
 
-def draw(qpos, profile, grid: Grid, width: int = 400, height: int = 267, lidar: bool = True, text: str | None = None) -> np.ndarray:
-    """RGB frame [height, width, 3] uint8 of one walker state."""
+def draw(qpos, profile, grid: Grid, width: int = 400, height: int = 267, lidar: bool = True, text: str | None = None,
+         polygons: dict | None = None) -> np.ndarray:
+    """RGB frame [height, width, 3] uint8 of one walker state. ``polygons`` (world polygons keyed as
+    ``body_polygons``'): the bodies as a simulator holds them, drawn instead of the rigid skeleton
+    computed from ``qpos`` (which still places the view and the lidar)."""
     q = np.asarray(qpos, np.float64)
     prof = np.asarray(profile, np.float64)
     x_left = q[0] - VIEW_W / 4
@@ -62,7 +65,7 @@ def draw(qpos, profile, grid: Grid, width: int = 400, height: int = 267, lidar: 
         fr = np.asarray(L.lidar(prof.astype(np.float32), grid, q[:2].astype(np.float32)))
         for f, dvec in zip(fr, L.RAY_DIRS):
             d.line(px([q[:2], q[:2] + f * C.LIDAR_RANGE * dvec]), fill=(255, 80, 80), width=1)
-    polys = body_polygons(q)
+    polys = body_polygons(q) if polygons is None else polygons
     for name in ("upper1", "lower1", "hull", "upper0", "lower0"):
         shade = (0.7 if name.endswith("1") else 1.0) if name != "hull" else 1.0
         fill = (127, 51, 229) if name == "hull" else tuple(int(c * shade) for c in (178, 102, 153))
