@@ -384,6 +384,21 @@ def test_render_draws_the_bodies_where_the_solver_holds_them(sim):
     frame, frame_moved = env.render(s0), env.render(moved)
     assert frame.shape == (267, 400, 3) and frame.dtype == np.uint8
     assert np.count_nonzero(np.any(frame != frame_moved, -1)) > 100  # the shin's pixels moved
+    # the terrain drawn is the physics' fixtures: a stump's box taken out of the state's terrain leaves
+    # the frame (the profile, which only the lidar reads, still has it)
+    s1 = take(out[-1][1], 1)  # the Stump level
+    t, x1 = s1.terrain, float(env.hull_origin(s1.world)[0])
+    boxes, ok = np.asarray(t.boxes), np.asarray(t.box_valid)
+    in_view = np.nonzero(ok & (boxes[:, 0] > x1) & (boxes[:, 1] < x1 + 10.0))[0]
+    assert in_view.size, "no stump in view: pick another terrain seed"
+    gone = s1.replace(terrain=t.replace(box_valid=jnp.asarray(ok).at[in_view].set(False)))
+    with_box, without = env.render(s1), env.render(gone)
+    changed = np.any(with_box != without, -1)
+    cols = np.nonzero(changed.any(0))[0]
+    assert np.count_nonzero(changed) > 20 and cols.size
+    # the changed pixels lie over the removed boxes (400 px for the 20 m view, hull at a quarter of it)
+    px = lambda x: (x - (x1 - 5.0)) * 20.0  # noqa: E731
+    assert px(boxes[in_view, 0].min()) - 2 <= cols.min() and cols.max() <= px(boxes[in_view, 1].max()) + 2
 
 
 def test_per_env_isolation(sim):

@@ -344,12 +344,18 @@ class BipedalWalker(WalkerInterface, Environment):
         """One unbatched state -> RGB frame [height, width, 3] uint8: the MJX walker's drawing, with each
         body where the solver holds it. Joints are soft constraints: after the reset step a knee is
         still 0.23 m apart (closed within a few dozen steps), which a skeleton rebuilt from the joint
-        angles would hide."""
+        angles would hide. With Gymnasium's fixtures (``obstacles="polygon"``) the terrain drawn is
+        theirs, the polyline and the obstacle boxes, not the profile the lidar reads."""
         from envs.walker.render import draw
 
         a = np.asarray(state.world.bodies.angle)
         pos = np.asarray(self.hull_origin(state.world))
         # the view and the lidar follow the hull; the joint angles are unused once polygons are given
         q = [pos[0], pos[1], a[0], a[1] - a[0], a[2] - a[1], a[3] - a[0], a[4] - a[3]]
+        fixtures = {}
+        if self.options.contacts == "edge" and self.options.obstacles == "polygon":  # what the legs touch
+            t = state.terrain
+            fixtures = dict(ground=(np.asarray(t.x), np.asarray(t.y)),
+                            boxes=np.asarray(t.boxes) * np.asarray(t.box_valid)[:, None])
         return draw(np.asarray(q, np.float32), np.asarray(state.profile), self.grid, width, height,
-                    polygons=self.body_polygons(state))
+                    polygons=self.body_polygons(state), **fixtures)

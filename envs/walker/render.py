@@ -36,10 +36,12 @@ def body_polygons(qpos) -> dict:
 
 
 def draw(qpos, profile, grid: Grid, width: int = 400, height: int = 267, lidar: bool = True, text: str | None = None,
-         polygons: dict | None = None) -> np.ndarray:
+         polygons: dict | None = None, ground: tuple | None = None, boxes=None) -> np.ndarray:
     """RGB frame [height, width, 3] uint8 of one walker state. ``polygons`` (world polygons keyed as
     ``body_polygons``'): the bodies as a simulator holds them, drawn instead of the rigid skeleton
-    computed from ``qpos`` (which still places the view and the lidar)."""
+    computed from ``qpos`` (which still places the view and the lidar). ``ground`` (column x, y) and
+    ``boxes`` ([K, 4] x0, x1, y0, y1; all-zero rows unused): a simulator's terrain fixtures, drawn
+    instead of the height profile (which the lidar still reads)."""
     q = np.asarray(qpos, np.float64)
     prof = np.asarray(profile, np.float64)
     x_left = q[0] - VIEW_W / 4
@@ -53,11 +55,20 @@ def draw(qpos, profile, grid: Grid, width: int = 400, height: int = 267, lidar: 
     img = Image.new("RGB", (width, height), (230, 230, 255))
     d = ImageDraw.Draw(img)
     gx = grid.x_min + grid.dx * np.arange(grid.n)
-    sel = (gx >= x_left - grid.dx) & (gx <= x_left + VIEW_W + grid.dx)
-    pts = np.stack([gx[sel], prof[sel]], -1)
+    if ground is None:
+        sel = (gx >= x_left - grid.dx) & (gx <= x_left + VIEW_W + grid.dx)
+        pts = np.stack([gx[sel], prof[sel]], -1)
+    else:
+        cx, cy = (np.asarray(v, np.float64) for v in ground)
+        inside = np.nonzero((cx >= x_left) & (cx <= x_left + VIEW_W))[0]
+        lo, hi = (max(inside[0] - 1, 0), min(inside[-1] + 2, len(cx))) if inside.size else (0, len(cx))
+        pts = np.stack([cx[lo:hi], cy[lo:hi]], -1)
     if len(pts) > 1:
         poly = px(pts) + [((pts[-1, 0] - x_left) * sx, height + 10), ((pts[0, 0] - x_left) * sx, height + 10)]
         d.polygon(poly, fill=(102, 153, 76), outline=(76, 230, 76))
+    for x0, x1, y0, y1 in np.asarray(boxes if boxes is not None else np.zeros((0, 4)), np.float64):
+        if x1 > x0 and y1 > y0:
+            d.polygon(px([[x0, y0], [x1, y0], [x1, y1], [x0, y1]]), fill=(102, 153, 76), outline=(76, 230, 76))
     if x_left < C.FINISH_X < x_left + VIEW_W:
         f = px([[C.FINISH_X, np.interp(C.FINISH_X, gx, prof)], [C.FINISH_X, np.interp(C.FINISH_X, gx, prof) + 2.0]])
         d.line(f, fill=(230, 50, 50), width=2)
