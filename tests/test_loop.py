@@ -71,20 +71,28 @@ def _allclose_trees(a, b):
 
 
 def test_chunks_equal_one_run_and_compile_once(setup):
+    """Three chunks of 2 budget steps end where one scan of 6 does (the 6-step program is the one
+    test_student_reinitialised_each_episode and the skipping test run), and one compile serves
+    every 2-step chunk."""
     init, run = setup
-    s0 = init(jax.random.PRNGKey(0))
-    s_full, m_full = run(s0, 2, 0)
-    s_full, m_full2 = run(s_full, 2, 2)
-    s_a, m_a = run(s0, 2, 0)
-    s_b, m_b = run(s_a, 2, 2)
-    _allclose_trees(s_full, s_b)
-    _allclose_trees(m_full2, m_b)
-    assert run._cache_size() == 1  # one compile serves every chunk
+    s0 = init(jax.random.PRNGKey(1))
+    s_one, m_one = run(s0, 6, 0)
+    s, ms = s0, []
+    for done in (0, 2, 4):
+        s, m = run(s, 2, done)
+        ms.append(m)
+        if done == 0:
+            compiled = run._cache_size()
+    assert run._cache_size() == compiled  # the later chunks reused the first one's program
+    # two programs: XLA may order a float sum differently in each (bitwise equal on an AMD EPYC CPU)
+    m_chunks = jax.tree_util.tree_map(lambda *x: np.concatenate(x), *ms)
+    for a, b in zip(jax.tree_util.tree_leaves((s_one, m_one)), jax.tree_util.tree_leaves((s, m_chunks))):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-5, atol=1e-6)
     # the step counter and episode bookkeeping
-    np.testing.assert_array_equal(np.asarray(m_full["step"]), [0, 1])
-    np.testing.assert_array_equal(np.asarray(m_full2["step"]), [2, 3])
-    np.testing.assert_array_equal(np.asarray(m_full2["episode"]), [1, 1])
-    np.testing.assert_array_equal(np.asarray(m_full2["step_in_episode"]), [0, 1])
+    m_full = jax.tree_util.tree_map(np.asarray, m_one)
+    np.testing.assert_array_equal(m_full["step"], [0, 1, 2, 3, 4, 5])
+    np.testing.assert_array_equal(m_full["episode"], [0, 0, 1, 1, 2, 2])
+    np.testing.assert_array_equal(m_full["step_in_episode"], [0, 1, 0, 1, 0, 1])
 
 
 def test_student_reinitialised_each_episode(setup):
