@@ -22,6 +22,7 @@ from flax import struct
 
 from envs import physics2d
 from envs.physics2d import fused
+from envs.physics2d.vec import rotate
 from envs.bipedal import model as M
 from envs.core import EnvState, Environment
 from envs.walker import constants as C
@@ -332,13 +333,11 @@ class BipedalWalker(WalkerInterface, Environment):
         """One unbatched state's bodies as world polygons (numpy [k, 2]), keyed as the MJX walker's
         drawing keys them (``hull``, ``upper0``, ``lower0``, ``upper1``, ``lower1``)."""
         b = state.world.bodies
-        angle, origin = np.asarray(b.angle, np.float64), np.asarray(physics2d.body_origin(self.model, b), np.float64)
+        origin = physics2d.body_origin(self.model, b)
         names = {M.HULL: "hull", **{M.UPPER[k]: f"upper{k}" for k in (0, 1)}, **{M.LOWER[k]: f"lower{k}" for k in (0, 1)}}
-        out = {}
-        for p in self.model.polygons:
-            c, s = np.cos(angle[p.body]), np.sin(angle[p.body])
-            out[names[p.body]] = np.asarray(p.vertices, np.float64) @ np.array([[c, s], [-s, c]]) + origin[p.body]
-        return out
+        return {names[p.body]: np.asarray(rotate(b.angle[p.body], jnp.asarray(p.vertices, jnp.float32)) + origin[p.body],
+                                          np.float64)
+                for p in self.model.polygons}
 
     def render(self, state: BipedalState, params=None, width: int = 400, height: int = 267) -> np.ndarray:
         """One unbatched state -> RGB frame [height, width, 3] uint8: the MJX walker's drawing, with each
