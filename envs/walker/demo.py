@@ -1,7 +1,7 @@
 """``python -m shed_jax demo --env walker``: a random or scripted policy on a few named levels.
 
 Prints a per-level table (return, length, outcome, distance) and writes one GIF per level under
-``runs/walker_demo/`` (or ``--out``). The rollout is one jitted ``lax.scan`` per level; frames are
+``runs/demo-walker/`` (or ``--out``). The rollout is one jitted ``lax.scan`` per level; frames are
 drawn on the host afterwards from the recorded poses.
 """
 from __future__ import annotations
@@ -22,7 +22,7 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--policy", choices=("random", "scripted"), default="scripted")
     ap.add_argument("--steps", type=int, default=300, help="max steps per level (first episode only)")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--out", default="runs/walker_demo")
+    ap.add_argument("--out", default="runs/demo-walker")
     ap.add_argument("--frame-every", type=int, default=3)
     ap.add_argument("--no-gif", action="store_true")
     return ap
