@@ -79,3 +79,14 @@ def test_bad_input_is_one_line(tmp_path, capsys):
     # the demos without a student player refuse --policy before any work
     assert main(["demo", "--env", "lander", "--policy", str(junk)]) == 2
     assert "--policy works with --env bipedal" in capsys.readouterr().err
+
+
+def test_module_entry_point_reports_one_line():
+    """``python -m envs.bipedal.demo`` prints a user error as one line and exits 2 (no compile)."""
+    import subprocess
+    import sys
+
+    r = subprocess.run([sys.executable, "-m", "envs.bipedal.demo", "--levels", "Flat"], capture_output=True, text=True,
+                       timeout=300)
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert r.stderr.strip().splitlines() == [r.stderr.strip()] and "unknown level(s) Flat" in r.stderr

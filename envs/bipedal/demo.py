@@ -179,11 +179,11 @@ def report(env, names, stats, bodies, starts, out: pathlib.Path | None, every: i
 
 
 if __name__ == "__main__":
-    from shed_jax.cli.errors import UsageError, report
+    from shed_jax.cli import errors as cli_errors  # a module: its ``report`` must not replace this one's
 
     try:
         code = run_demo()
-    except UsageError as err:  # one line, as ``python -m shed_jax demo`` prints it
-        report(err)
+    except cli_errors.UsageError as err:  # one line, as ``python -m shed_jax demo`` prints it
+        cli_errors.report(err)
         code = err.code
     raise SystemExit(code)
