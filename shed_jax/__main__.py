@@ -19,7 +19,7 @@ from shed_jax.xla_cpu import apply_cpu_guard
 apply_cpu_guard()  # before any JAX computation (shed_jax/xla_cpu.py says why)
 
 COMMANDS = {
-    "demo": "roll out a built-in controller on generated levels; print a table and write a GIF",
+    "demo": "roll out a built-in controller (or a saved 2-D walker student) on a few levels; print a table and write GIFs",
     "ppo": "train the PPO student on fixed levels",
     "run": "run a UED method (the paper's shed and hmdp, the learning teachers hmdp-x and shed-x, and the baselines dr, paired, accel, accel-norevisit, plr)",
     "eval": "evaluate a saved student on a level set",

@@ -47,15 +47,32 @@ def save_policy(path, states) -> None:
 
 def load_policy(student, path, seeds: int | None = None):
     """The inverse of ``save_policy``: a vmapped ``Policy`` of ``student`` (``seeds`` of them, default:
-    as many as the file holds), ready for ``student.act`` / ``student.evaluate``; no env is reset. A
-    file saved by another student config or seed count fails with flax's shape error."""
+    as many as the file holds), ready for ``student.act`` / ``student.evaluate``; no env is reset.
+    ValueError naming the first array that differs where the file is not such a policy (another
+    student config, environment or seed count; flax itself does not compare shapes)."""
     from flax import serialization
 
     data = pathlib.Path(path).read_bytes()
+    try:
+        stored = serialization.msgpack_restore(data)
+        leaves = jax.tree_util.tree_leaves(stored)
+    except Exception as err:  # msgpack's own errors name no class worth keeping
+        raise ValueError(f"{path} is not a flax msgpack file ({type(err).__name__}: {err})") from None
+    if not isinstance(stored, dict) or not leaves:
+        raise ValueError(f"{path} holds no saved policy (a flax msgpack of 'params' and 'obs_norm')")
     if seeds is None:
-        seeds = int(jax.tree_util.tree_leaves(serialization.msgpack_restore(data))[0].shape[0])
-    fresh = jax.vmap(student.init_policy)(jax.random.split(jax.random.PRNGKey(0), seeds))
-    return serialization.from_bytes(fresh, data)
+        seeds = int(np.shape(leaves[0])[0]) if np.ndim(leaves[0]) else 0
+    fresh = jax.vmap(student.init_policy)(jax.random.split(jax.random.PRNGKey(0), max(seeds, 1)))
+    want = serialization.to_state_dict(fresh)
+    got_paths = dict(jax.tree_util.tree_flatten_with_path(stored)[0])
+    for key_path, leaf in jax.tree_util.tree_flatten_with_path(want)[0]:
+        name = jax.tree_util.keystr(key_path)
+        if key_path not in got_paths:
+            raise ValueError(f"{path} is not a policy of this student: it lacks {name}")
+        if np.shape(got_paths[key_path]) != np.shape(leaf):
+            raise ValueError(f"{path} is not a policy of this student: {name} has shape "
+                             f"{np.shape(got_paths[key_path])}, expected {np.shape(leaf)} ({seeds} seed(s))")
+    return serialization.from_state_dict(fresh, stored)
 
 
 def train_seeds(student, keys, hparams, level, num_updates: int, chunks: int, progress: bool = True, on_chunk=None,

@@ -26,25 +26,48 @@ DEFAULT_LEVELS = ("BipedalWalker", "Stump", "PitGap", "Stairs")
 
 
 def parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="python -m envs.bipedal.demo", description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--levels", default=",".join(DEFAULT_LEVELS), help="comma-separated names of envs.walker.levels.LEVELS")
+    from shed_jax.cli.errors import Parser  # one-line usage errors, as the shared CLI's
+
+    ap = Parser(prog="python -m envs.bipedal.demo", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--levels", default=",".join(DEFAULT_LEVELS),
+                    help="comma-separated names of envs.walker.levels.LEVELS, or a number N: the first N of "
+                         + ", ".join(DEMO_ORDER))
     ap.add_argument("--policy", default=None, help="a policy.msgpack of 'python -m shed_jax ppo --env bipedal' "
                     "(its first seed, deterministic) instead of Gymnasium's gait")
     ap.add_argument("--steps", type=int, default=600, help="steps per level at most (the first episode only)")
-    ap.add_argument("--seed", type=int, default=0, help="root PRNG seed (terrains and the start push)")
+    ap.add_argument("--seed", type=int, default=0, help="root PRNG seed (terrains and the start push; a level's "
+                    "draw depends on its name, not its place in --levels)")
     ap.add_argument("--out", default="runs/demo-bipedal", help="where the GIFs go")
-    ap.add_argument("--frame-every", type=int, default=3, help="draw every k-th step")
+    ap.add_argument("--frame-every", type=int, default=3, help="draw every k-th step (and the last)")
     ap.add_argument("--no-gif", action="store_true", help="print the table only")
     return ap
 
 
+def level_names(levels) -> list[str]:
+    """``--levels``: a count N (the first N of ``DEMO_ORDER``) or comma-separated names; UsageError
+    naming the unknown ones."""
+    from envs.walker.levels import LEVELS
+    from shed_jax.cli.errors import UsageError
+
+    text = str(levels).strip()
+    if text.isdigit():
+        if int(text) < 1:
+            raise UsageError(f"--levels must be >= 1 or level names, got {text}")
+        return list(DEMO_ORDER[: min(int(text), len(DEMO_ORDER))])
+    names = [n for n in text.split(",") if n]
+    unknown = [n for n in names if n not in LEVELS]
+    if unknown or not names:
+        raise UsageError(f"unknown level(s) {', '.join(unknown) or '(none given)'}; known: {', '.join(sorted(LEVELS))}")
+    return names
+
+
 def make_rollout(env, steps: int, controller):
-    """A jitted ``(keys [N], params [N], theta) -> (stats [N], bodies [T, N], start states [N])``: the first
-    episode of ``controller`` (``envs.bipedal.parity``'s form) on each level, ``steps`` steps at most.
-    ``stats``: return, length, fell (the -100 ending), terminated, done, x at the start and at the end.
-    ``bodies``: the solver's bodies before each step, enough to draw a frame with the start state's
-    terrain (``frame``)."""
+    """A jitted ``(keys [N], params [N], theta) -> (stats [N], trace [T, N], bodies [T + 1, N], start
+    states [N])``: the first episode of ``controller`` (``envs.bipedal.parity``'s form) on each level,
+    ``steps`` steps at most. ``stats``: return, length, fell (the -100 ending), terminated, done, the
+    hull's x at the start and at the episode's end (or after the last step). ``trace``: each step's
+    reward, done and x. ``bodies[t]``: the solver's bodies after t steps, enough to draw a frame with
+    the start state's terrain (``frame``)."""
     import jax
     import jax.numpy as jnp
 
@@ -67,16 +90,17 @@ def make_rollout(env, steps: int, controller):
             stats["x"] = jnp.where(stats["done"], stats["x"], info["x"])
             stats["done"] = stats["done"] | done
             a2, h2 = next_(theta, h, obs2)
-            return (obs2, s2, h2, a2, stats), s.world.bodies
+            return (obs2, s2, h2, a2, stats), (dict(reward=reward, done=done, x=info["x"]), s2.world.bodies)
 
         a, h = first(theta, obs)
-        (_, s, _, _, stats), bodies = jax.lax.scan(body, (obs, state, h, a, stats0), jax.random.split(k1, steps))
+        (_, s, _, _, stats), (trace, bodies) = jax.lax.scan(body, (obs, state, h, a, stats0), jax.random.split(k1, steps))
         # not ended within ``steps``: the return and length so far
         stats["ret"] = jnp.where(stats["done"], stats["ret"], s.episode_return)
         stats["length"] = jnp.where(stats["done"], stats["length"], s.time)
-        return stats, bodies, state
+        bodies = jax.tree_util.tree_map(lambda b0, b: jnp.concatenate([b0[None], b]), state.world.bodies, bodies)
+        return stats, trace, bodies, state
 
-    return jax.jit(jax.vmap(one, in_axes=(0, 0, None), out_axes=(0, 1, 0)))
+    return jax.jit(jax.vmap(one, in_axes=(0, 0, None), out_axes=(0, 1, 1, 0)))
 
 
 def frame(env, start, bodies, text: str | None = None) -> np.ndarray:
@@ -93,6 +117,8 @@ def frame(env, start, bodies, text: str | None = None) -> np.ndarray:
 
 
 def outcome(stats: dict, i: int) -> str:
+    """How level i's episode ended: fell (the -100 ending), finished (past the finish line), time limit
+    (the level's ``max_steps``), or running (still going after the demo's ``steps``)."""
     if not stats["done"][i]:
         return "running"
     if stats["fell"][i]:
@@ -100,26 +126,24 @@ def outcome(stats: dict, i: int) -> str:
     return "finished" if stats["terminated"][i] else "time limit"
 
 
+def frame_steps(length: int, every: int) -> list[int]:
+    """The steps drawn: every ``every``-th from the start state, and the state after the last step."""
+    ts = list(range(0, length + 1, every))
+    return ts if ts[-1] == length else ts + [length]
+
+
 def run_demo(args=None) -> int:
     """Entry point; ``args`` is an argparse Namespace (from the shared CLI) or an argv list."""
     from envs.bipedal.env import BipedalWalker
     from envs.bipedal.parity import heuristic_controller, policy_controller
     from envs.rendering import unstack
-    from envs.walker.levels import LEVELS
     from shed_jax.cli.errors import UsageError
 
     if args is None or isinstance(args, (list, tuple)):
         args = parser().parse_args(args)
     defaults = vars(parser().parse_args([]))
     get = lambda name: getattr(args, name, None) if getattr(args, name, None) is not None else defaults[name]  # noqa: E731
-    levels = get("levels")
-    if isinstance(levels, int):  # the shared CLI passes a number of levels
-        names = list(DEMO_ORDER[: max(1, min(levels, len(DEMO_ORDER)))])
-    else:
-        names = [n for n in str(levels).split(",") if n]
-    unknown = [n for n in names if n not in LEVELS]
-    if unknown or not names:
-        raise UsageError(f"unknown level(s) {', '.join(unknown) or '(none given)'}; known: {', '.join(sorted(LEVELS))}")
+    names = level_names(get("levels"))
     steps, every = int(get("steps")), int(get("frame_every"))
     if steps < 1 or every < 1:
         raise UsageError(f"--steps and --frame-every must be >= 1, got {steps} and {every}")
@@ -137,31 +161,34 @@ def run_demo(args=None) -> int:
         student = make_student(env, PPOConfig.for_env("bipedal").replace(num_envs=1))
         try:
             theta = unstack(load_policy(student, path), 0)
-        except (ValueError, KeyError, TypeError) as err:
-            raise UsageError(f"--policy {path} is not a saved 2-D walker student: {str(err).splitlines()[0]}") from None
+        except ValueError as err:  # another student, environment or no policy at all: named by load_policy
+            raise UsageError(f"--policy: {err}") from None
         controller, who = policy_controller(student), f"the student in {path} (seed 0, deterministic)"
 
     print(f"{who} on {len(names)} named level(s), first episode, {steps} steps at most (compiling first)...", flush=True)
-    stats, bodies, starts = play(env, names, steps, controller, theta, int(get("seed")))
+    stats, _, bodies, starts = play(env, names, steps, controller, theta, int(get("seed")))
     report(env, names, stats, bodies, starts, None if get("no_gif") else pathlib.Path(get("out")), every)
     return 0
 
 
 def play(env, names, steps: int, controller, theta=None, seed: int = 0):
-    """``make_rollout`` on the named levels, level i with key i of ``PRNGKey(seed)``; numpy stats."""
+    """``make_rollout`` on the named levels; a level's key is ``PRNGKey(seed)`` folded with its index
+    in the sorted level table, so its terrain does not depend on the other levels asked for. Returns
+    numpy ``stats`` and ``trace``, and the bodies and start states as JAX arrays."""
     import jax
     import jax.numpy as jnp
 
     from envs.walker.levels import LEVELS
 
     params = jax.tree_util.tree_map(lambda *x: jnp.stack(x), *[LEVELS[n]() for n in names])
-    keys = jax.random.split(jax.random.PRNGKey(seed), len(names))
-    stats, bodies, starts = make_rollout(env, steps, controller)(keys, params, theta)
-    return jax.tree_util.tree_map(np.asarray, stats), bodies, starts
+    table = sorted(LEVELS)
+    keys = jnp.stack([jax.random.fold_in(jax.random.PRNGKey(seed), table.index(n)) for n in names])
+    stats, trace, bodies, starts = make_rollout(env, steps, controller)(keys, params, theta)
+    return jax.tree_util.tree_map(np.asarray, stats), jax.tree_util.tree_map(np.asarray, trace), bodies, starts
 
 
 def report(env, names, stats, bodies, starts, out: pathlib.Path | None, every: int) -> None:
-    """Print the table; with ``out``, write one GIF per level, a frame every ``every`` steps up to its end."""
+    """Print the table; with ``out``, write one GIF per level (``frame_steps``)."""
     from envs.rendering import save_gif, unstack
 
     print(f"{'level':<16}{'return':>10}{'length':>8}  {'outcome':<11}{'distance (m)':>13}")
@@ -172,10 +199,10 @@ def report(env, names, stats, bodies, starts, out: pathlib.Path | None, every: i
         return
     for i, name in enumerate(names):
         start = unstack(starts, i)
-        n = max(1, int(stats["length"][i]))
-        frames = [frame(env, start, unstack(unstack(bodies, t), i), f"{name} t={t}") for t in range(0, n, every)]
+        frames = [frame(env, start, unstack(unstack(bodies, t), i), f"{name} t={t}")
+                  for t in frame_steps(int(stats["length"][i]), every)]
         save_gif(frames, str(out / f"bipedal_{name}.gif"), fps=max(1, 50 // every))
-    print(f"GIFs in {out}/ (one per level, a frame every {every} step(s))")
+    print(f"GIFs in {out}/ (one per level, a frame every {every} step(s) and the last)")
 
 
 if __name__ == "__main__":

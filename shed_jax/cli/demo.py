@@ -1,7 +1,8 @@
-"""`python -m shed_jax demo`: roll out an environment's built-in controller on generated levels.
+"""`python -m shed_jax demo`: roll out an environment's built-in controller on a few levels.
 
 Each environment module listed in DEMOS exposes ``run_demo(args) -> int``; it prints a per-level
-table (level parameters, return, length, outcome) and writes a GIF of one episode under --out. A
+table (return, length, outcome; the lander's also its generated parameters, the walkers' the
+distance walked on named levels) and writes GIFs under --out. A
 module that can play a saved student instead of its built-in controller sets ``ACCEPTS_POLICY``.
 """
 from __future__ import annotations
