@@ -32,3 +32,11 @@ def test_ppo_command_policy_file_round_trips(tmp_path):
     levels = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[None], env.default_params)
     ret = jax.vmap(lambda s, k: student.evaluate(s, k, levels, args.eval_episodes))(loaded, eval_keys)
     np.testing.assert_allclose(np.asarray(ret)[:, 0, :].mean(axis=1), summary["final_return_mean"], rtol=1e-6)
+    # another seed count or another student's networks: refused by name, not restored at the wrong shape
+    import pytest
+
+    with pytest.raises(ValueError, match=r"\['obs_norm'\]\['count'\] has shape \(2,\), expected \(3,\) \(3 seed\(s\)\)"):
+        load_policy(student, path, seeds=3)
+    wide = make_student(env, PPOConfig.for_env("cartpole").replace(actor_hidden=(32,)))
+    with pytest.raises(ValueError, match=r"is not a policy of this student: \['params'\]"):
+        load_policy(wide, path)
