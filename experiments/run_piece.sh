@@ -1,0 +1,54 @@
+#!/bin/bash
+# One piece of a run too long for one machine's lease (docs/running.md, "A run longer than one
+# machine's lease"), carried across leases in a folder of its own. Run from the repository root:
+#   OUT=DIR bash experiments/run_piece.sh FOLDER SECONDS
+# FOLDER holds: run.args (the flags that start the run, `--out runs/NAME` among them), src.tgz (the
+# run's own shed_jax/, envs/ and experiments/, so later edits to the tree change neither the program
+# nor its compilation-cache keys), and after the first piece ckpt.tgz.* (parts of one archive of the
+# run directory) and cache.tgz.* (JAX's persistent compilation cache). The script installs the
+# wheels in .whl if there are any, puts the run's sources in place OF THIS TREE'S (so OUT must be
+# set: it runs on a disposable copy, e.g. the device machine's), starts the run (no ckpt.tgz.* yet) or
+# resumes it, stops it with --time-limit SECONDS counted from the script's start, and writes the new
+# ckpt.tgz.*, cache.tgz.* and run.log into $OUT. It exits with the run's exit code (75: stopped at
+# the time limit and saved; 0: finished, final evaluation included; 2: bad arguments). Copy those
+# back over FOLDER's parts (old parts removed first: the split may change) before the next piece.
+set -u
+usage="usage: OUT=DIR bash experiments/run_piece.sh FOLDER SECONDS"
+dir=${1:?$usage}
+secs=${2:?$usage}
+case $secs in ''|*[!0-9]*) echo "run_piece: SECONDS must be a whole number, got '$secs'"; exit 2;; esac
+# it replaces this tree's sources with the run's: only on a disposable copy of the tree, where OUT is set
+: "${OUT:?run_piece.sh replaces shed_jax/, envs/ and experiments/ in place: run it on a disposable copy with OUT set}"
+[ -f "$dir/run.args" ] && [ -f "$dir/src.tgz" ] || { echo "run_piece: $dir lacks run.args or src.tgz"; exit 2; }
+t0=$(date +%s)
+args=$(cat "$dir/run.args")
+run=$(echo "$args" | sed -n 's/.*--out \([^ ]*\).*/\1/p')
+[ -n "$run" ] || { echo "run_piece: $dir/run.args lacks --out DIR"; exit 2; }
+if ls .whl/*.whl >/dev/null 2>&1; then
+  python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || exit 3
+  export PYTHONPATH=$PWD:/tmp/site
+fi
+export PYTHONUNBUFFERED=1 SHED_JAX_CACHE=$PWD/.cache/device
+rm -rf shed_jax envs experiments && tar xzf "$dir/src.tgz" || exit 4
+mkdir -p runs .cache
+if ls "$dir"/ckpt.tgz.* >/dev/null 2>&1; then
+  cat "$dir"/ckpt.tgz.* | tar xzf - || exit 5
+  what="--resume $run"
+else
+  what=$args
+fi
+if ls "$dir"/cache.tgz.* >/dev/null 2>&1; then cat "$dir"/cache.tgz.* | tar xzf -; fi
+lim=$(( secs - ($(date +%s) - t0) ))
+timeout -k 10 $(( lim + 25 )) python -m shed_jax run $what --keep 1 --no-gif --time-limit $lim > "$OUT/run.log" 2>&1
+rc=$?
+echo "rc $rc after $(( $(date +%s) - t0 )) s"
+# the checkpoint in parts under the 16 MiB a call returns, written whole before it is put in $OUT
+if [ -d "$run" ]; then
+  whole=${TMPDIR:-/tmp}/run_piece.$$.tgz
+  tar czf "$whole" "$run" && gzip -t "$whole" && split -b 15M "$whole" "$OUT/ckpt.tgz." || echo "no checkpoint packed"
+  rm -f "$whole"
+  ls -l "$OUT"/ckpt.tgz.*
+fi
+if [ -d .cache/device ]; then tar czf - .cache/device | split -b 15M - "$OUT/cache.tgz."; fi
+tail -c 2000 "$OUT/run.log" | tr '\r' '\n' | grep -a -v '^ *$' | tail -4
+exit $rc

@@ -1,0 +1,102 @@
+"""experiments/run_piece.sh: a run carried across machine leases in pieces. The run itself is a stub
+``python`` on PATH (it records its arguments, writes a "checkpoint" and a "cache" and exits 75), so
+what is checked is the script's own work: start or resume, the run's sources put in place, the
+time limit, the parts it returns, and its errors."""
+import os
+import pathlib
+import shutil
+import subprocess
+import tarfile
+
+import pytest
+
+SCRIPT = pathlib.Path(__file__).resolve().parents[1] / "experiments" / "run_piece.sh"
+STUB = """#!/bin/bash
+echo "$@" >> "$STUB_LOG"
+[ -f runs/x/state ] && echo "found $(cat runs/x/state)" >> "$STUB_LOG"
+mkdir -p runs/x .cache/device/jax
+echo "piece $PIECE" > runs/x/state
+echo cached > .cache/device/jax/entry
+exit 75
+"""
+
+
+def _tree(root: pathlib.Path, folder: pathlib.Path) -> pathlib.Path:
+    """A disposable copy of a repository: stale sources, the script, and the in-flight folder's files."""
+    repo = root / "repo"
+    for d in ("shed_jax", "envs", "experiments"):
+        (repo / d).mkdir(parents=True)
+        (repo / d / "stale.txt").write_text("the tree's own")
+    shutil.copy(SCRIPT, repo / "experiments" / "run_piece.sh")
+    shutil.copytree(folder, repo / "inflight")
+    return repo
+
+
+def _piece(root, repo, piece, seconds="100", out=True):
+    bin_ = root / "bin"
+    bin_.mkdir(exist_ok=True)
+    (bin_ / "python").write_text(STUB)
+    (bin_ / "python").chmod(0o755)
+    env = {**os.environ, "PATH": f"{bin_}:{os.environ['PATH']}", "STUB_LOG": str(root / "stub.log"), "PIECE": str(piece)}
+    if out:
+        env["OUT"] = str(root / f"out{piece}")
+        (root / f"out{piece}").mkdir()
+    else:
+        env.pop("OUT", None)
+    return subprocess.run(["bash", "experiments/run_piece.sh", "inflight", seconds], cwd=repo, env=env,
+                          capture_output=True, text=True, timeout=120)
+
+
+@pytest.fixture
+def folder(tmp_path):
+    src = tmp_path / "src"
+    for d in ("shed_jax", "envs", "experiments"):
+        (src / d).mkdir(parents=True)
+        (src / d / "run_sources.txt").write_text("the run's own")
+    f = tmp_path / "folder"
+    f.mkdir()
+    with tarfile.open(f / "src.tgz", "w:gz") as tar:
+        for d in ("shed_jax", "envs", "experiments"):
+            tar.add(src / d, arcname=d)
+    (f / "run.args").write_text("--env lander --method dr --preset quick --seeds 1 --out runs/x\n")
+    return f
+
+
+def test_start_then_resume_from_the_returned_parts(tmp_path, folder):
+    first = tmp_path / "first"
+    repo = _tree(first, folder)
+    r = _piece(first, repo, 1)
+    assert r.returncode == 75, r.stdout + r.stderr
+    call = (first / "stub.log").read_text().split()
+    # started with the folder's flags, the script's own, and a limit inside the piece's seconds
+    assert call[:3] == ["-m", "shed_jax", "run"] and "--resume" not in call
+    assert " ".join(call[3:13]) == "--env lander --method dr --preset quick --seeds 1 --out runs/x"
+    assert call[13:16] == ["--keep", "1", "--no-gif"] and call[16] == "--time-limit" and 95 <= int(call[17]) <= 100
+    # the run's sources replaced the tree's before it ran
+    assert (repo / "shed_jax" / "run_sources.txt").is_file() and not (repo / "shed_jax" / "stale.txt").exists()
+    out = first / "out1"
+    assert sorted(p.name for p in out.iterdir()) == ["cache.tgz.aa", "ckpt.tgz.aa", "run.log"]
+
+    # the next lease: a fresh copy of the tree, the returned parts copied into the folder
+    for part in out.glob("*.tgz.*"):
+        shutil.copy(part, folder / part.name)
+    second = tmp_path / "second"
+    repo2 = _tree(second, folder)
+    assert _piece(second, repo2, 2).returncode == 75
+    log = (second / "stub.log").read_text().splitlines()
+    assert log[0].split()[3:5] == ["--resume", "runs/x"] and "--env" not in log[0]
+    assert log[1] == "found piece 1"  # the checkpoint was unpacked before the run resumed
+    assert (repo2 / ".cache" / "device" / "jax" / "entry").read_text() == "cached\n"
+
+
+def test_bad_arguments_are_refused_before_any_work(tmp_path, folder):
+    repo = _tree(tmp_path, folder)
+    r = _piece(tmp_path, repo, 1, seconds="ten")
+    assert r.returncode == 2 and "SECONDS must be a whole number" in r.stdout
+    r = _piece(tmp_path, repo, 2, out=False)
+    assert r.returncode != 0 and "OUT set" in r.stderr
+    (repo / "inflight" / "run.args").write_text("--env lander --method dr\n")
+    r = _piece(tmp_path, repo, 3)
+    assert r.returncode == 2 and "lacks --out DIR" in r.stdout
+    # nothing ran, and the tree's own sources are still there
+    assert not (tmp_path / "stub.log").exists() and (repo / "shed_jax" / "stale.txt").is_file()
