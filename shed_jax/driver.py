@@ -35,7 +35,7 @@ import signal
 import sys
 import threading
 import time
-from typing import Any, Callable
+from typing import Any, Callable, Literal, get_args
 
 import numpy as np
 
@@ -728,8 +728,10 @@ def _close_quietly(ckpt) -> None:
 # ---------------------------------------------------------------------------------------------
 
 def write_results(batch: Batch, progress: Progress, out: Output, w: Writes, *, wall: float, plots: bool = True,
-                  final_sets=(), final_episodes: int = 10, extras: list | None = None) -> list[dict]:
+                  final_sets=(), final_episodes: int = 10, extras: list | None = None,
+                  early: "FinalEvalCompile | None" = None) -> list[dict]:
     """Each point's plots and final evaluations, then its ``summary.json`` (with ``extras[p]``); the summaries.
+    ``early``: the final evaluation's programs compiled while training ran (one point only).
 
     A point with ``summary.json`` is finished: written last, so one cut off here gets them all again.
     """
@@ -747,7 +749,7 @@ def write_results(batch: Batch, progress: Progress, out: Output, w: Writes, *, w
             for resolved in final_sets:
                 w.stage = f"writing the final evaluation on {resolved[2]!r}{where(d)}"
                 final_eval(batch.exp, batch.env, batch.student, students, batch.num_seeds, resolved, d, progress.done,
-                           final_episodes)
+                           final_episodes, early=early)
             w.stage = f"writing summary.json{where(d)}"
             rundir.write_atomic(d / "summary.json", json.dumps(summary, indent=2))
         summaries.append(summary)
@@ -805,23 +807,26 @@ def heartbeat_wait(thunk, what: str):
 
 
 def final_eval(exp, env, student, student_state, num_seeds: int, resolved, out: pathlib.Path, step: int,
-               episodes: int) -> None:
+               episodes: int, early: "FinalEvalCompile | None" = None) -> None:
     """Evaluate the final students on one level set (as ``eval`` does) and write final_eval_<set>.json
     (with the device, command and date).
 
     The episode cap is the test set's (``LoopSpec.test_max_steps``). The run's results are already
     written, so a failure here is reported and does not fail the run. The JSON's ``wall_time_s`` is
     the evaluation's own time, compile included; the run's ``summary.json`` wall time stops before it.
+    With ``early`` its program was compiled while training ran (``FinalEvalCompile``).
     """
     from shed_jax.evaluation import evaluate_students
 
     t0 = time.time()
     levels = len(resolved[1])
+    compiled = early.program(resolved[2]) if early is not None else None
+    how = "compiled during training" if compiled is not None else "compiling first"
     print(f"[shed_jax] final evaluation on {resolved[2]!r}: {levels} level(s) x {num_seeds} seed(s) x {episodes} "
-          f"episode(s) (compiling first)...", flush=True)
+          f"episode(s) ({how})...", flush=True)
     try:
-        body, text = evaluate_students(exp, env, student, student_state, num_seeds, resolved,
-                                       episodes=episodes, max_steps=exp.loop.test_max_steps, wait=heartbeat_wait)
+        body, text = evaluate_students(exp, env, student, student_state, num_seeds, resolved, episodes=episodes,
+                                       max_steps=exp.loop.test_max_steps, wait=heartbeat_wait, compiled=compiled)
     except Exception as err:  # noqa: BLE001 - see the docstring
         print(f"[shed_jax] final evaluation on {resolved[2]!r} failed: {type(err).__name__}: {err}", file=sys.stderr)
         return
@@ -834,6 +839,44 @@ def final_eval(exp, env, student, student_state, num_seeds: int, resolved, out: 
     print(f"[shed_jax] final students on {body['levels']!r} ({num_seeds} seed(s) x {episodes} episode(s) per level, {solved}):")
     print(text)
     print(f"[shed_jax] wrote {path}")
+
+
+class FinalEvalCompile:
+    """The final evaluation's programs (``evaluation.evaluation_program``, one per ``--final-eval`` level
+    set) compiled in a worker thread while training runs, for ``students`` as the chunks leave them (so
+    the final students' shapes and placement). On a GPU the host mostly waits for the device while a
+    chunk runs, and a walker's evaluation compiles for minutes. ``program(name)`` waits for the worker
+    (a heartbeat line while it takes long) and gives the compiled program, or None where that compile
+    failed: the final evaluation then compiles its own and reports what goes wrong."""
+
+    def __init__(self, batch: Batch, final_sets, students, episodes: int, max_steps: int | None):
+        from shed_jax.evaluation import evaluation_program, seed_keys
+
+        self.programs: dict = {}
+        keys = seed_keys(0, batch.num_seeds)  # final_eval's seed
+
+        def work():
+            for levels, _, name in final_sets:
+                try:
+                    program = evaluation_program(batch.student, levels, episodes, max_steps)
+                    self.programs[name] = program.lower(students, keys).compile()
+                except Exception:  # noqa: BLE001 - see the class docstring
+                    self.programs[name] = None
+
+        # named for __main__._exit: a run stopped by its time limit may exit while this still compiles
+        self.thread = threading.Thread(target=work, name="shed_jax-final-eval-compile", daemon=True)
+        self.thread.start()
+
+    def program(self, name: str, say: Callable[[str], None] = _say):
+        start = time.time()
+        beat = start + HEARTBEAT_S
+        while self.thread.is_alive():
+            self.thread.join(0.1)
+            if time.time() >= beat and self.thread.is_alive():
+                say(f"still compiling the final evaluation (begun during training; {time.time() - start:.0f} s since "
+                    f"training ended)...")
+                beat += HEARTBEAT_S
+        return self.programs.get(name)
 
 
 def gif(env, student, state, tests, out: pathlib.Path) -> None:
@@ -864,6 +907,9 @@ def gif(env, student, state, tests, out: pathlib.Path) -> None:
 # python -m shed_jax run
 # ---------------------------------------------------------------------------------------------
 
+CompileWhen = Literal["auto", "early", "late"]
+
+
 @dataclasses.dataclass
 class RunOptions:
     """The run command's options (its flags; None: the preset's or the saved run's value)."""
@@ -891,6 +937,10 @@ class RunOptions:
     checkpoint_every: float | None = None  # None: the resumed run's, else 0.0
     stop_after: int | None = None
     time_limit: float | None = None
+    # when the final evaluation compiles: "early", in a worker thread from the first chunk on, while
+    # training runs; "late", after training; "auto": early on a GPU (the host is idle meanwhile),
+    # late elsewhere (on a CPU a compile would slow the training it overlaps)
+    compile_final_eval: CompileWhen = "auto"
 
     #: the counts (argparse checks them too, for callers that build the options themselves)
     COUNTS = ("seeds", "episodes", "steps_per_episode", "test_episode_every", "chunk", "keep", "final_eval_episodes",
@@ -926,6 +976,9 @@ class RunOptions:
             check_checkpoint_every(self.checkpoint_every, self.no_checkpoint)
         if self.from_step is not None and not self.resume:
             raise UsageError("--from-step N chooses the checkpoint that --resume DIR continues from; give --resume DIR as well")
+        if self.compile_final_eval not in get_args(CompileWhen):
+            raise UsageError(f"--compile-final-eval must be one of {', '.join(get_args(CompileWhen))}, "
+                             f"got {self.compile_final_eval!r}")
         if self.restart:
             if self.resume:
                 raise UsageError("--restart starts the run in --out DIR over, --resume DIR continues it: give one of them")
@@ -1015,8 +1068,9 @@ class _RunReporter(Reporter):
     """The run's progress bar (steps; created after the compile, so its rate and ETA count training only)
     and one line per chunk."""
 
-    def __init__(self, exp, num_seeds: int):
+    def __init__(self, exp, num_seeds: int, on_first_chunk: Callable[[Progress], None] | None = None):
         self.exp, self.num_seeds, self.bar = exp, num_seeds, None
+        self.on_first_chunk = on_first_chunk  # called once, after the first chunk of this process
 
     def begin(self, progress, total):
         from tqdm import tqdm
@@ -1028,6 +1082,9 @@ class _RunReporter(Reporter):
     def chunk(self, progress, steps, flat):
         from shed_jax import reporting
 
+        if self.on_first_chunk is not None:
+            first, self.on_first_chunk = self.on_first_chunk, None
+            first(progress)
         self.bar.update(steps)
         steps_train = progress.history["info/env_steps_train"].astype(np.float64).sum(axis=1).mean()
         tr = flat["test_return"][:, -1]
@@ -1047,6 +1104,13 @@ class _RunReporter(Reporter):
             self.bar.close()
 
 
+def compile_early(when: str) -> bool:
+    """``RunOptions.compile_final_eval`` resolved: "auto" is early on a GPU."""
+    import jax
+
+    return when == "early" or (when == "auto" and jax.default_backend() == "gpu")
+
+
 def _train_run(opts, plan, batch, compiled, progress, final_sets, stop) -> int:
     """The chunks (checked, written, saved), then the summary, plots, final evaluation and GIF."""
     out, total = plan.out, batch.total
@@ -1062,7 +1126,14 @@ def _train_run(opts, plan, batch, compiled, progress, final_sets, stop) -> int:
 
     output = Output([out], [out.name], out if checkpointing else None, opts.keep, plan.config,
                     lambda p: {"wall_time_s": p.wall()}, every=opts.checkpoint_every)
-    stopped = train(batch, compiled, progress, output, stop, _RunReporter(batch.exp, batch.num_seeds), safe)
+    early: list = []  # the final evaluation's programs, compiling from the first chunk on (compile_early)
+
+    def compile_final_eval(p: Progress) -> None:
+        early.append(FinalEvalCompile(batch, final_sets, batch.rows(p.state.student, 0), opts.final_eval_episodes,
+                                      batch.exp.loop.test_max_steps))
+
+    hook = compile_final_eval if final_sets and compile_early(opts.compile_final_eval) else None
+    stopped = train(batch, compiled, progress, output, stop, _RunReporter(batch.exp, batch.num_seeds, hook), safe)
     if stopped is not None:
         code, reason = stopped
         if code != EXIT_NONFINITE:
@@ -1087,7 +1158,8 @@ def _train_run(opts, plan, batch, compiled, progress, final_sets, stop) -> int:
                   flush=True)
             summary, = write_results(batch, progress, output, w, wall=wall, final_sets=final_sets,
                                      final_episodes=opts.final_eval_episodes,
-                                     extras=[{"wall_time_per_chunk_s": progress.wall_per_chunk()}])
+                                     extras=[{"wall_time_per_chunk_s": progress.wall_per_chunk()}],
+                                     early=early[0] if early else None)
             if not opts.no_gif:
                 w.stage = "writing final_student.gif"
                 gif(batch.env, batch.student, progress.state, batch.tests, out)

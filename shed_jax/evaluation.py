@@ -210,33 +210,55 @@ def _json_num(x):
     return x if math.isfinite(x) else None
 
 
+def evaluation_program(student, levels, episodes: int, max_steps: int | None = None, deterministic: bool = False):
+    """The jitted, seed-vmapped ``(student states, keys) -> returns [seeds, levels, episodes]`` that
+    ``evaluate_students`` compiles; ``seed_keys`` gives its keys."""
+    import jax
+
+    return jax.jit(jax.vmap(lambda s, k: student.evaluate(s, k, levels, episodes, max_steps, deterministic)))
+
+
+def seed_keys(seed: int, num_seeds: int):
+    """Seed i of a run evaluates with ``fold_in(PRNGKey(seed), i)``."""
+    import jax
+
+    root = jax.random.PRNGKey(seed)
+    return jax.vmap(lambda i: jax.random.fold_in(root, i))(np.arange(num_seeds))
+
+
 def evaluate_students(exp, env, student, student_state, num_seeds: int, resolved, *, episodes: int = 10,
                       max_steps: int | None = None, deterministic: bool = False, seed: int = 0,
-                      solved_threshold: float | None = None, wait=None) -> tuple[dict, str]:
+                      solved_threshold: float | None = None, wait=None, compiled=None) -> tuple[dict, str]:
     """Evaluate every seed's student (vmapped, one compile) on a resolved level set.
 
     ``resolved`` is what ``resolve_levels`` returns. Seed i of the run uses ``fold_in(PRNGKey(seed), i)``,
     so the same state, levels and arguments give the same returns from ``eval`` and from ``run
     --final-eval``. ``wait(thunk, what)`` runs the two long stages, ``what`` = "compiling" then
     "evaluating", and returns the thunk's value (the CLI's ``driver.in_worker`` with a heartbeat line,
-    so a long evaluation is never silent); None calls them directly. Returns the JSON-ready result
-    (levels, returns, per-level table) and the printed table.
+    so a long evaluation is never silent); None calls them directly. ``compiled``: the program of
+    ``evaluation_program`` for these arguments, compiled earlier (``run`` compiles it while training);
+    where it does not take these arrays (another sharding) it is compiled again. Returns the
+    JSON-ready result (levels, returns, per-level table) and the printed table.
     """
-    import jax
-
     from shed_jax.levels import ued
 
     levels, labels, name = resolved
     threshold = solved_threshold if solved_threshold is not None else ued(env).solved_threshold
-    root = jax.random.PRNGKey(seed)
-    keys = jax.vmap(lambda i: jax.random.fold_in(root, i))(np.arange(num_seeds))
+    keys = seed_keys(seed, num_seeds)
     wait = wait or (lambda thunk, what: thunk())
-    evaluate = jax.jit(jax.vmap(lambda s, k: student.evaluate(s, k, levels, episodes, max_steps, deterministic)))
-    try:
-        compiled = wait(lambda: evaluate.lower(student_state, keys).compile(), "compiling")
-    except ValueError as err:  # e.g. levels longer than the env's default limit without --max-steps
-        raise LevelFileError(str(err)) from err
-    returns = wait(lambda: np.asarray(compiled(student_state, keys)), "evaluating")  # [seeds, levels, episodes]
+    returns = None
+    if compiled is not None:
+        try:
+            returns = wait(lambda: np.asarray(compiled(student_state, keys)), "evaluating")
+        except (TypeError, ValueError):  # the arrays' avals or sharding differ from those it was compiled for
+            returns = None
+    if returns is None:
+        evaluate = evaluation_program(student, levels, episodes, max_steps, deterministic)
+        try:
+            program = wait(lambda: evaluate.lower(student_state, keys).compile(), "compiling")
+        except ValueError as err:  # e.g. levels longer than the env's default limit without --max-steps
+            raise LevelFileError(str(err)) from err
+        returns = wait(lambda: np.asarray(program(student_state, keys)), "evaluating")  # [seeds, levels, episodes]
     table = level_table(returns, threshold)
     vectors = np.asarray(env.param_space.to_vector(levels))
     result = {

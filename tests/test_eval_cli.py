@@ -161,8 +161,10 @@ def test_final_eval_specs():
 
 def test_bad_final_eval_set_fails_before_training(tmp_path):
     d = tmp_path / "run"
-    with pytest.MonkeyPatch.context() as mp:
+    original = xp.test_levels
+    with pytest.MonkeyPatch.context() as mp:  # the tiny experiment and its test set (not only in the suite's order)
         mp.setattr(xp, "experiment_from_args", lambda args, backend: tiny_experiment())
+        mp.setattr(xp, "test_levels", lambda name, env: cartpole_test_levels(env) if name == "cartpole-test" else original(name, env))
         with pytest.raises(SystemExit, match="--final-eval: .*'hard' is none of these"):
             run_cli.main(parse(run_cli, ["--out", str(d), "--seeds", "1", "--no-gif", "--final-eval", "hard"]))
     assert not (d / "metrics.jsonl").exists() and not (d / "checkpoints").exists()

@@ -459,6 +459,48 @@ def test_final_evaluation_flags_default_to_the_saved_run():
     assert args.final_eval is None and args.final_eval_episodes is None
 
 
+def test_final_evaluation_compiled_during_training_gives_the_same_returns(finished, patched, tmp_path, monkeypatch):
+    """--compile-final-eval early (auto's choice on a GPU): the evaluation's program compiles in a worker
+    from the first chunk on, while the others run; the final evaluation uses it, and scores what run A
+    (compiled after training) scored. A compile that fails there is left to the final evaluation."""
+    assert parse(["--out", "x"]).compile_final_eval == "auto" and not driver.compile_early("auto")  # a CPU: late
+    started, chunks_after = [], []
+    original = driver.FinalEvalCompile.__init__
+
+    def spy(self, batch, final_sets, students, episodes, max_steps):
+        started.append((len(final_sets), episodes))
+        original(self, batch, final_sets, students, episodes, max_steps)
+
+    monkeypatch.setattr(driver.FinalEvalCompile, "__init__", spy)
+    original_chunk = driver._RunReporter.chunk
+    monkeypatch.setattr(driver._RunReporter, "chunk",
+                        lambda self, p, *a: (chunks_after.append(len(started)), original_chunk(self, p, *a))[1])
+    d = tmp_path / "early"
+    code, out, err = run(["--out", str(d), *BASE, "--final-eval", "test", "--final-eval-episodes", "3",
+                          "--compile-final-eval", "early"])
+    assert code == 0, err
+    assert started == [(1, 3)] and chunks_after == [0, 1, 1, 1]  # begun in the first chunk's report, once
+    assert "final evaluation on 'test': 2 level(s) x 2 seed(s) x 3 episode(s) (compiled during training)" in out
+    ours, theirs = (json.loads((x / "final_eval_test.json").read_text()) for x in (d, finished["dir"]))
+    assert ours["returns"] == theirs["returns"]
+    # a warm-up whose compile failed: the final evaluation compiles its own, with the same result
+    monkeypatch.setattr(driver.FinalEvalCompile, "program", lambda self, name, say=None: None)
+    e = tmp_path / "failed"
+    code, out, err = run(["--out", str(e), *BASE, "--final-eval", "test", "--final-eval-episodes", "3",
+                          "--compile-final-eval", "early", "--no-gif"])
+    assert code == 0 and "(compiling first)" in out
+    assert json.loads((e / "final_eval_test.json").read_text())["returns"] == theirs["returns"]
+
+
+def test_compile_final_eval_takes_three_values(capsys):
+    with pytest.raises(SystemExit):  # the command line's choices
+        parse(["--out", "x", "--compile-final-eval", "soon"])
+    assert "invalid choice: 'soon'" in capsys.readouterr().err
+    # and the options of a caller that builds them itself
+    with pytest.raises(errors.UsageError, match=r"--compile-final-eval must be one of auto, early, late, got 'soon'"):
+        driver.RunOptions(out="x", compile_final_eval="soon").check()
+
+
 # ---- failed writes ------------------------------------------------------------------------------
 
 def failing_save(at_step, exc):

@@ -60,6 +60,10 @@ def add_arguments(p) -> None:
     p.add_argument("--final-eval-episodes", type=count, default=None, metavar="N",
                    help="episodes per level and seed of --final-eval (default 10; saved with the run: --resume keeps it); "
                         "the episode cap is the test set's")
+    p.add_argument("--compile-final-eval", choices=("auto", "early", "late"), default="auto",
+                   help="when --final-eval's program compiles: early (in a worker thread while training runs, from "
+                        "the first chunk on), late (after training), or auto: early on a GPU, where the host is "
+                        "idle meanwhile, late on a CPU (default auto)")
     g = p.add_argument_group("checkpoints and stopping")
     g.add_argument("--resume", default=None, metavar="DIR",
                    help="continue the run in DIR from its latest checkpoint (its saved configuration is used; "
