@@ -813,8 +813,9 @@ def final_eval(exp, env, student, student_state, num_seeds: int, resolved, out: 
 
     The episode cap is the test set's (``LoopSpec.test_max_steps``). The run's results are already
     written, so a failure here is reported and does not fail the run. The JSON's ``wall_time_s`` is
-    the evaluation's own time, compile included; the run's ``summary.json`` wall time stops before it.
-    With ``early`` its program was compiled while training ran (``FinalEvalCompile``).
+    the evaluation's own time, compile included unless ``early`` compiled it while training ran
+    (``FinalEvalCompile``; then any wait for that compile to end); the run's ``summary.json`` wall time
+    stops before it.
     """
     from shed_jax.evaluation import evaluate_students
 
@@ -847,13 +848,20 @@ class FinalEvalCompile:
     the final students' shapes and placement). On a GPU the host mostly waits for the device while a
     chunk runs, and a walker's evaluation compiles for minutes. ``program(name)`` waits for the worker
     (a heartbeat line while it takes long) and gives the compiled program, or None where that compile
-    failed: the final evaluation then compiles its own and reports what goes wrong."""
+    failed: the final evaluation then compiles its own and reports what goes wrong. A run that stops
+    before its end (time limit, signal, non-finite guard) drops the worker: ``python -m shed_jax``
+    then exits at once (``__main__._exit`` knows the thread's name); a caller of ``run`` from Python
+    leaves it to finish or die with the process."""
 
     def __init__(self, batch: Batch, final_sets, students, episodes: int, max_steps: int | None):
+        import jax
+
         from shed_jax.evaluation import evaluation_program, seed_keys
 
         self.programs: dict = {}
         keys = seed_keys(0, batch.num_seeds)  # final_eval's seed
+        # shapes, dtypes and placement only: the first chunk's students are not kept alive by the compile
+        students = jax.tree_util.tree_map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=x.sharding), students)
 
         def work():
             for levels, _, name in final_sets:
@@ -1129,8 +1137,11 @@ def _train_run(opts, plan, batch, compiled, progress, final_sets, stop) -> int:
     early: list = []  # the final evaluation's programs, compiling from the first chunk on (compile_early)
 
     def compile_final_eval(p: Progress) -> None:
-        early.append(FinalEvalCompile(batch, final_sets, batch.rows(p.state.student, 0), opts.final_eval_episodes,
-                                      batch.exp.loop.test_max_steps))
+        try:
+            early.append(FinalEvalCompile(batch, final_sets, batch.rows(p.state.student, 0), opts.final_eval_episodes,
+                                          batch.exp.loop.test_max_steps))
+        except Exception as err:  # noqa: BLE001 - a head start only: the final evaluation compiles its own
+            print(f"[shed_jax] the final evaluation will compile after training ({type(err).__name__}: {err})", flush=True)
 
     hook = compile_final_eval if final_sets and compile_early(opts.compile_final_eval) else None
     stopped = train(batch, compiled, progress, output, stop, _RunReporter(batch.exp, batch.num_seeds, hook), safe)

@@ -248,10 +248,13 @@ def evaluate_students(exp, env, student, student_state, num_seeds: int, resolved
     wait = wait or (lambda thunk, what: thunk())
     returns = None
     if compiled is not None:
-        try:
-            returns = wait(lambda: np.asarray(compiled(student_state, keys)), "evaluating")
-        except (TypeError, ValueError):  # the arrays' avals or sharding differ from those it was compiled for
-            returns = None
+        try:  # JAX checks the arguments' avals (TypeError) and sharding (ValueError) as the call is dispatched
+            out = compiled(student_state, keys)
+        except (TypeError, ValueError) as err:
+            print(f"[shed_jax] the evaluation program compiled earlier does not take these students "
+                  f"({type(err).__name__}: {str(err).splitlines()[0]}); compiling it again", flush=True)
+        else:
+            returns = wait(lambda: np.asarray(out), "evaluating")
     if returns is None:
         evaluate = evaluation_program(student, levels, episodes, max_steps, deterministic)
         try:

@@ -459,12 +459,14 @@ def test_final_evaluation_flags_default_to_the_saved_run():
     assert args.final_eval is None and args.final_eval_episodes is None
 
 
-def test_final_evaluation_compiled_during_training_gives_the_same_returns(finished, patched, tmp_path, monkeypatch):
+def test_final_evaluation_compiled_during_training_gives_the_same_returns(finished, patched, tmp_path, monkeypatch,
+                                                                         capsys):
     """--compile-final-eval early (auto's choice on a GPU): the evaluation's program compiles in a worker
     from the first chunk on, while the others run; the final evaluation uses it, and scores what run A
     (compiled after training) scored. A compile that fails there is left to the final evaluation."""
-    assert parse(["--out", "x"]).compile_final_eval == "auto" and not driver.compile_early("auto")  # a CPU: late
-    started, chunks_after = [], []
+    assert parse(["--out", "x"]).compile_final_eval == "auto"
+    assert driver.compile_early("auto") == (jax.default_backend() == "gpu")  # late on a CPU
+    started, chunks_after, stages = [], [], []
     original = driver.FinalEvalCompile.__init__
 
     def spy(self, batch, final_sets, students, episodes, max_steps):
@@ -475,21 +477,45 @@ def test_final_evaluation_compiled_during_training_gives_the_same_returns(finish
     original_chunk = driver._RunReporter.chunk
     monkeypatch.setattr(driver._RunReporter, "chunk",
                         lambda self, p, *a: (chunks_after.append(len(started)), original_chunk(self, p, *a))[1])
+    original_wait = driver.heartbeat_wait
+    monkeypatch.setattr(driver, "heartbeat_wait", lambda thunk, what: (stages.append(what), original_wait(thunk, what))[1])
     d = tmp_path / "early"
     code, out, err = run(["--out", str(d), *BASE, "--final-eval", "test", "--final-eval-episodes", "3",
                           "--compile-final-eval", "early"])
     assert code == 0, err
     assert started == [(1, 3)] and chunks_after == [0, 1, 1, 1]  # begun in the first chunk's report, once
     assert "final evaluation on 'test': 2 level(s) x 2 seed(s) x 3 episode(s) (compiled during training)" in out
+    assert stages == ["evaluating"]  # the early program ran: the final evaluation compiled nothing
     ours, theirs = (json.loads((x / "final_eval_test.json").read_text()) for x in (d, finished["dir"]))
     assert ours["returns"] == theirs["returns"]
     # a warm-up whose compile failed: the final evaluation compiles its own, with the same result
+    stages.clear()
     monkeypatch.setattr(driver.FinalEvalCompile, "program", lambda self, name, say=None: None)
     e = tmp_path / "failed"
     code, out, err = run(["--out", str(e), *BASE, "--final-eval", "test", "--final-eval-episodes", "3",
                           "--compile-final-eval", "early", "--no-gif"])
-    assert code == 0 and "(compiling first)" in out
+    assert code == 0 and "(compiling first)" in out and stages == ["compiling", "evaluating"]
     assert json.loads((e / "final_eval_test.json").read_text())["returns"] == theirs["returns"]
+    # a program that does not take the final students (another seed count: JAX's TypeError at the call)
+    # is dropped with a line and compiled again; errors of the evaluation itself are not caught
+    from shed_jax import evaluation
+
+    exp, env, student, tests, seeds, _, students = evaluation.restore_students(finished["dir"])
+    resolved = evaluation.resolve_levels("test", env, exp, tests)
+    other = evaluation.evaluation_program(student, resolved[0], 3, exp.loop.test_max_steps)
+    three = jax.tree_util.tree_map(lambda x: jnp.concatenate([x, x[:1]]), students)
+    wrong = other.lower(three, evaluation.seed_keys(0, 3)).compile()
+    body, _ = evaluation.evaluate_students(exp, env, student, students, seeds, resolved, episodes=3,
+                                           max_steps=exp.loop.test_max_steps, compiled=wrong)
+    assert body["returns"] == theirs["returns"]
+    assert "[shed_jax] the evaluation program compiled earlier does not take these students (TypeError" in \
+        capsys.readouterr().out
+
+    def broken(state, keys):
+        raise RuntimeError("an evaluation that fails")
+
+    with pytest.raises(RuntimeError, match="an evaluation that fails"):
+        evaluation.evaluate_students(exp, env, student, students, seeds, resolved, episodes=3, compiled=broken)
 
 
 def test_compile_final_eval_takes_three_values(capsys):
