@@ -856,7 +856,8 @@ class FinalEvalCompile:
     def __init__(self, batch: Batch, final_sets, students, episodes: int, max_steps: int | None):
         import jax
 
-        from shed_jax.evaluation import evaluation_program, seed_keys
+        from shed_jax.evaluation import evaluation_program
+        from shed_jax.experiment import seed_keys
 
         self.programs: dict = {}
         keys = seed_keys(0, batch.num_seeds)  # final_eval's seed
@@ -876,14 +877,9 @@ class FinalEvalCompile:
         self.thread.start()
 
     def program(self, name: str, say: Callable[[str], None] = _say):
-        start = time.time()
-        beat = start + HEARTBEAT_S
-        while self.thread.is_alive():
-            self.thread.join(0.1)
-            if time.time() >= beat and self.thread.is_alive():
-                say(f"still compiling the final evaluation (begun during training; {time.time() - start:.0f} s since "
-                    f"training ended)...")
-                beat += HEARTBEAT_S
+        if self.thread.is_alive():  # the main thread waits in in_worker's loop: signals and heartbeat lines as ever
+            in_worker(self.thread.join, "eval", heartbeat=HEARTBEAT_S,
+                      what="compiling the final evaluation (begun during training)", say=say)
         return self.programs.get(name)
 
 

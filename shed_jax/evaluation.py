@@ -212,18 +212,10 @@ def _json_num(x):
 
 def evaluation_program(student, levels, episodes: int, max_steps: int | None = None, deterministic: bool = False):
     """The jitted, seed-vmapped ``(student states, keys) -> returns [seeds, levels, episodes]`` that
-    ``evaluate_students`` compiles; ``seed_keys`` gives its keys."""
+    ``evaluate_students`` compiles; ``experiment.seed_keys`` gives its keys."""
     import jax
 
     return jax.jit(jax.vmap(lambda s, k: student.evaluate(s, k, levels, episodes, max_steps, deterministic)))
-
-
-def seed_keys(seed: int, num_seeds: int):
-    """Seed i of a run evaluates with ``fold_in(PRNGKey(seed), i)``."""
-    import jax
-
-    root = jax.random.PRNGKey(seed)
-    return jax.vmap(lambda i: jax.random.fold_in(root, i))(np.arange(num_seeds))
 
 
 def evaluate_students(exp, env, student, student_state, num_seeds: int, resolved, *, episodes: int = 10,
@@ -240,6 +232,7 @@ def evaluate_students(exp, env, student, student_state, num_seeds: int, resolved
     where it does not take these arrays (another sharding) it is compiled again. Returns the
     JSON-ready result (levels, returns, per-level table) and the printed table.
     """
+    from shed_jax.experiment import seed_keys
     from shed_jax.levels import ued
 
     levels, labels, name = resolved

@@ -504,7 +504,7 @@ def test_final_evaluation_compiled_during_training_gives_the_same_returns(finish
     resolved = evaluation.resolve_levels("test", env, exp, tests)
     other = evaluation.evaluation_program(student, resolved[0], 3, exp.loop.test_max_steps)
     three = jax.tree_util.tree_map(lambda x: jnp.concatenate([x, x[:1]]), students)
-    wrong = other.lower(three, evaluation.seed_keys(0, 3)).compile()
+    wrong = other.lower(three, xp.seed_keys(0, 3)).compile()
     body, _ = evaluation.evaluate_students(exp, env, student, students, seeds, resolved, episodes=3,
                                            max_steps=exp.loop.test_max_steps, compiled=wrong)
     assert body["returns"] == theirs["returns"]
