@@ -19,7 +19,6 @@ and records whether ``after_init`` and ``helped`` equal ``alone`` (SHA-256 of th
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import hashlib
 import time
 
@@ -28,22 +27,12 @@ def measure(env: str, method: str, preset: str) -> dict:
     import jax
 
     import envs.physics2d.fused as fused
-    from experiments import checkpoint_size as cs
-    from shed_jax import driver, sharding
+    from experiments.kernel_census import cuda_chunk
+    from shed_jax import driver
 
-    resolve = fused.resolve_mode
-    fused.resolve_mode = lambda m: "pallas" if m == "auto" else resolve(m)  # the GPU's kernels, lowered anywhere
-    try:
-        _, batch = cs.build_batch(env, method, preset, 1)
-        batch = dataclasses.replace(batch, chunk=1)
-        placed = driver.place(batch, sharding.batch_mesh(jax.devices()[:1]))
+    with fused.auto_as("pallas"):  # the GPU's kernels, lowered anywhere
+        run_chunk, target, init, inputs = cuda_chunk(env, method, preset, 1)
         cuda = {"lowering_platforms": ("cuda",)}
-        s = sharding.batch_sharding(placed.mesh)
-        run_chunk = sharding.sharded_run(batch.run, placed.mesh)
-        target = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=s),
-                              driver.state_target(batch, placed))
-        init = sharding.sharded_init(driver.batch_init(batch.init, batch.method), placed.mesh)
-        inputs = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype), placed.inputs)
         digest = lambda lowered: hashlib.sha256(lowered.as_text().encode()).hexdigest()  # noqa: E731
         t = time.perf_counter()
         alone = driver.lower_from_clean_caches(run_chunk, target, 1, 0, **cuda)
@@ -54,8 +43,6 @@ def measure(env: str, method: str, preset: str) -> dict:
         init.trace(*inputs).lower(**cuda)
         helped = driver.lower_from_clean_caches(run_chunk, target, 1, 0, **cuda)
         seconds = round(time.perf_counter() - t, 1)
-    finally:
-        fused.resolve_mode = resolve
     return {"triton_kernels": kernels, "alone": digest(alone)[:16], "after_init": digest(after_init)[:16],
             "helped": digest(helped)[:16], "after_init_equal": digest(after_init) == digest(alone),
             "helped_equal": digest(helped) == digest(alone), "seconds": seconds}

@@ -26,6 +26,7 @@ operand of a world whose flag is 0 unchanged (up to the sign of zero), so the pa
 """
 from __future__ import annotations
 
+import contextlib
 import threading
 
 import jax
@@ -38,13 +39,31 @@ BLOCK = 128  # worlds per kernel instance (one per thread with 4 warps)
 NUM_WARPS = 4  # Triton warps per kernel instance (32 threads each)
 
 
+_AUTO = threading.local()  # .mode: what "auto" resolves to inside ``auto_as`` (None: by the backend)
+
+
 def resolve_mode(mode: str) -> str:
-    """``"auto"`` means the Pallas kernel on GPU and plain XLA elsewhere."""
+    """``"auto"`` means the Pallas kernel on GPU and plain XLA elsewhere (or ``auto_as``'s mode)."""
     if mode not in MODES:
         raise ValueError(f"solver kernel must be one of {MODES}, got {mode!r}")
     if mode == "auto":
-        return "pallas" if jax.default_backend() == "gpu" else "xla"
+        forced = getattr(_AUTO, "mode", None)
+        return forced or ("pallas" if jax.default_backend() == "gpu" else "xla")
     return mode
+
+
+@contextlib.contextmanager
+def auto_as(mode: str):
+    """Within the block (this thread), ``"auto"`` resolves to ``mode``: e.g. ``"pallas"`` to lower on
+    any host the kernels a GPU run would compile (``lowering_platforms=("cuda",)``, nothing compiled)."""
+    if mode not in MODES or mode == "auto":
+        raise ValueError(f"auto_as needs one of {MODES[1:]}, got {mode!r}")
+    before = getattr(_AUTO, "mode", None)
+    _AUTO.mode = mode
+    try:
+        yield
+    finally:
+        _AUTO.mode = before
 
 
 @jax.tree_util.register_pytree_node_class

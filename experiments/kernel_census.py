@@ -1,0 +1,138 @@
+"""How many Triton kernels XLA compiles for one budget step of a run on a GPU, counted on any host.
+
+    python -m experiments.kernel_census [--env bipedal] [--methods dr,shed] [--preset paper] [--seeds 5]
+        [--out docs/results/bipedal_kernel_census.json]
+
+Lowers a run's chunk for CUDA as ``shed_jax run`` builds it (all its seeds: a kernel's grid counts
+the worlds of every seed), with ``physics2d.fused``'s ``"auto"`` loops as the GPU's Pallas kernels;
+nothing is compiled. Each fused loop is one ``__gpu$xla.gpu.triton`` custom call in the program. XLA
+compiles a call's Triton IR once per distinct backend configuration (IR, grid and warps) and reuses
+the binary for identical calls, so the distinct configurations are the Triton compiles the program
+pays: on the 2-D walker a large solver kernel alone compiles for minutes (docs/bipedal.md). The IR
+holds the kernel's MLIR locations, so with JAX's default locations (whole call stacks) the same loop
+called from two places is two kernels; ``shed_jax`` commands give locations the innermost user frame
+only (``runtime.call_site_free_locations``), and ``--full-tracebacks`` counts the default. Printed
+and recorded per method: calls, distinct kernels, and the distinct kernels by grid (``grid_x``: blocks
+of 128 worlds).
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import hashlib
+import re
+import sys
+import time
+
+_CALL = "@__gpu$xla.gpu.triton("
+_IR = re.compile(r'\bir = "((?:[^"\\]|\\.)*)"')
+_FIELD = re.compile(r"\b(grid_x|grid_y|grid_z|num_warps|num_stages) = (\d+)")
+
+
+def triton_calls(text: str) -> list[dict]:
+    """Every Triton custom call in a lowered program's text: its grid, warps and the SHA-256 of its IR
+    (with the name, the key XLA reuses a compiled kernel by)."""
+    calls = []
+    start = text.find(_CALL)
+    while start >= 0:
+        end = text.find("\n", start)
+        op = text[start:end if end >= 0 else len(text)]  # one operation per line
+        ir = _IR.search(op)
+        rest = op[:ir.start()] + op[ir.end():] if ir else op  # the fields, not the IR's bytes
+        name = re.search(r'\bname = "([^"]*)"', rest)
+        calls.append({**{k: int(v) for k, v in _FIELD.findall(rest)}, "name": name.group(1) if name else "",
+                      "ir_sha256": hashlib.sha256(ir.group(1).encode()).hexdigest()[:16] if ir else ""})
+        start = text.find(_CALL, start + len(_CALL))
+    return calls
+
+
+def census(calls: list[dict]) -> dict:
+    """Calls, distinct kernels (IR, name, grid, warps) and the distinct kernels per ``grid_x``."""
+    distinct = {tuple(sorted(c.items())) for c in calls}
+    by_grid: dict[int, int] = {}
+    for key in distinct:
+        g = dict(key).get("grid_x", 0)
+        by_grid[g] = by_grid.get(g, 0) + 1
+    return {"triton_calls": len(calls), "triton_kernels_distinct": len(distinct),
+            "distinct_by_grid_x": {str(g): n for g, n in sorted(by_grid.items())}}
+
+
+def cuda_chunk(env: str, method: str, preset: str, seeds: int):
+    """A run's chunk of one budget step as the driver builds it, with its state target, ``init`` and
+    inputs (ShapeDtypeStructs), for lowering with ``lowering_platforms=("cuda",)``. Call it inside
+    ``fused.auto_as("pallas")`` to get the GPU's kernels."""
+    import jax
+
+    from experiments import checkpoint_size as cs
+    from shed_jax import driver, sharding
+
+    _, batch = cs.build_batch(env, method, preset, seeds)
+    batch = dataclasses.replace(batch, chunk=1)
+    placed = driver.place(batch, sharding.batch_mesh(jax.devices()[:1]))
+    s = sharding.batch_sharding(placed.mesh)
+    run_chunk = sharding.sharded_run(batch.run, placed.mesh)
+    target = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=s),
+                          driver.state_target(batch, placed))
+    init = sharding.sharded_init(driver.batch_init(batch.init, batch.method), placed.mesh)
+    inputs = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype), placed.inputs)
+    return run_chunk, target, init, inputs
+
+
+def measure(env: str, method: str, preset: str, seeds: int, full_tracebacks: bool = False) -> dict:
+    """The census of one method's chunk, its MLIR locations as ``shed_jax`` commands make them
+    (``runtime.call_site_free_locations``) or, with ``full_tracebacks``, with JAX's default call stacks."""
+    import jax
+
+    import envs.physics2d.fused as fused
+    from shed_jax import driver, runtime
+
+    t = time.perf_counter()
+    before = jax.config.jax_include_full_tracebacks_in_locations
+    if full_tracebacks:
+        jax.config.update("jax_include_full_tracebacks_in_locations", True)
+    else:
+        runtime.call_site_free_locations()
+    try:
+        with fused.auto_as("pallas"):
+            run_chunk, target, _, _ = cuda_chunk(env, method, preset, seeds)
+            text = driver.lower_from_clean_caches(run_chunk, target, 1, 0, lowering_platforms=("cuda",)).as_text()
+        full = jax.config.jax_include_full_tracebacks_in_locations
+    finally:
+        jax.config.update("jax_include_full_tracebacks_in_locations", before)
+    return {**census(triton_calls(text)), "full_tracebacks_in_locations": bool(full),
+            "lower_s": round(time.perf_counter() - t, 1)}
+
+
+def main(argv=None) -> int:
+    from experiments import checkpoint_size as cs
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--env", default="bipedal")
+    ap.add_argument("--methods", default="dr,shed", help="comma-separated UED methods")
+    ap.add_argument("--preset", default="paper")
+    ap.add_argument("--seeds", type=int, default=5)
+    ap.add_argument("--full-tracebacks", action="store_true",
+                    help="lower with JAX's default locations (whole call stacks), as runs did before 2026-12-04")
+    ap.add_argument("--out", default=None, help="JSON record to merge each method into (label env/method/preset/seeds)")
+    args = ap.parse_args(argv)
+    if args.seeds < 1:
+        print(f"kernel_census: --seeds must be at least 1, got {args.seeds}", file=sys.stderr)
+        return 2
+    for method in [m for m in args.methods.split(",") if m]:
+        try:
+            out = measure(args.env, method, args.preset, args.seeds, args.full_tracebacks)
+        except ValueError as err:
+            print(f"kernel_census: {err}", file=sys.stderr)
+            return 2
+        print(f"{method}: " + " ".join(f"{k}={v}" for k, v in out.items()), flush=True)
+        if args.out:
+            label = f"{args.env}/{method}/{args.preset}/{args.seeds}" + ("/full_tracebacks" if args.full_tracebacks else "")
+            cs.merge_labelled(args.out, label,
+                              {**cs.record_header("experiments.kernel_census", argv),
+                               "experiment": {"env": args.env, "method": method, "preset": args.preset,
+                                              "seeds": args.seeds}, **out})
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
