@@ -5,6 +5,8 @@
   compile. A cache the caller configured already (``JAX_COMPILATION_CACHE_DIR``, or
   ``jax.config`` as tests/conftest.py sets it) is left as it is; ``JAX_ENABLE_COMPILATION_CACHE=false``
   turns caching off.
+* Gives MLIR locations the innermost user frame, not the call stack (:func:`call_site_free_locations`),
+  so XLA compiles a Pallas kernel called from several places once.
 * Refuses to start, in one line naming them, when packages the project depends on are missing
   (:func:`missing_packages`): otherwise a missing one (say ``orjson``, first imported when the first
   chunk's metrics are written) would stop a run with a traceback after minutes of compiling.
@@ -107,6 +109,22 @@ def enable_compilation_cache() -> str | None:
     return str(folder)
 
 
+def call_site_free_locations() -> bool:
+    """Give MLIR locations the innermost user frame only, not the whole Python call stack, unless
+    ``JAX_INCLUDE_FULL_TRACEBACKS_IN_LOCATIONS`` is set; return whether the setting is now off.
+
+    Why: a Pallas kernel's Triton IR keeps its locations, and XLA compiles a Triton call once per
+    distinct IR (and grid). With full call stacks the same fused loop called from a reset, a training
+    step and an evaluation step embeds three different stacks, so XLA compiled it three times; on the
+    2-D walker each large solver kernel compiles for minutes (``experiments.kernel_census`` counts the
+    distinct kernels of a run's program). Outside kernels the compilation cache ignores locations."""
+    import jax
+
+    if "JAX_INCLUDE_FULL_TRACEBACKS_IN_LOCATIONS" not in os.environ:
+        jax.config.update("jax_include_full_tracebacks_in_locations", False)
+    return not jax.config.jax_include_full_tracebacks_in_locations
+
+
 def describe_devices(devices) -> str:
     """``'2 x NVIDIA H200'``-style summary, one group per device kind, in first-seen order."""
     kinds = Counter(getattr(d, "device_kind", d.platform) for d in devices)
@@ -170,6 +188,7 @@ def start_up() -> None:
     import jax
 
     cache = enable_compilation_cache()
+    call_site_free_locations()
     backend = jax.default_backend()
     print(f"[shed_jax] jax {jax.__version__}, backend {backend}: {describe_devices(jax.devices())}; "
           f"compilation cache {cache or 'off'}", flush=True)
