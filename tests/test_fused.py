@@ -92,13 +92,19 @@ def counted(c, s):
     return jnp.where(go, c["a"] * x + 1.0, x), jnp.where(go, cnt + 1.0, cnt), runs + 1.0
 
 
-@pytest.mark.parametrize("mode", ["xla", "interpret"] + (["pallas"] if jax.default_backend() == "gpu" else []))
-def test_loop_with_done_stops_early_with_the_same_result(mode):
+@pytest.mark.parametrize("mode", ["xla", "interpret", "interpret_min_blocks"]
+                         + (["pallas"] if jax.default_backend() == "gpu" else []))
+def test_loop_with_done_stops_early_with_the_same_result(mode, monkeypatch):
     """``done``: every world ends where the full loop leaves it (x after min(k, n) passes); the loop
     stops per world on the XLA path (a vmapped while freezes each world once done) and per kernel block
     of 128 worlds in the kernel (130 worlds: the first block runs all n passes, as world 5 needs 20, the
     second its slowest world's 4; its padding worlds, whose flag never rises, must not keep it going).
-    On a GPU machine the compiled kernel ("pallas") runs too."""
+    On a GPU machine the compiled kernel ("pallas") runs too; "interpret_min_blocks" pads the 130 worlds
+    to ``MIN_WORLDS`` through the interpreter, as the compiled kernel does (8 blocks, 6 of padding only)."""
+    assert fused._blocks(130, False) == 8 and fused._blocks(130, True) == 2 and fused._blocks(5000, False) == 40
+    if mode == "interpret_min_blocks":
+        monkeypatch.setattr(fused, "_blocks", lambda w, interpret: -(-max(w, fused.MIN_WORLDS) // fused.BLOCK))
+        mode = "interpret"
     n, w = 12, 130
     k = jnp.asarray([i % 9 + 1 for i in range(w)], jnp.float32).at[5].set(20.0)  # world 5 needs more than n
     a = jnp.linspace(0.1, 0.9, w, dtype=jnp.float32)

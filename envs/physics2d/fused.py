@@ -37,6 +37,11 @@ MODES = ("auto", "xla", "pallas", "interpret")
 _TRACING = threading.local()  # .in_kernel: True while this thread traces a kernel body (``when`` branches)
 BLOCK = 128  # worlds per kernel instance (one per thread with 4 warps)
 NUM_WARPS = 4  # Triton warps per kernel instance (32 threads each)
+# Compiled kernels pad their worlds to at least this many, so that loops run at different small
+# batches (a teacher's evaluation, a test set) are one kernel to XLA, which compiles a Triton call once
+# per grid: a kernel of 2 or 8 blocks takes the same time on a GPU with more multiprocessors than that.
+# The interpreter (CPU tests) pads to whole blocks only.
+MIN_WORLDS = 1024
 
 
 _AUTO = threading.local()  # .mode: what "auto" resolves to inside ``auto_as`` (None: by the backend)
@@ -195,6 +200,11 @@ def _pow2(k: int) -> int:
     return 1 << max(0, (k - 1).bit_length())
 
 
+def _blocks(w: int, interpret: bool) -> int:
+    """Kernel instances for ``w`` worlds: whole blocks, covering at least ``MIN_WORLDS`` when compiled."""
+    return -(-w // BLOCK) if interpret else -(-max(w, MIN_WORLDS) // BLOCK)
+
+
 def _kernel(n, step, c_tree, s_tree, x_tree, y_tree, nc, ns, leaves, interpret, done=None):
     """All ``n`` iterations for W worlds in one ``pallas_call`` over blocks of ``BLOCK`` worlds:
     per-world inputs and outputs as (fields, worlds) rows, per-iteration ones as (fields, n, worlds).
@@ -204,10 +214,14 @@ def _kernel(n, step, c_tree, s_tree, x_tree, y_tree, nc, ns, leaves, interpret, 
     w = leaves[0].shape[0]
     f_in, f_out = nc + ns, ns
     f_x, f_y = x_tree.num_leaves, y_tree.num_leaves
+    # with ``done``, one more input row says which worlds are real (1) or padding (0): as data, not as
+    # a constant ``w``, so calls at different batches of one grid are the same kernel
+    f_real = f_in + (done is not None)
     # Triton wants power-of-two block shapes: pad fields, iterations and worlds (padding worlds are
     # zeros, computed and dropped; the solver's divisions are guarded, so they stay finite).
-    rows_in, rows_out, wp = _pow2(f_in), _pow2(f_out), -(-w // BLOCK) * BLOCK
-    x = jnp.pad(jnp.stack(leaves[:f_in], 0), ((0, rows_in - f_in), (0, wp - w)))
+    rows_in, rows_out, wp = _pow2(f_real), _pow2(f_out), _blocks(w, interpret) * BLOCK
+    per_world = list(leaves[:f_in]) + ([jnp.ones((w,), jnp.float32)] if done is not None else [])
+    x = jnp.pad(jnp.stack(per_world, 0), ((0, rows_in - f_real), (0, wp - w)))
     in_specs = [pl.BlockSpec((rows_in, BLOCK), lambda i: (0, i))]
     out_shape = [jax.ShapeDtypeStruct((rows_out, wp), jnp.float32)]
     out_specs = [pl.BlockSpec((rows_out, BLOCK), lambda i: (0, i))]
@@ -242,7 +256,7 @@ def _kernel(n, step, c_tree, s_tree, x_tree, y_tree, nc, ns, leaves, interpret, 
             if done is None:
                 s = lax.fori_loop(0, n, iteration, s)
             else:
-                real = pl.program_id(0) * BLOCK + lax.broadcasted_iota(jnp.int32, (BLOCK,), 0) < w
+                real = x_ref[f_in, :] > 0.5
                 cond = lambda x: (x[0] < n) & (jnp.min(jnp.where(real, done(x[1]), 1.0)) < 0.5)  # noqa: E731
                 s = lax.while_loop(cond, lambda x: (x[0] + 1, iteration(x[0], x[1])), (jnp.int32(0), s))[1]
         finally:
