@@ -11,7 +11,9 @@ the binary for identical calls, so the distinct configurations are the Triton co
 pays: on the 2-D walker a large solver kernel alone compiles for minutes (docs/bipedal.md). The IR
 holds the kernel's MLIR locations, so with JAX's default locations (whole call stacks) the same loop
 called from two places is two kernels; ``shed_jax`` commands give locations the innermost user frame
-only (``runtime.call_site_free_locations``), and ``--full-tracebacks`` counts the default. Printed
+only (``runtime.call_site_free_locations``), and ``--full-tracebacks`` counts the default. Compiled
+kernels pad small batches to ``fused.MIN_WORLDS`` worlds, so evaluations at different small batches
+share one grid; ``--min-worlds 128`` counts whole blocks only. Printed
 and recorded per method: calls, distinct kernels, and the distinct kernels by grid (``grid_x``: blocks
 of 128 worlds).
 """
@@ -78,9 +80,11 @@ def cuda_chunk(env: str, method: str, preset: str, seeds: int):
     return run_chunk, target, init, inputs
 
 
-def measure(env: str, method: str, preset: str, seeds: int, full_tracebacks: bool = False) -> dict:
+def measure(env: str, method: str, preset: str, seeds: int, full_tracebacks: bool = False,
+            min_worlds: int | None = None) -> dict:
     """The census of one method's chunk, its MLIR locations as ``shed_jax`` commands make them
-    (``runtime.call_site_free_locations``) or, with ``full_tracebacks``, with JAX's default call stacks."""
+    (``runtime.call_site_free_locations``) or, with ``full_tracebacks``, with JAX's default call stacks;
+    kernels padded to ``min_worlds`` worlds (default ``fused.MIN_WORLDS``; ``fused.BLOCK``: whole blocks only)."""
     import jax
 
     import envs.physics2d.fused as fused
@@ -88,6 +92,9 @@ def measure(env: str, method: str, preset: str, seeds: int, full_tracebacks: boo
 
     t = time.perf_counter()
     before = jax.config.jax_include_full_tracebacks_in_locations
+    padding = fused.MIN_WORLDS
+    fused.MIN_WORLDS = padding if min_worlds is None else min_worlds
+    used = fused.MIN_WORLDS
     if full_tracebacks:
         jax.config.update("jax_include_full_tracebacks_in_locations", True)
     else:
@@ -99,7 +106,8 @@ def measure(env: str, method: str, preset: str, seeds: int, full_tracebacks: boo
         full = jax.config.jax_include_full_tracebacks_in_locations
     finally:
         jax.config.update("jax_include_full_tracebacks_in_locations", before)
-    return {**census(triton_calls(text)), "full_tracebacks_in_locations": bool(full),
+        fused.MIN_WORLDS = padding
+    return {**census(triton_calls(text)), "full_tracebacks_in_locations": bool(full), "min_worlds": used,
             "lower_s": round(time.perf_counter() - t, 1)}
 
 
@@ -113,20 +121,27 @@ def main(argv=None) -> int:
     ap.add_argument("--seeds", type=int, default=5)
     ap.add_argument("--full-tracebacks", action="store_true",
                     help="lower with JAX's default locations (whole call stacks), as runs did before 2026-12-04")
+    ap.add_argument("--min-worlds", type=int, default=None,
+                    help="pad compiled kernels to this many worlds (default: envs.physics2d.fused.MIN_WORLDS; "
+                         "128, one block, pads to whole blocks only, as before 2026-12-04)")
     ap.add_argument("--out", default=None, help="JSON record to merge each method into (label env/method/preset/seeds)")
     args = ap.parse_args(argv)
     if args.seeds < 1:
         print(f"kernel_census: --seeds must be at least 1, got {args.seeds}", file=sys.stderr)
         return 2
+    if args.min_worlds is not None and args.min_worlds < 1:
+        print(f"kernel_census: --min-worlds must be at least 1, got {args.min_worlds}", file=sys.stderr)
+        return 2
     for method in [m for m in args.methods.split(",") if m]:
         try:
-            out = measure(args.env, method, args.preset, args.seeds, args.full_tracebacks)
+            out = measure(args.env, method, args.preset, args.seeds, args.full_tracebacks, args.min_worlds)
         except ValueError as err:
             print(f"kernel_census: {err}", file=sys.stderr)
             return 2
         print(f"{method}: " + " ".join(f"{k}={v}" for k, v in out.items()), flush=True)
         if args.out:
-            label = f"{args.env}/{method}/{args.preset}/{args.seeds}" + ("/full_tracebacks" if args.full_tracebacks else "")
+            label = (f"{args.env}/{method}/{args.preset}/{args.seeds}/min_worlds_{out['min_worlds']}"
+                     + ("/full_tracebacks" if args.full_tracebacks else ""))
             cs.merge_labelled(args.out, label,
                               {**cs.record_header("experiments.kernel_census", argv),
                                "experiment": {"env": args.env, "method": method, "preset": args.preset,

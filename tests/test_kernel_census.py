@@ -23,7 +23,7 @@ def test_call_stacks_in_locations_split_each_kernel_by_call_site(locations, monk
     monkeypatch.delenv("JAX_INCLUDE_FULL_TRACEBACKS_IN_LOCATIONS", raising=False)
     jax.config.update("jax_include_full_tracebacks_in_locations", True)
     full = kernel_census.measure("lander", "dr", "quick", 2, full_tracebacks=True)
-    assert full["full_tracebacks_in_locations"] is True
+    assert full["full_tracebacks_in_locations"] is True and full["min_worlds"] == fused.MIN_WORLDS
     assert full["triton_calls"] >= 6 and full["triton_kernels_distinct"] == full["triton_calls"]
     short = kernel_census.measure("lander", "dr", "quick", 2)
     assert short["full_tracebacks_in_locations"] is False
@@ -69,7 +69,8 @@ def test_parser_reads_grid_and_ir_of_each_call():
                                            "distinct_by_grid_x": {"2": 1, "40": 1}}
 
 
-def test_bad_seeds_is_one_line(capsys):
+def test_bad_seeds_and_padding_are_one_line(capsys):
     assert kernel_census.main(["--seeds", "0"]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert err == ["kernel_census: --seeds must be at least 1, got 0"]
+    assert capsys.readouterr().err.strip().splitlines() == ["kernel_census: --seeds must be at least 1, got 0"]
+    assert kernel_census.main(["--min-worlds", "0"]) == 2
+    assert capsys.readouterr().err.strip().splitlines() == ["kernel_census: --min-worlds must be at least 1, got 0"]
