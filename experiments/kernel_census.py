@@ -91,15 +91,14 @@ def measure(env: str, method: str, preset: str, seeds: int, full_tracebacks: boo
     from shed_jax import driver, runtime
 
     t = time.perf_counter()
-    before = jax.config.jax_include_full_tracebacks_in_locations
-    padding = fused.MIN_WORLDS
-    fused.MIN_WORLDS = padding if min_worlds is None else min_worlds
-    used = fused.MIN_WORLDS
-    if full_tracebacks:
-        jax.config.update("jax_include_full_tracebacks_in_locations", True)
-    else:
-        runtime.call_site_free_locations()
+    before, padding = jax.config.jax_include_full_tracebacks_in_locations, fused.MIN_WORLDS
+    used = padding if min_worlds is None else min_worlds
     try:
+        fused.MIN_WORLDS = used
+        if full_tracebacks:
+            jax.config.update("jax_include_full_tracebacks_in_locations", True)
+        else:
+            runtime.call_site_free_locations()
         with fused.auto_as("pallas"):
             run_chunk, target, _, _ = cuda_chunk(env, method, preset, seeds)
             text = driver.lower_from_clean_caches(run_chunk, target, 1, 0, lowering_platforms=("cuda",)).as_text()
@@ -124,7 +123,7 @@ def main(argv=None) -> int:
     ap.add_argument("--min-worlds", type=int, default=None,
                     help="pad compiled kernels to this many worlds (default: envs.physics2d.fused.MIN_WORLDS; "
                          "128, one block, pads to whole blocks only, as before 2026-12-04)")
-    ap.add_argument("--out", default=None, help="JSON record to merge each method into (label env/method/preset/seeds)")
+    ap.add_argument("--out", default=None, help="JSON record to merge each method into (label env/method/preset/seeds/min_worlds_N[/full_tracebacks])")
     args = ap.parse_args(argv)
     if args.seeds < 1:
         print(f"kernel_census: --seeds must be at least 1, got {args.seeds}", file=sys.stderr)
