@@ -150,6 +150,9 @@ def main(argv=None) -> int:
         out.write_text(json.dumps(record, indent=2))
         print(f"wrote {out}")
         return 0
+    from shed_jax import runtime
+
+    runtime.call_site_free_locations()  # the kernels a run compiles (one per loop and grid), not one per call site
     for method in [m for m in args.methods.split(",") if m]:
         r = time_steps(method, args.seeds, args.repeats, args.preset, args.env)
         record["loops"][method] = r
