@@ -333,8 +333,8 @@ def write_plots(runs: list[Run], out: pathlib.Path, paper: str | None = None) ->
         if per_level is not None and per_level.ndim == 3:
             x, y = reporting.last_episode_curve(r.hist, "test_return_per_level")
             path = out / f"per_level_{_safe(r.env)}_{_safe(r.label)}.png"
-            reporting.plot_per_level(x, y, path, title=f"{r.label} on {r.env}: return per test level "
-                                     f"(mean ± SE over seeds; panel title: final mean)")
+            reporting.plot_panels(x, y, path, title=f"{r.label} on {r.env}: return per test level "
+                                  f"(mean ± SE over seeds; panel title: final mean)")
             written.append(path)
         levels = r.hist.get("info/levels")
         if levels is not None and levels.ndim == 4:

@@ -10,7 +10,8 @@ Plots (matplotlib, Agg backend, one PNG each):
 
 * ``plot_curves``      mean ± SE over seeds of several methods on one axis (optionally with the
                        paper's digitised curves as dashed references);
-* ``plot_per_level``   one small panel per test level, mean ± SE over seeds;
+* ``plot_panels``      small multiples, mean ± SE over seeds: one panel per test level, or per
+                       training statistic of the student;
 * ``plot_parameters``  the teacher's generated parameters per budget step, one panel per parameter;
 * ``plot_eval_vector`` SHED/h-MDP's performance vector over budget steps (heatmap + its mean);
 * ``plot_level_bars``  final returns on named levels, one bar per method per level, ± SE, with a
@@ -21,6 +22,7 @@ from __future__ import annotations
 import json
 import math
 import pathlib
+import warnings
 from typing import Any, Iterable, Sequence
 
 import numpy as np
@@ -38,7 +40,9 @@ def mean_se(x: np.ndarray, axis: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """
     x = np.asarray(x, np.float64)
     n = np.sum(~np.isnan(x), axis=axis)
-    with np.errstate(invalid="ignore", divide="ignore"):
+    # numpy warns of all-NaN columns and of columns with one value; both are answered below (NaN, SE 0)
+    with np.errstate(invalid="ignore", divide="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
         mean = np.nanmean(x, axis=axis) if x.size else np.zeros(0)
         if x.shape[axis] > 1:
             sd = np.nanstd(x, axis=axis, ddof=1)
@@ -342,40 +346,42 @@ def plot_curves(curves: dict[str, tuple[np.ndarray, np.ndarray]], path: pathlib.
     plt.close(fig)
 
 
-def plot_per_level(x: np.ndarray, per_level: np.ndarray, path: pathlib.Path, *, title: str,
-                   level_names: Sequence[str] | None = None, xlabel: str = "student env steps",
-                   ylabel: str = "test return") -> None:
-    """One small panel per test level: mean ± SE over seeds. ``per_level [seeds, steps, L]``.
+def plot_panels(x: np.ndarray, series: np.ndarray, path: pathlib.Path, *, title: str,
+                names: Sequence[str] | None = None, xlabel: str = "student env steps", ylabel: str = "test return",
+                sharey: bool = True, digits: int = 0, episode_starts: Sequence[float] | None = None) -> None:
+    """Small multiples: one panel per series, mean ± SE over seeds. ``series [seeds, steps, K]``.
 
-    Panels share the y axis so levels can be compared at a glance; each panel title carries the
-    final mean.
+    Two uses: one panel per test level (``sharey``: levels compare at a glance), and one panel per
+    training statistic (``sharey=False``: each has its own scale). Each panel title carries its final
+    mean with ``digits`` decimals; ``episode_starts`` draws dotted lines between teacher episodes.
     """
     plt = _pyplot()
-    per_level = np.asarray(per_level, np.float64)
-    if per_level.ndim != 3:
-        raise ValueError(f"plot_per_level: per_level must be [seeds, steps, levels], got shape {per_level.shape}")
-    L = per_level.shape[-1]
-    names = list(level_names) if level_names is not None else [f"level {j}" for j in range(L)]
-    if len(names) != L:
-        raise ValueError(f"plot_per_level: {len(names)} level names for {L} levels")
-    cols = min(L, 5)
-    rows = math.ceil(L / cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(2.8 * cols, 2.3 * rows + 0.4), dpi=110, squeeze=False,
-                             sharex=True, sharey=True)
+    series = np.asarray(series, np.float64)
+    if series.ndim != 3:
+        raise ValueError(f"plot_panels: series must be [seeds, steps, panels], got shape {series.shape}")
+    K = series.shape[-1]
+    names = list(names) if names is not None else [f"level {j}" for j in range(K)]
+    if len(names) != K:
+        raise ValueError(f"plot_panels: {len(names)} names for {K} panels")
+    cols = min(K, 5 if sharey else 3)  # own scales need room for their tick labels
+    rows = math.ceil(K / cols)
+    fig, axes = plt.subplots(rows, cols, figsize=((2.8 if sharey else 3.6) * cols, 2.3 * rows + 0.4), dpi=110,
+                             squeeze=False, sharex=sharey, sharey=sharey)
     for j in range(rows * cols):
         ax = axes[j // cols][j % cols]
-        if j >= L:
+        if j >= K:
             ax.axis("off")
             continue
-        xj, yj = _finite_columns(x, per_level[..., j])
+        xj, yj = _finite_columns(x, series[..., j])
         m, se = mean_se(yj, axis=0)
         ax.plot(xj, m, color="C0", linewidth=1.3)
         ax.fill_between(xj, m - se, m + se, color="C0", alpha=0.25, linewidth=0)
-        final = f"{m[-1]:.0f}" if m.size and np.isfinite(m[-1]) else "n/a"
+        _episode_lines(ax, episode_starts)
+        final = f"{m[-1]:.{digits}f}" if m.size and np.isfinite(m[-1]) else "n/a"
         ax.set_title(f"{names[j]}: {final}", fontsize=8)
         ax.grid(alpha=0.3)
         ax.tick_params(labelsize=7)
-        if j // cols == rows - 1:
+        if j // cols == rows - 1 or not sharey:
             ax.set_xlabel(xlabel, fontsize=7)
         if j % cols == 0:
             ax.set_ylabel(ylabel, fontsize=7)

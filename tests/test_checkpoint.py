@@ -184,7 +184,8 @@ def runs(run_a):
 
 def test_straight_run_writes_run_dir(run_a):
     a = run_a
-    for name in ("config.json", "metrics.jsonl", "summary.json", "test_return.png", "test_return_per_level.png", "generated_levels.png"):
+    for name in ("config.json", "metrics.jsonl", "summary.json", "test_return.png", "test_return_per_level.png",
+                 "generated_levels.png", "student_training.png"):
         assert (a / name).exists(), name
     config = json.loads((a / "config.json").read_text())
     assert config["seeds"] == SEEDS and config["root_seed"] == 0 and config["chunk"] == 1
@@ -242,7 +243,7 @@ def test_resume_is_bitwise_exact(runs, capsys):
         if not k.startswith("wall_time"):
             assert sa[k] == sb[k], k
     assert steps_of(b) == [3, 4]
-    for name in ("test_return.png", "test_return_per_level.png", "generated_levels.png"):
+    for name in ("test_return.png", "test_return_per_level.png", "generated_levels.png", "student_training.png"):
         assert (b / name).exists()
     assert not (b / "final_student.gif").exists()
     with ck.RunCheckpointer(b, create=False) as reader:

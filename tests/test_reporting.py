@@ -4,6 +4,7 @@ import csv
 import json
 import math
 import pathlib
+import warnings
 
 import jax.numpy as jnp
 import numpy as np
@@ -30,6 +31,12 @@ def test_mean_se_hand_computed():
     np.testing.assert_array_equal(se, [0.0, 0.0])  # one seed: SE 0, not NaN
     m, se = reporting.mean_se(np.array([-100.0, -110.0, -120.0]))
     assert float(m) == -110.0 and math.isclose(float(se), 10 / math.sqrt(3))
+    # seeds without a finished episode (NaN) leave one value or none in a column: no numpy warning
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        m, se = reporting.mean_se(np.array([[4.0, np.nan], [np.nan, np.nan]]))
+    np.testing.assert_array_equal(m, [4.0, np.nan])
+    np.testing.assert_array_equal(se, [0.0, 0.0])
 
 
 def test_final_value_uses_last_evaluated_step():
@@ -355,7 +362,7 @@ def test_plots_direct(tmp_path):
     y[:, 1::2] = np.nan  # test set every other step: the lines must still be drawn
     reporting.plot_curves({"a": (x, y), "b": (x, y - 20)}, tmp_path / "c.png", xlabel="steps", ylabel="R", title="t",
                           reference_curves={"paper a": (x[::5], np.array([0.0, 10.0, 20.0, 30.0]), "a")})
-    reporting.plot_per_level(x, y[..., None] + np.arange(10), tmp_path / "pl.png", title="per level")
+    reporting.plot_panels(x, y[..., None] + np.arange(10), tmp_path / "pl.png", title="per level")
     reporting.plot_eval_vector(np.arange(20), rng.normal(-100, 50, (2, 20, 10)), tmp_path / "ev.png", title="ev",
                                episode_starts=[10])
     for name in ("c.png", "pl.png", "ev.png"):

@@ -107,28 +107,39 @@ def test_chunk_sizes_compiled_ahead():
     assert driver.chunk_sizes(2, 4, 4) == []
 
 
-def test_per_level_plot_is_small_multiples(finished, monkeypatch, tmp_path):
+def test_per_level_and_student_plots_are_small_multiples(finished, monkeypatch, tmp_path):
     a = finished["dir"]
     with ck.RunCheckpointer(a, create=False) as reader:
         hist = reader.read_history()
     seen = {}
-    original = reporting.plot_per_level
+    original = reporting.plot_panels
 
-    def spy(x, per_level, path, **kw):
-        seen.update(x=np.asarray(x), shape=np.shape(per_level), path=path)
-        return original(x, per_level, path, **kw)
+    def spy(x, series, path, **kw):
+        seen[path.name] = dict(x=np.asarray(x), series=np.asarray(series), **kw)
+        return original(x, series, path, **kw)
 
-    monkeypatch.setattr(reporting, "plot_per_level", spy)
+    monkeypatch.setattr(reporting, "plot_panels", spy)
     import envs
 
     driver.make_plots(tiny_experiment(), envs.make("cartpole"), hist, tmp_path)
-    assert seen["shape"] == (SEEDS, 4, 2) and seen["path"] == tmp_path / "test_return_per_level.png"
-    np.testing.assert_array_equal(seen["x"], np.cumsum(hist["info/env_steps_train"][0].astype(np.float64)))
+    per_level = seen["test_return_per_level.png"]
+    assert per_level["series"].shape == (SEEDS, 4, 2)
+    np.testing.assert_array_equal(per_level["x"], np.cumsum(hist["info/env_steps_train"][0].astype(np.float64)))
+    # the student's PPO statistics: one panel each, the run's values per budget step, own y scales
+    student = seen["student_training.png"]
+    assert student["names"] == [name for _, name in driver.STUDENT_PANELS] and student["sharey"] is False
+    assert student["series"].shape == (SEEDS, 4, len(driver.STUDENT_PANELS))
+    np.testing.assert_array_equal(student["x"], np.arange(4))
+    for j, (key, _) in enumerate(driver.STUDENT_PANELS):
+        np.testing.assert_array_equal(student["series"][..., j], hist[f"info/extras/ppo/{key}"].astype(np.float64))
     from PIL import Image
 
     with Image.open(tmp_path / "test_return_per_level.png") as im:
         w, h = im.size
     assert w > 1.5 * h  # two panels side by side, not one axis with two overlaid bands
+    with Image.open(tmp_path / "student_training.png") as im:
+        w, h = im.size
+    assert w > 1.2 * h  # two rows of three panels
 
 
 # ---- resuming ---------------------------------------------------------------------------------
