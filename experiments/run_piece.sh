@@ -4,9 +4,12 @@
 #   OUT=DIR bash experiments/run_piece.sh FOLDER SECONDS
 # FOLDER holds: run.args (the flags that start the run, `--out runs/NAME` among them), src.tgz (the
 # run's own shed_jax/, envs/ and experiments/, so later edits to the tree change neither the program
-# nor its compilation-cache keys), and after the first piece ckpt.tgz.* (parts of one archive of the
-# run directory) and cache.tgz.* (JAX's persistent compilation cache). The script installs the
-# wheels in .whl if there are any, puts the run's sources in place OF THIS TREE'S (so OUT must be
+# nor its compilation-cache keys), optionally run.env (NAME=VALUE lines exported for every piece, e.g.
+# JAX_PERSISTENT_CACHE_ENABLE_XLA_CACHES=all: settings that change cache keys must not change between
+# pieces), and after the first piece ckpt.tgz.* (parts of one archive of the run directory) and
+# cache.tgz.* (JAX's persistent compilation cache, with what XLA keeps there: autotuning results, and
+# its kernel cache where run.env asks for it; packed also after a compile the piece's limit cut off).
+# The script installs the wheels in .whl if there are any, puts the run's sources in place OF THIS TREE'S (so OUT must be
 # set: it runs on a disposable copy, e.g. the device machine's), starts the run (no ckpt.tgz.* yet) or
 # resumes it, stops it with --time-limit SECONDS counted from the script's start, and writes the new
 # ckpt.tgz.*, cache.tgz.* and run.log into $OUT. It exits with the run's exit code (75: stopped at
@@ -20,6 +23,10 @@ case $secs in ''|*[!0-9]*) echo "run_piece: SECONDS must be a whole number, got 
 # it replaces this tree's sources with the run's: only on a disposable copy of the tree, where OUT is set
 : "${OUT:?run_piece.sh replaces shed_jax/, envs/ and experiments/ in place: run it on a disposable copy with OUT set}"
 [ -f "$dir/run.args" ] && [ -f "$dir/src.tgz" ] || { echo "run_piece: $dir lacks run.args or src.tgz"; exit 2; }
+# run.env is sourced: plain NAME=VALUE lines only (no spaces, quotes or shell syntax), comments, blanks
+if [ -f "$dir/run.env" ] && grep -Evq '^([A-Za-z_][A-Za-z0-9_]*=[A-Za-z0-9_./:,=+-]*|#.*|)$' "$dir/run.env"; then
+  echo "run_piece: $dir/run.env: every line must be NAME=VALUE (letters, digits and _./:,=+- in the value) or a # comment"; exit 2
+fi
 t0=$(date +%s)
 args=$(cat "$dir/run.args")
 run=$(echo "$args" | sed -n 's/.*--out \([^ ]*\).*/\1/p')
@@ -29,6 +36,7 @@ if ls .whl/*.whl >/dev/null 2>&1; then
   export PYTHONPATH=$PWD:/tmp/site
 fi
 export PYTHONUNBUFFERED=1 SHED_JAX_CACHE=$PWD/.cache/device
+[ -f "$dir/run.env" ] && set -a && . "$dir/run.env" && set +a
 rm -rf shed_jax envs experiments && tar xzf "$dir/src.tgz" || exit 4
 mkdir -p runs .cache
 if ls "$dir"/ckpt.tgz.* >/dev/null 2>&1; then

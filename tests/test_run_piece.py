@@ -13,6 +13,7 @@ import pytest
 SCRIPT = pathlib.Path(__file__).resolve().parents[1] / "experiments" / "run_piece.sh"
 STUB = """#!/bin/bash
 echo "$@" >> "$STUB_LOG"
+[ -n "${PIECE_SETTING:-}" ] && echo "setting $PIECE_SETTING" >> "$STUB_LOG"
 [ -f runs/x/state ] && echo "found $(cat runs/x/state)" >> "$STUB_LOG"
 mkdir -p runs/x .cache/device/jax
 echo "piece $PIECE" > runs/x/state
@@ -89,6 +90,13 @@ def test_start_then_resume_from_the_returned_parts(tmp_path, folder):
     assert (repo2 / ".cache" / "device" / "jax" / "entry").read_text() == "cached\n"
 
 
+def test_run_env_is_exported_to_every_piece(tmp_path, folder):
+    (folder / "run.env").write_text("# the same for every piece\nPIECE_SETTING=all\n\n")
+    repo = _tree(tmp_path, folder)
+    assert _piece(tmp_path, repo, 1).returncode == 75
+    assert (tmp_path / "stub.log").read_text().splitlines()[1] == "setting all"
+
+
 def test_bad_arguments_are_refused_before_any_work(tmp_path, folder):
     repo = _tree(tmp_path, folder)
     r = _piece(tmp_path, repo, 1, seconds="ten")
@@ -98,5 +106,10 @@ def test_bad_arguments_are_refused_before_any_work(tmp_path, folder):
     (repo / "inflight" / "run.args").write_text("--env lander --method dr\n")
     r = _piece(tmp_path, repo, 3)
     assert r.returncode == 2 and "lacks --out DIR" in r.stdout
+    (repo / "inflight" / "run.args").write_text("--env lander --method dr --out runs/x\n")
+    (repo / "inflight" / "run.env").write_text("PIECE_SETTING=a; touch pwned\n")  # sourced: shell syntax refused
+    r = _piece(tmp_path, repo, 4)
+    assert r.returncode == 2 and "run.env: every line must be NAME=VALUE" in r.stdout
+    assert not (repo / "pwned").exists()
     # nothing ran, and the tree's own sources are still there
     assert not (tmp_path / "stub.log").exists() and (repo / "shed_jax" / "stale.txt").is_file()
