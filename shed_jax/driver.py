@@ -800,7 +800,7 @@ def make_plots(exp, env, hist: dict, out: pathlib.Path) -> None:
     x, per_level = reporting.last_episode_curve(hist, "test_return_per_level")  # [S, steps, L]
     # one small panel per level, shared axes (ten overlaid bands could not be told apart)
     reporting.plot_panels(x, per_level, out / "test_return_per_level.png", xlabel="student env steps",
-                             ylabel="test return", title=f"{exp.method} on {exp.env}: per test level (mean ± SE over seeds)")
+                          ylabel="test return", title=f"{exp.method} on {exp.env}: per test level (mean ± SE over seeds)")
     levels = hist.get("info/levels")
     if levels is not None and levels.ndim == 4 and levels.shape[-1] == env.param_space.dim:
         xs = np.arange(levels.shape[1])
