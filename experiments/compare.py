@@ -20,6 +20,8 @@ Writes to OUT:
   dashed, with x = update x env steps per paper update (see ``PAPER_STEPS_PER_UPDATE``);
 * ``per_level_<env>_<label>.png``: one panel per test level (the reported student, as the curves);
 * ``params_<env>_<label>.png``: the parameters each method's teacher generated, per budget step;
+* ``student_<env>_<label>.png``: the student's PPO statistics per budget step (as the run's
+  ``student_training.png``);
 * ``eval_vector_<env>_<label>.png``: SHED/h-MDP's performance vector (teacher state) per budget step;
 * ``results.csv``: the raw numbers behind them, one row per (run, seed, budget step) where the test
   set ran: label, env, seed, teacher episode, step in it, the student env steps so far in that
@@ -304,7 +306,7 @@ def param_space(env_name: str, dim: int):
 
 
 def write_plots(runs: list[Run], out: pathlib.Path, paper: str | None = None) -> list[pathlib.Path]:
-    """curves_<env>.png and per run per_level_/params_/eval_vector_<env>_<label>.png; returns the paths."""
+    """curves_<env>.png and per run per_level_/params_/student_/eval_vector_<env>_<label>.png; returns the paths."""
     from shed_jax import reporting
 
     written = []
@@ -345,6 +347,10 @@ def write_plots(runs: list[Run], out: pathlib.Path, paper: str | None = None) ->
                                       f"{r.label} on {r.env}: generated level parameters per budget step",
                                       low=space.low if space is not None else None,
                                       high=space.high if space is not None else None, episode_starts=starts)
+            written.append(path)
+        path = out / f"student_{_safe(r.env)}_{_safe(r.label)}.png"
+        if reporting.plot_student_training(r.hist, path, title=f"{r.label} on {r.env}: the student's PPO updates per "
+                                           f"budget step (mean ± SE over seeds; panel title: last value)"):
             written.append(path)
         vec = r.hist.get("info/extras/teacher_state")
         if vec is not None and vec.ndim == 3:

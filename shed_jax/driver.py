@@ -781,14 +781,6 @@ def summarize(exp, hist: dict, wall: float, num_seeds: int) -> dict:
     }
 
 
-# The student's PPO statistics drawn in student_training.png, as (metric under info/extras/ppo/, panel
-# title): how a stalled student shows, e.g. a Gaussian policy whose entropy keeps falling while the
-# clipped fraction and KL per update rise.
-STUDENT_PANELS = (("episode_return", "training episode return"), ("episode_length", "training episode length"),
-                  ("entropy", "policy entropy"), ("approx_kl", "approx. KL per update"),
-                  ("clip_frac", "clipped fraction"), ("grad_norm", "gradient norm"))
-
-
 def make_plots(exp, env, hist: dict, out: pathlib.Path) -> None:
     """test_return.png, test_return_per_level.png, generated_levels.png and student_training.png of one run."""
     from shed_jax import reporting
@@ -806,15 +798,9 @@ def make_plots(exp, env, hist: dict, out: pathlib.Path) -> None:
         xs = np.arange(levels.shape[1])
         reporting.plot_parameters(xs, levels, env.param_space.names, out / "generated_levels.png",
                                   title=f"{exp.method} on {exp.env}: generated level parameters per budget step")
-    panels = [(f"info/extras/ppo/{k}", name) for k, name in STUDENT_PANELS if f"info/extras/ppo/{k}" in hist]
-    if panels:
-        stats = np.stack([np.asarray(hist[k], np.float64) for k, _ in panels], axis=-1)  # [S, steps, K]
-        episode = np.asarray(hist["episode"])[0]
-        reporting.plot_panels(np.arange(stats.shape[1]), stats, out / "student_training.png",
-                              names=[name for _, name in panels], xlabel="budget step", ylabel="", sharey=False,
-                              digits=3, episode_starts=np.where(np.diff(episode) != 0)[0] + 0.5,
-                              title=f"{exp.method} on {exp.env}: the student's PPO updates per budget step "
-                                    f"(mean ± SE over seeds; panel title: last value)")
+    reporting.plot_student_training(hist, out / "student_training.png",
+                                    title=f"{exp.method} on {exp.env}: the student's PPO updates per budget step "
+                                          f"(mean ± SE over seeds; panel title: last value)")
 
 
 def heartbeat_wait(thunk, what: str):

@@ -11,7 +11,7 @@ Plots (matplotlib, Agg backend, one PNG each):
 * ``plot_curves``      mean ± SE over seeds of several methods on one axis (optionally with the
                        paper's digitised curves as dashed references);
 * ``plot_panels``      small multiples, mean ± SE over seeds: one panel per test level, or per
-                       training statistic of the student;
+                       training statistic of the student (``plot_student_training``);
 * ``plot_parameters``  the teacher's generated parameters per budget step, one panel per parameter;
 * ``plot_eval_vector`` SHED/h-MDP's performance vector over budget steps (heatmap + its mean);
 * ``plot_level_bars``  final returns on named levels, one bar per method per level, ± SE, with a
@@ -389,6 +389,29 @@ def plot_panels(x: np.ndarray, series: np.ndarray, path: pathlib.Path, *, title:
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
+
+
+# The student's PPO statistics of ``plot_student_training``, as (metric under info/extras/ppo/, panel
+# title): how a stalled student shows, e.g. a Gaussian policy whose entropy keeps falling while the
+# clipped fraction and KL per update rise.
+STUDENT_PANELS = (("episode_return", "training episode return"), ("episode_length", "training episode length"),
+                  ("entropy", "policy entropy"), ("approx_kl", "approx. KL per update"),
+                  ("clip_frac", "clipped fraction"), ("grad_norm", "gradient norm"))
+
+
+def plot_student_training(hist: dict[str, np.ndarray], path: pathlib.Path, *, title: str) -> bool:
+    """The student's PPO statistics per budget step over the whole run (every teacher episode, dotted
+    lines between them), one panel each with its own scale; False (nothing drawn) when the history
+    holds none of them."""
+    panels = [(f"info/extras/ppo/{k}", name) for k, name in STUDENT_PANELS if f"info/extras/ppo/{k}" in hist]
+    if not panels:
+        return False
+    stats = np.stack([np.asarray(hist[k], np.float64) for k, _ in panels], axis=-1)  # [S, steps, K]
+    episode = np.asarray(hist["episode"])[0]
+    plot_panels(np.arange(stats.shape[1]), stats, path, names=[name for _, name in panels], xlabel="budget step",
+                ylabel="", sharey=False, digits=3, episode_starts=np.where(np.diff(episode) != 0)[0] + 0.5,
+                title=title)
+    return True
 
 
 def plot_parameters(x: np.ndarray, levels: np.ndarray, names: tuple[str, ...], path: pathlib.Path, title: str, *,

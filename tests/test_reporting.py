@@ -6,6 +6,7 @@ import math
 import pathlib
 import warnings
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -130,6 +131,9 @@ def _write_run(out: pathlib.Path, method: str, final: list[float], *, episodes: 
     per_level = test_return[..., None] + np.linspace(-50, 50, n_test)  # [S, total, n_test]; mean = test_return
     levels = LANDER_LOW + (LANDER_HIGH - LANDER_LOW) * rng.uniform(0.2, 0.8, (S, total, L, 3)) * frac[None, :, None, None]
     extras = {"teacher_state": per_level[..., :m_eval] + 5.0} if method in ("shed", "hmdp") else {}
+    if method == "shed":  # the student's PPO statistics (the DR run goes without: no panels drawn)
+        extras["ppo"] = {"entropy": np.broadcast_to(1.0 - 0.1 * t, (S, total)).astype(np.float32),
+                         "clip_frac": np.full((S, total), 0.1, np.float32)}
     info = StepInfo(
         levels=levels.astype(np.float32),
         env_steps_train=np.full((S, total), 1000, np.int32),
@@ -148,9 +152,7 @@ def _write_run(out: pathlib.Path, method: str, final: list[float], *, episodes: 
     history = {}
     for start in range(0, total, chunk):  # as main(): one flatten/append per compiled chunk
         part = {k: (v[:, start:start + chunk] if k != "info" else None) for k, v in metrics.items()}
-        part["info"] = StepInfo(**{f: (getattr(info, f)[:, start:start + chunk] if f != "extras" else
-                                      {k: v[:, start:start + chunk] for k, v in info.extras.items()})
-                                   for f in info.__dataclass_fields__})
+        part["info"] = jax.tree_util.tree_map(lambda v: v[:, start:start + chunk], info)
         flat = reporting.flatten_tree(part)
         for k, v in flat.items():
             history.setdefault(k, []).append(v)
@@ -203,6 +205,8 @@ def test_compare_table_rows_and_plots(runs, capsys):
         _png(out / name)
         assert f"]({name})" in md
     assert not (out / "eval_vector_lander_dr.png").exists()  # DR has no performance vector
+    _png(out / "student_lander_shed.png")  # two panels (entropy, clipped fraction) of the run's statistics
+    assert "](student_lander_shed.png)" in md and not (out / "student_lander_dr.png").exists()
     w, h = _png(out / "params_lander_shed.png")
     assert w > h  # three parameter panels side by side
     assert "| shed | lander |" in capsys.readouterr().out

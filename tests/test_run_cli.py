@@ -127,10 +127,10 @@ def test_per_level_and_student_plots_are_small_multiples(finished, monkeypatch, 
     np.testing.assert_array_equal(per_level["x"], np.cumsum(hist["info/env_steps_train"][0].astype(np.float64)))
     # the student's PPO statistics: one panel each, the run's values per budget step, own y scales
     student = seen["student_training.png"]
-    assert student["names"] == [name for _, name in driver.STUDENT_PANELS] and student["sharey"] is False
-    assert student["series"].shape == (SEEDS, 4, len(driver.STUDENT_PANELS))
+    assert student["names"] == [name for _, name in reporting.STUDENT_PANELS] and student["sharey"] is False
+    assert student["series"].shape == (SEEDS, 4, len(reporting.STUDENT_PANELS))
     np.testing.assert_array_equal(student["x"], np.arange(4))
-    for j, (key, _) in enumerate(driver.STUDENT_PANELS):
+    for j, (key, _) in enumerate(reporting.STUDENT_PANELS):
         np.testing.assert_array_equal(student["series"][..., j], hist[f"info/extras/ppo/{key}"].astype(np.float64))
     from PIL import Image
 
