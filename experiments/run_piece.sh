@@ -11,9 +11,8 @@
 # its kernel cache where run.env asks for it; packed also after a compile the piece's limit cut off).
 # The script installs the wheels in .whl if there are any, puts the run's sources in place OF THIS
 # TREE'S (so OUT must be set: it runs on a disposable copy, e.g. the device machine's), starts the run
-# (no ckpt.tgz.* yet) or
-# resumes it, stops it with --time-limit SECONDS counted from the script's start, and writes the new
-# ckpt.tgz.*, cache.tgz.* and run.log into $OUT. It exits with the run's exit code (75: stopped at
+# (no ckpt.tgz.* yet) or resumes it, stops it with --time-limit SECONDS counted from the script's
+# start, and writes the new ckpt.tgz.*, cache.tgz.* and run.log into $OUT. It exits with the run's exit code (75: stopped at
 # the time limit and saved; 0: finished, final evaluation included; 2: bad arguments). Copy those
 # back over FOLDER's parts (old parts removed first: the split may change) before the next piece.
 set -u
