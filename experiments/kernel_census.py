@@ -11,11 +11,12 @@ the binary for identical calls, so the distinct configurations are the Triton co
 pays: on the 2-D walker a large solver kernel alone compiles for minutes (docs/bipedal.md). The IR
 holds the kernel's MLIR locations, so with JAX's default locations (whole call stacks) the same loop
 called from two places is two kernels; ``shed_jax`` commands give locations the innermost user frame
-only (``runtime.call_site_free_locations``), and ``--full-tracebacks`` counts the default. Compiled
-kernels pad small batches to ``fused.MIN_WORLDS`` worlds, so evaluations at different small batches
-share one grid; ``--min-worlds 128`` counts whole blocks only. Printed
-and recorded per method: calls, distinct kernels, and the distinct kernels by grid (``grid_x``: blocks
-of 128 worlds).
+only (``runtime.call_site_free_locations``), and ``--full-tracebacks`` counts the default. A run pads
+its compiled kernels to its training batch (``runtime.pad_kernels_to``, at least
+``fused.DEFAULT_MIN_WORLDS``), so its evaluations and its training rollout share one grid;
+``--min-worlds 1024`` counts small batches padded only, ``--min-worlds 128`` whole blocks only.
+Printed and recorded per method: calls, distinct kernels, and the distinct kernels by grid
+(``grid_x``: blocks of 128 worlds).
 """
 from __future__ import annotations
 
@@ -60,9 +61,10 @@ def census(calls: list[dict]) -> dict:
 
 
 def cuda_chunk(env: str, method: str, preset: str, seeds: int):
-    """A run's chunk of one budget step as the driver builds it, with its state target, ``init`` and
-    inputs (ShapeDtypeStructs), for lowering with ``lowering_platforms=("cuda",)``. Call it inside
-    ``fused.auto_as("pallas")`` to get the GPU's kernels."""
+    """A run's chunk of one budget step as the driver builds it, with its state target, ``init``,
+    inputs (ShapeDtypeStructs) and the run's kernel padding (``driver.kernel_worlds``), for lowering
+    with ``lowering_platforms=("cuda",)``. Call it inside ``fused.auto_as("pallas")`` to get the GPU's
+    kernels."""
     import jax
 
     from experiments import checkpoint_size as cs
@@ -77,14 +79,15 @@ def cuda_chunk(env: str, method: str, preset: str, seeds: int):
                           driver.state_target(batch, placed))
     init = sharding.sharded_init(driver.batch_init(batch.init, batch.method), placed.mesh)
     inputs = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype), placed.inputs)
-    return run_chunk, target, init, inputs
+    return run_chunk, target, init, inputs, driver.kernel_worlds(batch, placed)
 
 
 def measure(env: str, method: str, preset: str, seeds: int, full_tracebacks: bool = False,
             min_worlds: int | None = None) -> dict:
     """The census of one method's chunk, its MLIR locations as ``shed_jax`` commands make them
     (``runtime.call_site_free_locations``) or, with ``full_tracebacks``, with JAX's default call stacks;
-    kernels padded to ``min_worlds`` worlds (default ``fused.MIN_WORLDS``; ``fused.BLOCK``: whole blocks only)."""
+    kernels padded to ``min_worlds`` worlds (default: as a run pads them, to its training batch and
+    at least ``fused.DEFAULT_MIN_WORLDS``; ``fused.BLOCK``: whole blocks only)."""
     import jax
 
     import envs.physics2d.fused as fused
@@ -92,18 +95,20 @@ def measure(env: str, method: str, preset: str, seeds: int, full_tracebacks: boo
 
     t = time.perf_counter()
     before, padding = jax.config.jax_include_full_tracebacks_in_locations, fused.MIN_WORLDS
-    used = padding if min_worlds is None else min_worlds
     try:
-        fused.MIN_WORLDS = used
         if full_tracebacks:
             jax.config.update("jax_include_full_tracebacks_in_locations", True)
         else:
             runtime.call_site_free_locations()
         with fused.auto_as("pallas"):
-            run_chunk, target, _, _ = cuda_chunk(env, method, preset, seeds)
+            run_chunk, target, _, _, worlds = cuda_chunk(env, method, preset, seeds)
+            if min_worlds is None:
+                used = runtime.pad_kernels_to(worlds)
+            else:  # exactly this padding, below the default too
+                fused.MIN_WORLDS = used = min_worlds
             text = driver.lower_from_clean_caches(run_chunk, target, 1, 0, lowering_platforms=("cuda",)).as_text()
         full = jax.config.jax_include_full_tracebacks_in_locations
-    finally:
+    finally:  # the process's settings as they were
         jax.config.update("jax_include_full_tracebacks_in_locations", before)
         fused.MIN_WORLDS = padding
     return {**census(triton_calls(text)), "full_tracebacks_in_locations": bool(full), "min_worlds": used,
@@ -121,8 +126,9 @@ def main(argv=None) -> int:
     ap.add_argument("--full-tracebacks", action="store_true",
                     help="lower with JAX's default locations (whole call stacks), as runs did before 2026-12-04")
     ap.add_argument("--min-worlds", type=int, default=None,
-                    help="pad compiled kernels to this many worlds (default: envs.physics2d.fused.MIN_WORLDS; "
-                         "128, one block, pads to whole blocks only, as before 2026-12-04)")
+                    help="pad compiled kernels to this many worlds (default: as a run does, to its training batch "
+                         "and at least envs.physics2d.fused.DEFAULT_MIN_WORLDS; 1024: small batches only, as "
+                         "from 2026-12-04 to 12-05; 128, one block, whole blocks only, as before)")
     ap.add_argument("--out", default=None, help="JSON record to merge each method into (label env/method/preset/seeds/min_worlds_N[/full_tracebacks])")
     args = ap.parse_args(argv)
     if args.seeds < 1:

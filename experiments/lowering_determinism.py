@@ -31,7 +31,7 @@ def measure(env: str, method: str, preset: str) -> dict:
     from shed_jax import driver
 
     with fused.auto_as("pallas"):  # the GPU's kernels, lowered anywhere
-        run_chunk, target, init, inputs = cuda_chunk(env, method, preset, 1)
+        run_chunk, target, init, inputs, _ = cuda_chunk(env, method, preset, 1)
         cuda = {"lowering_platforms": ("cuda",)}
         digest = lambda lowered: hashlib.sha256(lowered.as_text().encode()).hexdigest()  # noqa: E731
         t = time.perf_counter()

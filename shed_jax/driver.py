@@ -349,6 +349,12 @@ def place(batch: Batch, mesh, pad: bool = True) -> Placed:
     return Placed(mesh, inputs, n)
 
 
+def kernel_worlds(batch: Batch, placed: Placed) -> int:
+    """The environments a training rollout steps side by side on one device: the device's runs times
+    the student's training envs; the largest batch in a run's programs but for rare evaluations."""
+    return placed.size // placed.mesh.size * batch.student.train_envs
+
+
 def state_target(batch: Batch, placed: Placed):
     """The shapes and dtypes of the batch's initial state (a checkpoint's restore target), nothing computed."""
     import jax
@@ -400,7 +406,7 @@ def say(text: str) -> None:
 def compile_batch(batch: Batch, placed: Placed, done: int, state=None, say: Callable = say):
     """``(state, {chunk length: compiled chunk})``: the initial state when ``state`` is None, and every
     chunk length from budget step ``done`` to the end, compiled ahead of time in a worker thread."""
-    from shed_jax import sharding
+    from shed_jax import runtime, sharding
 
     fresh = state is None
     sizes = chunk_sizes(batch.chunk, done, batch.total)
@@ -411,6 +417,8 @@ def compile_batch(batch: Batch, placed: Placed, done: int, state=None, say: Call
               f"chunks of {sizes[0]} and {sizes[1]} budget steps" if sizes else "")
     what = " and ".join(x for x in ("the initial state" if fresh else "", chunks) if x)
     say(f"[shed_jax] compiling {what} (minutes for a large program)...")
+    # every program of the run (chunks, the final evaluation) pads its GPU kernels to the training batch
+    runtime.pad_kernels_to(kernel_worlds(batch, placed))
     run_chunk = sharding.sharded_run(batch.run, placed.mesh)
 
     def compile_all(state):

@@ -125,6 +125,20 @@ def call_site_free_locations() -> bool:
     return not jax.config.jax_include_full_tracebacks_in_locations
 
 
+def pad_kernels_to(worlds: int) -> int:
+    """Pad the GPU kernels of programs lowered from now on to at least ``worlds`` worlds (the 2-D
+    physics' fused loops, ``envs.physics2d.fused.pad_worlds_to``); returns the padding in force.
+
+    Why: XLA compiles a Triton call once per distinct IR and grid, and a grid counts blocks of worlds,
+    so a loop run by the training rollout (e.g. 5,120 worlds) and by an evaluation (200) was two
+    compiles of a kernel that alone compiles for minutes on the 2-D walker. Padded to the training
+    batch they are one (``experiments.kernel_census``); an evaluation's kernel of more blocks takes
+    the same time on a GPU with more multiprocessors than blocks. Nothing changes off the GPU."""
+    from envs.physics2d import fused
+
+    return fused.pad_worlds_to(worlds)
+
+
 def describe_devices(devices) -> str:
     """``'2 x NVIDIA H200'``-style summary, one group per device kind, in first-seen order."""
     kinds = Counter(getattr(d, "device_kind", d.platform) for d in devices)

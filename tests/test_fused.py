@@ -101,6 +101,7 @@ def test_loop_with_done_stops_early_with_the_same_result(mode, monkeypatch):
     second its slowest world's 4; its padding worlds, whose flag never rises, must not keep it going).
     On a GPU machine the compiled kernel ("pallas") runs too; "interpret_min_blocks" pads the 130 worlds
     to ``MIN_WORLDS`` through the interpreter, as the compiled kernel does (8 blocks, 6 of padding only)."""
+    monkeypatch.setattr(fused, "MIN_WORLDS", fused.DEFAULT_MIN_WORLDS)  # whatever a run in this process set
     assert fused._blocks(130, False) == 8 and fused._blocks(130, True) == 2 and fused._blocks(5000, False) == 40
     if mode == "interpret_min_blocks":
         monkeypatch.setattr(fused, "_blocks", lambda w, interpret: -(-max(w, fused.MIN_WORLDS) // fused.BLOCK))

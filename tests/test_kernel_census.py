@@ -74,3 +74,52 @@ def test_bad_seeds_and_padding_are_one_line(capsys):
     assert capsys.readouterr().err.strip().splitlines() == ["kernel_census: --seeds must be at least 1, got 0"]
     assert kernel_census.main(["--min-worlds", "0"]) == 2
     assert capsys.readouterr().err.strip().splitlines() == ["kernel_census: --min-worlds must be at least 1, got 0"]
+
+
+def _two_batch_program(worlds_a: int, worlds_b: int) -> str:
+    """The CUDA lowering of one small fused loop run at two batches of worlds (an evaluation's and a
+    training rollout's, say), as text."""
+    import jax.numpy as jnp
+
+    body = lambda c, s: s * c["a"] + 1.0  # noqa: E731
+    loop = lambda a, x: fused.per_world_fori_loop(3, body, {"a": a}, x)  # noqa: E731
+
+    def program(a1, x1, a2, x2):
+        return jax.vmap(loop)(a1, x1).sum() + jax.vmap(loop)(a2, x2).sum()
+
+    args = [jnp.zeros((w,), jnp.float32) for w in (worlds_a, worlds_a, worlds_b, worlds_b)]
+    with fused.auto_as("pallas"):
+        return jax.jit(program).trace(*args).lower(lowering_platforms=("cuda",)).as_text()
+
+
+def test_padding_to_the_largest_batch_makes_one_kernel_of_two(locations):
+    """A loop at 200 and at 5,000 worlds is two grids (8 and 40 blocks) and two Triton compiles under
+    the default padding, one once kernels are padded to the larger batch; the setting is process-wide,
+    never below the default, and a bad value is one line."""
+    runtime.call_site_free_locations()
+    before = fused.MIN_WORLDS
+    try:
+        assert fused.pad_worlds_to(10) == fused.DEFAULT_MIN_WORLDS == fused.MIN_WORLDS
+        two = kernel_census.census(kernel_census.triton_calls(_two_batch_program(200, 5000)))
+        assert two["triton_calls"] == 2 and two["distinct_by_grid_x"] == {"8": 1, "40": 1}
+        assert runtime.pad_kernels_to(5000) == 5000 == fused.MIN_WORLDS
+        one = kernel_census.census(kernel_census.triton_calls(_two_batch_program(200, 5000)))
+        assert one == {"triton_calls": 2, "triton_kernels_distinct": 1, "distinct_by_grid_x": {"40": 1}}
+        with pytest.raises(ValueError, match="pad_worlds_to needs a whole number of worlds >= 1, got 0"):
+            fused.pad_worlds_to(0)
+        assert fused.MIN_WORLDS == 5000
+    finally:
+        fused.MIN_WORLDS = before
+
+
+def test_a_run_pads_to_its_devices_training_batch():
+    """``driver.kernel_worlds``: runs on a device x the student's training envs (all K students' for a pool)."""
+    from experiments import checkpoint_size as cs
+    from shed_jax import driver, sharding
+    from shed_jax.methods.parallel_students import StudentPool
+
+    _, batch = cs.build_batch("lander", "dr", "quick", 3)
+    placed = driver.place(batch, sharding.batch_mesh(jax.devices()[:1]))
+    assert batch.student.train_envs == batch.student.config.num_envs
+    assert driver.kernel_worlds(batch, placed) == 3 * batch.student.config.num_envs
+    assert StudentPool(batch.student, 4).train_envs == 4 * batch.student.config.num_envs

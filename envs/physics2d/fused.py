@@ -37,11 +37,25 @@ MODES = ("auto", "xla", "pallas", "interpret")
 _TRACING = threading.local()  # .in_kernel: True while this thread traces a kernel body (``when`` branches)
 BLOCK = 128  # worlds per kernel instance (one per thread with 4 warps)
 NUM_WARPS = 4  # Triton warps per kernel instance (32 threads each)
-# Compiled kernels pad their worlds to at least this many, so that loops run at different small
-# batches (a teacher's evaluation, a test set) are one kernel to XLA, which compiles a Triton call once
-# per grid: a kernel of 2 or 8 blocks takes the same time on a GPU with more multiprocessors than that.
-# The interpreter (CPU tests) pads to whole blocks only.
-MIN_WORLDS = 1024
+# Compiled kernels pad their worlds to at least MIN_WORLDS, so that loops run at different batches (a
+# teacher's evaluation, a test set, the training rollout) are one kernel to XLA, which compiles a
+# Triton call once per grid: a kernel of 8 or 40 blocks takes the same time on a GPU with more
+# multiprocessors than that. The interpreter (CPU tests) pads to whole blocks only. ``pad_worlds_to``
+# raises it for a program whose largest batch is larger (the driver: a run's training batch).
+DEFAULT_MIN_WORLDS = 1024
+MIN_WORLDS = DEFAULT_MIN_WORLDS
+
+
+def pad_worlds_to(worlds: int) -> int:
+    """From now on compiled kernels cover at least ``max(worlds, DEFAULT_MIN_WORLDS)`` worlds; returns
+    that number. Process-wide, not per thread: programs compile in worker threads, and every program of
+    a run must lower with the same padding (so its kernels are one set to XLA, and a resumed run's
+    program is the fresh run's). Kernels traced before the call keep their padding."""
+    global MIN_WORLDS
+    if not (isinstance(worlds, int) and worlds >= 1):
+        raise ValueError(f"pad_worlds_to needs a whole number of worlds >= 1, got {worlds!r}")
+    MIN_WORLDS = max(int(worlds), DEFAULT_MIN_WORLDS)
+    return MIN_WORLDS
 
 
 _AUTO = threading.local()  # .mode: what "auto" resolves to inside ``auto_as`` (None: by the backend)

@@ -93,6 +93,11 @@ class StudentPool:
         """Per student."""
         return self.student.env_steps_per_update
 
+    @property
+    def train_envs(self) -> int:
+        """Of all K students: their rollouts are one vmapped batch."""
+        return self.size * self.student.train_envs
+
     def init(self, key: jax.Array, hparams=None):
         """K fresh students (student i from ``student_keys(key, K)[i]``). ``hparams``: None, one set for
         all (scalar leaves) or one per student (leaves [K], as a pool state's own ``hparams``)."""

@@ -129,6 +129,11 @@ class PPOStudent:
         """Env steps of one rollout (num_envs * num_steps), for budget accounting."""
         return self.config.num_envs * self.config.num_steps
 
+    @property
+    def train_envs(self) -> int:
+        """Environments one student state steps side by side in a training rollout (num_envs)."""
+        return self.config.num_envs
+
     def _norm_obs(self, obs_norm: RunningMeanStd, obs):
         return obs_norm.normalize(obs, self.config.obs_clip) if self.config.normalize_observations else obs
 
