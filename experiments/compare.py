@@ -33,6 +33,9 @@ in parentheses, and the mean over all named levels; with ``--paper walker`` DCD'
 Box2D at about 66x our budget) follows as reference rows. ``named_levels.png`` shows the same six
 levels as bars, with DCD's means as markers under ``--paper walker``.
 
+``--until-step N`` compares budget steps 0 to N-1 only, e.g. a stopped run against a finished one
+at the same budget; a run cut there is partial, and its final files are left out.
+
 Runs given the same ``--labels`` entry are pooled into one row: their seeds side by side (numbered
 in the order of the RUN_DIRs), e.g. two 5-seed runs with root seeds 0 and 1 as one 10-seed row. They
 must share the whole experiment config and differ in root seed, else the tool stops with an error.
@@ -119,6 +122,7 @@ class Run:
     hist: dict  # {key: [seeds, steps, ...]} from metrics.jsonl
     label: str = ""
     parts: list[Run] = dataclasses.field(default_factory=list)  # the runs pooled into this one, if any
+    cut: bool = False  # budget steps past ``--until-step`` were left out: its final files are not read
 
     @property
     def experiment(self) -> dict:
@@ -149,8 +153,10 @@ class Run:
         return self.summary is None
 
 
-def load_run(path) -> Run:
-    """Read config.json, metrics.jsonl and (if present) summary.json of one run directory."""
+def load_run(path, until_step: int | None = None) -> Run:
+    """Read config.json, metrics.jsonl and (if present) summary.json of one run directory; with
+    ``until_step``, its budget steps before that one only (a run that went further is then partial:
+    its summary and final evaluation describe later students)."""
     from shed_jax import reporting
 
     path = pathlib.Path(path)
@@ -166,11 +172,17 @@ def load_run(path) -> Run:
     records = reporting.read_jsonl(path / "metrics.jsonl")
     if not records:
         raise ValueError(f"{path / 'metrics.jsonl'} is empty")
+    cut = False
+    if until_step is not None:
+        kept = [r for r in records if r["step"] < until_step]
+        if not kept:
+            raise ValueError(f"{path / 'metrics.jsonl'} has no budget step before {until_step}")
+        cut, records = len(kept) < len(records), kept
     hist = reporting.records_to_arrays(records)
     missing = {"test_return", "episode", "info/env_steps_train"} - set(hist)
     if missing:
         raise ValueError(f"{path / 'metrics.jsonl'} lacks {sorted(missing)}")
-    return Run(path, config, summary, hist)
+    return Run(path, config, None if cut else summary, hist, cut=cut)
 
 
 def assign_labels(runs: list[Run]) -> None:
@@ -426,7 +438,7 @@ def _named_eval(r: Run) -> dict | None:
 
     def read(run):
         path = run.path / "final_eval_named.json"
-        return json.loads(path.read_text()) if path.exists() else None
+        return json.loads(path.read_text()) if path.exists() and not run.cut else None
 
     if not r.parts:
         return read(r)
@@ -563,8 +575,16 @@ def main(argv=None) -> int:
                         "with the same label are pooled into one row (same experiment, other root seeds)")
     p.add_argument("--paper", choices=sorted(PAPER), default=None,
                    help="add the paper's digitised numbers (docs/design.md §12.1) for this environment")
+    p.add_argument("--until-step", type=int, default=None, metavar="N",
+                   help="compare budget steps 0 to N-1 only: runs of different lengths at one budget (a run cut "
+                        "short is partial, its final evaluation left out)")
     args = p.parse_args(argv)
-    runs = [load_run(d) for d in args.runs]
+    if args.until_step is not None and args.until_step < 1:
+        p.error(f"--until-step must be at least 1, got {args.until_step}")
+    try:
+        runs = [load_run(d, args.until_step) for d in args.runs]
+    except (OSError, ValueError) as err:
+        p.error(str(err))
     assign_labels(runs)
     if args.labels is not None:
         labels = [x.strip() for x in args.labels.split(",")]

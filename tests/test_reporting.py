@@ -190,6 +190,26 @@ def test_load_run_reads_what_run_writes(runs):
     assert compare.final_return(r) == pytest.approx((-110.0, 10 / math.sqrt(3)))
 
 
+def test_until_step_compares_runs_at_one_budget(runs, capsys):
+    """``--until-step N``: budget steps before N only; a run cut there is partial, its summary and
+    final evaluation (later students') left out; a run that ends before N is read whole."""
+    whole = compare.load_run(runs / "shed")
+    _write_named_eval(runs / "shed", np.zeros((3, 1, 2)), ["flat"])
+    cut = compare.load_run(runs / "shed", until_step=4)
+    assert cut.cut and cut.partial and not whole.cut and not whole.partial
+    np.testing.assert_array_equal(cut.hist["test_return"], whole.hist["test_return"][:, :4])
+    assert cut.hist["info/levels"].shape == (3, 4, 4, 3)
+    assert compare._named_eval(cut) is None and compare._named_eval(compare.load_run(runs / "shed")) is not None
+    at_end = compare.load_run(runs / "shed", until_step=6)
+    assert not at_end.cut and at_end.summary == whole.summary
+    assert compare.main([str(runs / "dr"), str(runs / "shed"), "--out", str(runs / "cut"), "--until-step", "4"]) == 0
+    assert "(partial)" in (runs / "cut" / "results.md").read_text()
+    for bad, says in (("0", "--until-step must be at least 1, got 0"), ("-3", "--until-step must be at least 1, got -3")):
+        with pytest.raises(SystemExit) as stop:
+            compare.main([str(runs / "dr"), "--out", str(runs / "cut"), "--until-step", bad])
+        assert stop.value.code == 2 and capsys.readouterr().err.strip().endswith(says)
+
+
 def test_compare_table_rows_and_plots(runs, capsys):
     out = runs / "report"
     assert compare.main([str(runs / "dr"), str(runs / "shed"), "--out", str(out), "--paper", "lander"]) == 0
