@@ -157,6 +157,34 @@ def test_fused_evaluation_equals_separate_ones(cart):
     _eq(Rb, R_ref)
 
 
+def test_an_inactive_request_records_nothing_and_ends_no_later(cart):
+    """A request with ``active`` false (traced): its rows record nothing (returns and lengths 0) and the
+    rollout ends when the active rows do; the active rows equal an active pair's rows, and with
+    ``active`` true the fused results are the plain ones. One program for both."""
+    env, student, s = cart
+    a = env.param_space.sample(jax.random.PRNGKey(6), (3,))
+    b = _levels(env, 2, x_threshold=[2.4, 1e6], theta_threshold=[0.2094, 1e6])  # b[1] runs to its 40-step limit
+    ka, kb = jax.random.PRNGKey(7), jax.random.PRNGKey(8)
+    short = _levels(env, 1, x_threshold=[2.4], theta_threshold=[0.2094])
+
+    @jax.jit
+    def fused(s, on):
+        return student.evaluate_many(s, [(ka, short, 2, 8), (kb, b, 3, 40, on)])
+
+    (Ra, ia), (Rb, ib) = fused(s, jnp.bool_(False))
+    (Sa, ja), (Sb, jb) = fused(s, jnp.bool_(True))
+    (Pa, pa), (Pb, pb) = jax.jit(lambda s: student.evaluate_many(s, [(ka, short, 2, 8), (kb, b, 3, 40)]))(s)
+    np.testing.assert_array_equal(np.asarray(Rb), 0.0)
+    np.testing.assert_array_equal(np.asarray(ib["lengths"]), 0)
+    _eq(Ra, Sa)  # the active rows: the same batch, the same floats
+    _eq(ia["lengths"], ja["lengths"])
+    # one chunk of 16 steps covers the short request's 8; active, b[1] keeps it going to its limit of 40
+    assert int(ia["steps_run"]) == 16 and int(ja["steps_run"]) == 40
+    for x, y in ((Sa, Pa), (Sb, Pb), (ja["lengths"], pa["lengths"]), (jb["lengths"], pb["lengths"])):
+        _eq(x, y)
+    np.testing.assert_array_equal(np.asarray(Sb)[1], 40.0)
+
+
 def test_vmapped_seeds_run_until_the_last_one_is_done(cart):
     env, student, s = cart
     states = jax.jit(jax.vmap(student.init))(jax.random.split(jax.random.PRNGKey(1), 3))  # one program, not op by op

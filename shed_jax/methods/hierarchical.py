@@ -412,31 +412,27 @@ class HierarchicalTeacher:
     def performance_and_test(self, key, sstate, test: EvalRequest):
         """``performance`` plus the loop's test set as one rollout: (s, env steps, test returns [n, E]).
 
-        The test returns are NaN when ``test.run`` is false; then only the teacher's evaluation
-        runs. A traced ``test.run`` chooses with ``lax.cond``, a real branch as long as it is
-        unbatched (the loop's schedule is shared by all vmapped seeds); a Python bool chooses at
-        trace time. Every row's keys are drawn as ``performance(key, sstate)`` and a separate test
-        evaluation with ``test.key`` draw them; the results are theirs where the backend computes a
-        row the same at any batch size (``PPOStudent.evaluate_many``).
+        The test returns are NaN when ``test.run`` is false. A traced ``test.run`` (the loop's
+        schedule) makes the test rows an inactive request of the same rollout on the steps without
+        a test (``PPOStudent.evaluate_many``): they step beside the teacher's rows but record
+        nothing and end the rollout no later, so the program holds one evaluation, not one per
+        branch of a ``lax.cond`` (on the 2-D walker each is a copy of the physics to compile), and
+        the teacher's rows are computed in the same batch on every step. A Python False runs the
+        teacher's evaluation alone. Every row's keys are drawn as ``performance(key, sstate)`` and a
+        separate test evaluation with ``test.key`` draw them; the results are theirs where the
+        backend computes a row the same at any batch size.
         """
         cfg = self.config
         n_test = jax.tree_util.tree_leaves(test.levels)[0].shape[0]
         steps = jnp.int32(self.student.eval_env_steps(cfg.num_eval_levels, cfg.num_eval_episodes, self.eval_max))
-
-        def both(s):
-            (rets, _), (test_rets, _) = self.student.evaluate_many(
-                s, [(key, self.eval_params, cfg.num_eval_episodes, self.eval_max),
-                    (test.key, test.levels, test.num_episodes, test.max_steps)])
-            return rets.mean(axis=-1), test_rets
-
-        def teacher_only(s):
-            return self.performance(key, s)[0], jnp.full((n_test, test.num_episodes), jnp.nan, jnp.float32)
-
-        if isinstance(test.run, bool):
-            s_next, test_rets = (both if test.run else teacher_only)(sstate)
-        else:
-            s_next, test_rets = jax.lax.cond(test.run, both, teacher_only, sstate)
-        return s_next, steps, test_rets
+        if test.run is False:
+            return self.performance(key, sstate)[0], steps, jnp.full((n_test, test.num_episodes), jnp.nan, jnp.float32)
+        (rets, _), (test_rets, _) = self.student.evaluate_many(
+            sstate, [(key, self.eval_params, cfg.num_eval_episodes, self.eval_max),
+                     (test.key, test.levels, test.num_episodes, test.max_steps, test.run)])
+        if test.run is not True:
+            test_rets = jnp.where(test.run, test_rets, jnp.nan)
+        return rets.mean(axis=-1), steps, test_rets
 
     # ---- interface -------------------------------------------------------------------------
 

@@ -450,6 +450,12 @@ class PPOStudent:
         different batch sizes, and lander returns can differ in the last bits, and an episode can
         then take another path (cartpole's are equal; tests/test_eval_rollout.py).
 
+        A request may carry a fifth element, ``active`` (a bool, traced or not; True without it):
+        the rows of an inactive request step with the others but record nothing (returns and
+        lengths 0) and do not keep the rollout going. So one program serves a rollout whether or not
+        that request runs (a test set on some budget steps only), and the other requests' rows are
+        computed in the same batch either way.
+
         Keys: row r of request i (level r // E_i, episode r % E_i) takes ``split(key_i, n_i E_i)[r]``,
         split again into its reset key and run key, and the run key into one key per step up to the
         request's own step limit, exactly as a request alone would. A row stops being recorded at
@@ -460,13 +466,14 @@ class PPOStudent:
         """
         if chunk < 1:
             raise ValueError(f"evaluate: chunk must be >= 1, got {chunk}")
-        groups = []
-        for key, levels, num_episodes, max_steps in requests:
+        groups, active = [], []
+        for key, levels, num_episodes, max_steps, *on in requests:
             n = _leading_dim(levels)
             levels, length = self._eval_levels(levels, num_episodes, max_steps)
             flat = jax.tree_util.tree_map(lambda x: jnp.repeat(jnp.asarray(x), num_episodes, axis=0), levels)
             k_reset, k_run = jnp.moveaxis(jax.vmap(jax.random.split)(jax.random.split(key, n * num_episodes)), 1, 0)
             groups.append((n, num_episodes, length, flat, k_reset, k_run))
+            active.append(on[0] if on else True)
         total = max(g[2] for g in groups)
         padded = -(-total // chunk) * chunk  # the key table covers whole chunks
 
@@ -479,7 +486,11 @@ class PPOStudent:
         levels = jax.tree_util.tree_map(cat, *[g[3] for g in groups])
         reset_keys = cat(*[g[4] for g in groups])
         keys = cat(*[step_keys(g[5], g[2]) for g in groups])
-        limits = jnp.asarray(np.concatenate([np.full(g[0] * g[1], g[2], np.int32) for g in groups]))
+        limits = np.concatenate([np.full(g[0] * g[1], g[2], np.int32) for g in groups])
+        if any(a is not True for a in active):  # a row of an inactive request has no steps to record
+            on = jnp.concatenate([jnp.full(g[0] * g[1], a, bool) for g, a in zip(groups, active)])
+            limits = jnp.where(on, limits, 0)
+        limits = jnp.asarray(limits)
         rets, lens, steps_run = self._eval_rollout(state, reset_keys, keys, levels, limits, total, deterministic, chunk)
 
         out, r0 = [], 0
