@@ -60,6 +60,7 @@ def main(argv=None) -> int:
     ap.add_argument("--label", default="after", help="key of this measurement in the record")
     ap.add_argument("--out", default=None, help="JSON record to merge this measurement into")
     args = ap.parse_args(argv)
+    header = cs.record_header("experiments.compile_size", argv)  # the commit of the sources about to load
     try:
         _, batch = cs.build_batch(args.env, args.method, args.preset, 1)
     except ValueError as err:
@@ -68,7 +69,7 @@ def main(argv=None) -> int:
     sizes = measure(batch)
     print(" ".join(f"{k}={v}" for k, v in sizes.items()))
     record = {
-        **cs.record_header("experiments.compile_size", argv),
+        **header,
         "experiment": {"env": args.env, "method": args.method, "preset": args.preset, "seeds": 1},
         **sizes,
     }

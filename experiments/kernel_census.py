@@ -137,6 +137,7 @@ def main(argv=None) -> int:
     if args.min_worlds is not None and args.min_worlds < 1:
         print(f"kernel_census: --min-worlds must be at least 1, got {args.min_worlds}", file=sys.stderr)
         return 2
+    header = cs.record_header("experiments.kernel_census", argv)  # the commit of the sources about to load
     for method in [m for m in args.methods.split(",") if m]:
         try:
             out = measure(args.env, method, args.preset, args.seeds, args.full_tracebacks, args.min_worlds)
@@ -148,7 +149,7 @@ def main(argv=None) -> int:
             label = (f"{args.env}/{method}/{args.preset}/{args.seeds}/min_worlds_{out['min_worlds']}"
                      + ("/full_tracebacks" if args.full_tracebacks else ""))
             cs.merge_labelled(args.out, label,
-                              {**cs.record_header("experiments.kernel_census", argv),
+                              {**header,
                                "experiment": {"env": args.env, "method": method, "preset": args.preset,
                                               "seeds": args.seeds}, **out})
     return 0
