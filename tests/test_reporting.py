@@ -367,10 +367,14 @@ def test_compare_pools_runs_that_share_a_label(runs):
         compare.named_table(compare.pool_runs([sd(runs / "shed"), sd(runs / "shed-r1")], ["x", "x"]))
 
 
-def test_compare_rejects_a_directory_that_is_not_a_run(tmp_path):
+def test_compare_rejects_a_directory_that_is_not_a_run(tmp_path, capsys):
+    """One line naming the directory and what it lacks, not a traceback."""
     (tmp_path / "empty").mkdir()
-    with pytest.raises(FileNotFoundError, match="no config.json"):
+    with pytest.raises(SystemExit) as stop:
         compare.main([str(tmp_path / "empty"), "--out", str(tmp_path / "o")])
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert stop.value.code == 2 and last.endswith(f"{tmp_path / 'empty'} has no config.json: is it a run directory of "
+                                                  "`python -m shed_jax run`?")
 
 
 def test_paper_numbers_match_spec_section_3_4():

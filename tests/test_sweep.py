@@ -152,6 +152,7 @@ class _StubStudent:
     env: Any
     config: _StubConfig = _StubConfig()
     env_steps_per_update: int = 20
+    train_envs: int = 4  # the driver pads GPU kernels to it (no kernels here)
 
     def init(self, key, hparams=None):
         hp = PPOHyperparams().as_arrays() if hparams is None else jax.tree_util.tree_map(lambda x: jnp.asarray(x, jnp.float32), hparams)
