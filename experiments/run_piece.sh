@@ -12,7 +12,10 @@
 # The script installs the wheels in .whl if there are any, puts the run's sources in place OF THIS
 # TREE'S (so OUT must be set: it runs on a disposable copy, e.g. the device machine's), starts the run
 # (no ckpt.tgz.* yet) or resumes it, stops it with --time-limit SECONDS counted from the script's
-# start, and writes the new ckpt.tgz.*, cache.tgz.* and run.log into $OUT. It exits with the run's exit code (75: stopped at
+# start, and writes the new ckpt.tgz.*, cache.tgz.* and run.log into $OUT. SECONDS is the whole
+# piece, packing included: the run stops PACK_S (45) seconds before it, which covers the checkpoint
+# the run writes when it stops (about 15 s for SHED on the 2-D walker) and the packing. Give it the
+# device call's limit_s less about 20 s: a call ended by its limit returns nothing of the piece. It exits with the run's exit code (75: stopped at
 # the time limit and saved; 0: finished, final evaluation included; 2: bad arguments). Copy those
 # back over FOLDER's parts (old parts removed first: the split may change) before the next piece.
 set -u
@@ -20,6 +23,7 @@ usage="usage: OUT=DIR bash experiments/run_piece.sh FOLDER SECONDS"
 dir=${1:?$usage}
 secs=${2:?$usage}
 case $secs in ''|*[!0-9]*) echo "run_piece: SECONDS must be a whole number, got '$secs'"; exit 2;; esac
+[ "$secs" -gt "${PACK_S:-45}" ] || { echo "run_piece: SECONDS=$secs leaves no time to run: the last ${PACK_S:-45} s are kept for the checkpoint and the packing"; exit 2; }
 # it replaces this tree's sources with the run's: only on a disposable copy of the tree, where OUT is set
 : "${OUT:?run_piece.sh replaces shed_jax/, envs/ and experiments/ in place: run it on a disposable copy with OUT set}"
 [ -f "$dir/run.args" ] && [ -f "$dir/src.tgz" ] || { echo "run_piece: $dir lacks run.args or src.tgz"; exit 2; }
@@ -46,7 +50,8 @@ else
   what=$args
 fi
 if ls "$dir"/cache.tgz.* >/dev/null 2>&1; then cat "$dir"/cache.tgz.* | tar xzf -; fi
-lim=$(( secs - ($(date +%s) - t0) ))
+lim=$(( secs - ($(date +%s) - t0) - ${PACK_S:-45} ))
+[ "$lim" -gt 0 ] || { echo "run_piece: SECONDS=$secs leaves no time to run after set-up and packing"; exit 2; }
 timeout -k 10 $(( lim + 25 )) python -m shed_jax run $what --keep 1 --no-gif --time-limit $lim > "$OUT/run.log" 2>&1
 rc=$?
 echo "rc $rc after $(( $(date +%s) - t0 )) s"
@@ -57,6 +62,12 @@ if [ -d "$run" ]; then
   rm -f "$whole"
   ls -l "$OUT"/ckpt.tgz.*
 fi
-if [ -d .cache/device ]; then tar czf - .cache/device | split -b 15M - "$OUT/cache.tgz."; fi
+# Once the run has a checkpoint its programs are in the cache as executables, and XLA's kernel cache
+# file (tens of MB under JAX_PERSISTENT_CACHE_ENABLE_XLA_CACHES=all) serves only compiles of new
+# programs: it is left out, so the folder, the checkpoint and the wheels stay under what a call carries.
+# A new program (e.g. the final evaluation's) then compiles its kernels again.
+skip=()
+[ -d "$run" ] && skip=(--exclude=xla_gpu_kernel_cache_file)
+if [ -d .cache/device ]; then tar czf - "${skip[@]}" .cache/device | split -b 15M - "$OUT/cache.tgz."; fi
 tail -c 2000 "$OUT/run.log" | tr '\r' '\n' | grep -a -v '^ *$' | tail -4
 exit $rc

@@ -15,9 +15,12 @@ STUB = """#!/bin/bash
 echo "$@" >> "$STUB_LOG"
 [ -n "${PIECE_SETTING:-}" ] && echo "setting $PIECE_SETTING" >> "$STUB_LOG"
 [ -f runs/x/state ] && echo "found $(cat runs/x/state)" >> "$STUB_LOG"
-mkdir -p runs/x .cache/device/jax
-echo "piece $PIECE" > runs/x/state
+mkdir -p .cache/device/jax
 echo cached > .cache/device/jax/entry
+echo kernels > .cache/device/jax/xla_gpu_kernel_cache_file
+[ -n "${STUB_NO_RUN:-}" ] && exit 1  # a compile cut off: no run directory, the cache alone
+mkdir -p runs/x
+echo "piece $PIECE" > runs/x/state
 exit 75
 """
 
@@ -33,12 +36,12 @@ def _tree(root: pathlib.Path, folder: pathlib.Path) -> pathlib.Path:
     return repo
 
 
-def _piece(root, repo, piece, seconds="100", out=True):
+def _piece(root, repo, piece, seconds="100", out=True, **extra):
     bin_ = root / "bin"
     bin_.mkdir(exist_ok=True)
     (bin_ / "python").write_text(STUB)
     (bin_ / "python").chmod(0o755)
-    env = {**os.environ, "PATH": f"{bin_}:{os.environ['PATH']}", "STUB_LOG": str(root / "stub.log"), "PIECE": str(piece)}
+    env = {**os.environ, "PATH": f"{bin_}:{os.environ['PATH']}", "STUB_LOG": str(root / "stub.log"), "PIECE": str(piece), **extra}
     if out:
         env["OUT"] = str(root / f"out{piece}")
         (root / f"out{piece}").mkdir()
@@ -69,14 +72,18 @@ def test_start_then_resume_from_the_returned_parts(tmp_path, folder):
     r = _piece(first, repo, 1)
     assert r.returncode == 75, r.stdout + r.stderr
     call = (first / "stub.log").read_text().split()
-    # started with the folder's flags, the script's own, and a limit inside the piece's seconds
+    # started with the folder's flags, the script's own, and a limit that leaves the piece's last
+    # 45 s to the run's checkpoint and the packing
     assert call[:3] == ["-m", "shed_jax", "run"] and "--resume" not in call
     assert " ".join(call[3:13]) == "--env lander --method dr --preset quick --seeds 1 --out runs/x"
-    assert call[13:16] == ["--keep", "1", "--no-gif"] and call[16] == "--time-limit" and 95 <= int(call[17]) <= 100
+    assert call[13:16] == ["--keep", "1", "--no-gif"] and call[16] == "--time-limit" and 50 <= int(call[17]) <= 55
     # the run's sources replaced the tree's before it ran
     assert (repo / "shed_jax" / "run_sources.txt").is_file() and not (repo / "shed_jax" / "stale.txt").exists()
     out = first / "out1"
     assert sorted(p.name for p in out.iterdir()) == ["cache.tgz.aa", "ckpt.tgz.aa", "run.log"]
+    # with a checkpoint, the cache comes back without XLA's kernel cache file
+    with tarfile.open(out / "cache.tgz.aa") as tar:
+        assert sorted(tar.getnames()) == [".cache/device", ".cache/device/jax", ".cache/device/jax/entry"]
 
     # the next lease: a fresh copy of the tree, the returned parts copied into the folder
     for part in out.glob("*.tgz.*"):
@@ -90,6 +97,16 @@ def test_start_then_resume_from_the_returned_parts(tmp_path, folder):
     assert (repo2 / ".cache" / "device" / "jax" / "entry").read_text() == "cached\n"
 
 
+def test_a_piece_cut_off_before_its_first_checkpoint_keeps_the_kernel_cache(tmp_path, folder):
+    repo = _tree(tmp_path, folder)
+    r = _piece(tmp_path, repo, 1, STUB_NO_RUN="1")
+    assert r.returncode == 1, r.stdout + r.stderr
+    out = tmp_path / "out1"
+    assert sorted(p.name for p in out.iterdir()) == ["cache.tgz.aa", "run.log"]
+    with tarfile.open(out / "cache.tgz.aa") as tar:
+        assert ".cache/device/jax/xla_gpu_kernel_cache_file" in tar.getnames()
+
+
 def test_run_env_is_exported_to_every_piece(tmp_path, folder):
     (folder / "run.env").write_text("# the same for every piece\nPIECE_SETTING=all\n\n")
     repo = _tree(tmp_path, folder)
@@ -101,6 +118,8 @@ def test_bad_arguments_are_refused_before_any_work(tmp_path, folder):
     repo = _tree(tmp_path, folder)
     r = _piece(tmp_path, repo, 1, seconds="ten")
     assert r.returncode == 2 and "SECONDS must be a whole number" in r.stdout
+    r = _piece(tmp_path, repo, 5, seconds="40")  # less than the checkpoint and the packing need
+    assert r.returncode == 2 and "leaves no time to run" in r.stdout
     r = _piece(tmp_path, repo, 2, out=False)
     assert r.returncode != 0 and "OUT set" in r.stderr
     (repo / "inflight" / "run.args").write_text("--env lander --method dr\n")
