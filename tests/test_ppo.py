@@ -420,6 +420,52 @@ def test_continuous_actions_are_clipped_and_policy_learns():
     assert np.all(ret[:, -5:].mean(1) > ret[:, :5].mean(1) + 1.0), ret[:, [0, -1]]
 
 
+def test_bounded_log_std_hand_computed_inverse_and_never_flat():
+    lo, hi = -2.0, 0.5
+    inf = math.inf
+    # both bounds: the midpoint at raw 0; one bound: softplus(0) = log 2 from it; none: raw itself
+    np.testing.assert_allclose(networks.bounded_log_std(jnp.float32(0.0), lo, hi), -0.75, rtol=1e-6)
+    np.testing.assert_allclose(networks.bounded_log_std(jnp.float32(0.0), lo, inf), lo + math.log(2), rtol=1e-6)
+    np.testing.assert_allclose(networks.bounded_log_std(jnp.float32(0.0), -inf, hi), hi - math.log(2), rtol=1e-6)
+    assert networks.bounded_log_std(jnp.float32(3.0)) == 3.0
+    for b in [(lo, hi), (lo, inf), (-inf, hi), (-inf, inf)]:
+        for target in (-1.9, -0.5, 0.4):
+            raw = networks.raw_log_std(target, *b)
+            np.testing.assert_allclose(networks.bounded_log_std(jnp.float32(raw), *b), target, rtol=1e-5, atol=1e-6)
+    # far past a bound the value stays inside it and the gradient is small but not zero (unlike a clip)
+    f = lambda r: networks.bounded_log_std(r, lo, hi)  # noqa: E731
+    for r in (-10.0, 10.0):
+        v, g = jax.value_and_grad(f)(jnp.float32(r))
+        assert lo < float(v) < hi and 0.0 < float(g) < 1e-3
+    with pytest.raises(ValueError, match="not inside the bounds"):
+        networks.raw_log_std(0.5, lo, hi)
+
+
+def test_log_std_bounds_hold_in_training_where_a_free_log_std_widens_or_collapses():
+    # On _Point a wide policy costs only clipped actions, so a strong entropy bonus widens a free
+    # log-std without limit, and without a bonus the exact-target reward narrows it; bounds hold both.
+    env = _Point()
+    hps = PPOHyperparams.stack([PPOHyperparams(lr=2e-2, ent_coef=e) for e in (0.5, 0.0)])
+    found = {}
+    for bounds in [(-math.inf, math.inf), (-1.0, 0.5)]:
+        cfg = PPOConfig(num_envs=8, num_steps=16, update_epochs=4, num_minibatches=4, actor_hidden=(16,),
+                        critic_hidden=(16,), log_std_min=bounds[0], log_std_max=bounds[1])
+        student = make_student(env, cfg)
+
+        @jax.jit
+        @jax.vmap
+        def train(hp):
+            key = jax.random.PRNGKey(0)
+            s, _ = student.run_updates(student.init(key, hp), key, 40)
+            return student.policy_output(s.params, jnp.ones((1, 2)))[1][0, 0]
+
+        found[bounds] = np.asarray(train(hps))
+    widened, narrowed = found[(-math.inf, math.inf)]  # 6.7 and -4.1 on a 2-core AMD EPYC
+    assert widened > 2.0 and narrowed < -2.0, found
+    widened, narrowed = found[(-1.0, 0.5)]  # 0.48 and -0.99: pressed against the bounds, inside them
+    assert 0.3 < widened < 0.5 and -1.0 < narrowed < -0.8, found
+
+
 # ------------------------------------------------------------------------------------------
 # validation
 # ------------------------------------------------------------------------------------------
@@ -438,6 +484,10 @@ def test_config_and_hparam_validation():
         PPOConfig(hparams=PPOHyperparams(gamma=1.5))
     with pytest.raises(ValueError, match="lr"):
         make_student(envs.make("cartpole"), SMALL).init(jax.random.PRNGKey(0), PPOHyperparams(lr=-1.0))
+    with pytest.raises(ValueError, match=r"init_log_std must be finite and inside \(log_std_min, log_std_max\) = \(-2, 0\)"):
+        PPOConfig(log_std_min=-2.0, log_std_max=0.0)
+    with pytest.raises(ValueError, match="log_std_max must be a number"):
+        PPOConfig(log_std_max="wide")
     with pytest.raises(ValueError, match="no PPO preset"):
         PPOConfig.for_env("pong")
     lander = PPOConfig.for_env("lander")

@@ -94,6 +94,9 @@ class PPOConfig:
     reward_clip: float = 10.0  # clip of normalised rewards, as SB3 VecNormalize (ignored if not normalising)
     obs_clip: float = 10.0  # clip of normalised observations, as SB3 VecNormalize
     init_log_std: float = 0.0  # continuous actions: initial state-independent log-std
+    # continuous actions: soft bounds on the log-std (networks.bounded_log_std; infinite: none)
+    log_std_min: float = -math.inf
+    log_std_max: float = math.inf
     anneal_lr: bool = False
     anneal_updates: int = 0  # updates over which lr decays linearly to 0 (required if anneal_lr)
     reset_draw: ResetDraw = "per_step"  # see ResetDraw; "per_rollout" for envs with a costly reset
@@ -119,6 +122,13 @@ class PPOConfig:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and v > 0):
                 raise ValueError(f"PPOConfig.{name} must be a positive number, got {v!r}")
+        for name in ("init_log_std", "log_std_min", "log_std_max"):
+            v = getattr(self, name)
+            if not isinstance(v, (int, float)) or isinstance(v, bool) or math.isnan(v):
+                raise ValueError(f"PPOConfig.{name} must be a number, got {v!r}")
+        if math.isinf(self.init_log_std) or not self.log_std_min < self.init_log_std < self.log_std_max:
+            raise ValueError(f"PPOConfig.init_log_std must be finite and inside (log_std_min, log_std_max) = "
+                             f"({self.log_std_min:g}, {self.log_std_max:g}), got {self.init_log_std!r}")
         if not isinstance(self.anneal_updates, int) or self.anneal_updates < 0:
             raise ValueError(f"PPOConfig.anneal_updates must be a non-negative int, got {self.anneal_updates!r}")
         if self.anneal_lr and self.anneal_updates < 1:

@@ -39,21 +39,64 @@ class MLP(nn.Module):
         return nn.Dense(self.out_dim, kernel_init=orthogonal(self.out_scale), bias_init=nn.initializers.zeros)(x)
 
 
+def bounded_log_std(raw, lo: float = -math.inf, hi: float = math.inf):
+    """The log-std a raw parameter stands for under soft bounds ``lo < log_std < hi`` (infinite: none).
+
+    No bounds: ``raw`` itself. Both: ``lo + (hi - lo) * sigmoid(raw)``. Only a lower bound:
+    ``lo + softplus(raw)``; only an upper: ``hi - softplus(raw)``. Smooth and strictly monotone, so a
+    bound is approached but never reached and the gradient never vanishes exactly, unlike a clip.
+    """
+    if math.isinf(lo) and math.isinf(hi):
+        return raw
+    if math.isinf(hi):
+        return lo + jax.nn.softplus(raw)
+    if math.isinf(lo):
+        return hi - jax.nn.softplus(raw)
+    return lo + (hi - lo) * jax.nn.sigmoid(raw)
+
+
+def raw_log_std(log_std: float, lo: float = -math.inf, hi: float = math.inf) -> float:
+    """The inverse of :func:`bounded_log_std`: the raw value whose log-std is ``log_std`` (inside the bounds)."""
+    if not lo < log_std < hi:
+        raise ValueError(f"log-std {log_std:g} is not inside the bounds ({lo:g}, {hi:g})")
+    inv_softplus = lambda y: y + math.log(-math.expm1(-y))  # noqa: E731
+    if math.isinf(lo) and math.isinf(hi):
+        return float(log_std)
+    if math.isinf(hi):
+        return inv_softplus(log_std - lo)
+    if math.isinf(lo):
+        return inv_softplus(hi - log_std)
+    u = (log_std - lo) / (hi - lo)
+    return math.log(u) - math.log1p(-u)
+
+
 class Actor(nn.Module):
-    """Policy network: logits (discrete) or (mean, log_std) with state-independent log-std."""
+    """Policy network: logits (discrete) or (mean, log_std) with state-independent log-std.
+
+    With ``log_std_min`` or ``log_std_max`` finite the parameter is ``log_std_raw`` and the log-std
+    is :func:`bounded_log_std` of it (initially ``init_log_std``); without bounds it is ``log_std``.
+    """
 
     hidden: Sequence[int]
     action_dim: int
     discrete: bool
     activation: str = "tanh"
     init_log_std: float = 0.0
+    log_std_min: float = -math.inf
+    log_std_max: float = math.inf
 
     @nn.compact
     def __call__(self, obs):
         out = MLP(self.hidden, self.action_dim, self.activation, out_scale=0.01)(obs)
         if self.discrete:
             return out
-        log_std = self.param("log_std", nn.initializers.constant(self.init_log_std), (self.action_dim,))
+        lo, hi = self.log_std_min, self.log_std_max
+        if math.isinf(lo) and math.isinf(hi):
+            log_std = self.param("log_std", nn.initializers.constant(self.init_log_std), (self.action_dim,))
+        else:
+            raw = self.param("log_std_raw", nn.initializers.constant(raw_log_std(self.init_log_std, lo, hi)),
+                             (self.action_dim,))
+            log_std = bounded_log_std(raw, lo, hi)
         return out, jnp.broadcast_to(log_std, out.shape)
 
 

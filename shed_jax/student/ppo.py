@@ -112,7 +112,8 @@ class PPOStudent:
         object.__setattr__(self, "discrete", discrete)
         object.__setattr__(self, "obs_shape", tuple(obs_space.shape))
         object.__setattr__(
-            self, "actor", Actor(c.actor_hidden, action_dim, discrete, c.activation, c.init_log_std)
+            self, "actor", Actor(c.actor_hidden, action_dim, discrete, c.activation, c.init_log_std,
+                                  c.log_std_min, c.log_std_max)
         )
         object.__setattr__(self, "critic", Critic(c.critic_hidden, c.activation))
         object.__setattr__(self, "tx", optax.inject_hyperparams(_make_optimizer)(learning_rate=3e-4, max_grad_norm=0.5))
