@@ -11,6 +11,7 @@ import tarfile
 import pytest
 
 SCRIPT = pathlib.Path(__file__).resolve().parents[1] / "experiments" / "run_piece.sh"
+ADOPT = SCRIPT.with_name("adopt_piece.sh")
 STUB = """#!/bin/bash
 echo "$@" >> "$STUB_LOG"
 [ -n "${PIECE_SETTING:-}" ] && echo "setting $PIECE_SETTING" >> "$STUB_LOG"
@@ -132,3 +133,39 @@ def test_bad_arguments_are_refused_before_any_work(tmp_path, folder):
     assert not (repo / "pwned").exists()
     # nothing ran, and the tree's own sources are still there
     assert not (tmp_path / "stub.log").exists() and (repo / "shed_jax" / "stale.txt").is_file()
+
+
+def _adopt(folder, src, cwd):
+    return subprocess.run(["bash", str(ADOPT), str(folder), str(src)], cwd=cwd, capture_output=True, text=True, timeout=60)
+
+
+def test_adopt_takes_the_returned_parts_and_refuses_a_broken_archive(tmp_path, folder):
+    repo = _tree(tmp_path, folder)
+    assert _piece(tmp_path, repo, 1).returncode == 75
+    out = tmp_path / "out1"
+    (folder / "cache.tgz.ab").write_bytes(b"a stale second part")  # an older, longer split
+    r = _adopt(folder, out, tmp_path)
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert sorted(p.name for p in folder.glob("*.tgz.*")) == ["cache.tgz.aa", "ckpt.tgz.aa"]
+    assert (folder / "ckpt.tgz.aa").read_bytes() == (out / "ckpt.tgz.aa").read_bytes()
+    assert "ckpt: 1 part(s)" in r.stdout
+
+    # a piece that saved nothing: the cache is taken, the folder's checkpoint kept
+    cut = tmp_path / "cut"
+    cut.mkdir()
+    shutil.copy(out / "cache.tgz.aa", cut / "cache.tgz.aa")
+    ckpt = (folder / "ckpt.tgz.aa").read_bytes()
+    r = _adopt(folder, cut, tmp_path)
+    assert r.returncode == 0 and "keeps its checkpoint" in r.stdout
+    assert (folder / "ckpt.tgz.aa").read_bytes() == ckpt
+
+    # a truncated archive: refused, the folder untouched
+    broken = tmp_path / "broken"
+    broken.mkdir()
+    (broken / "cache.tgz.aa").write_bytes((out / "cache.tgz.aa").read_bytes()[:-8])
+    before = {p.name: p.read_bytes() for p in folder.iterdir()}
+    r = _adopt(folder, broken, tmp_path)
+    assert r.returncode == 3 and "not a whole gzip archive" in r.stdout
+    assert {p.name: p.read_bytes() for p in folder.iterdir()} == before
+    r = _adopt(folder, tmp_path / "nothing", tmp_path)
+    assert r.returncode == 2 and "holds no cache.tgz" in r.stdout

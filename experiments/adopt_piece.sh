@@ -1,0 +1,40 @@
+#!/bin/bash
+# Takes what one piece of experiments/run_piece.sh returned into the run's folder, for the next piece.
+# Run from the repository root:
+#   bash experiments/adopt_piece.sh FOLDER FROM
+# FROM is where the piece's files came back (the device call's files_at): cache.tgz.*, run.log and,
+# when the run saved, ckpt.tgz.*. Every archive is checked whole (gzip -t) before FOLDER is touched;
+# then FOLDER's old parts of each returned archive are removed (the split may change) and the new ones
+# copied in. A piece without a checkpoint (its compile cut off, or its call ended before it saved)
+# leaves FOLDER's checkpoint as it was. Prints the run log's compile and last progress lines (for the
+# folder's table) and the size the tree now carries to the device with the wheels (64 MiB at most).
+set -u
+usage="usage: bash experiments/adopt_piece.sh FOLDER FROM"
+dir=${1:?$usage}
+from=${2:?$usage}
+[ -f "$dir/run.args" ] || { echo "adopt_piece: $dir is not a carried run's folder (no run.args)"; exit 2; }
+ls "$from"/cache.tgz.* >/dev/null 2>&1 || { echo "adopt_piece: $from holds no cache.tgz.* (nothing came back from the piece?)"; exit 2; }
+kinds=(cache)
+ls "$from"/ckpt.tgz.* >/dev/null 2>&1 && kinds+=(ckpt)
+for k in "${kinds[@]}"; do
+  cat "$from"/$k.tgz.* | gzip -t 2>/dev/null || { echo "adopt_piece: $from/$k.tgz.* is not a whole gzip archive; $dir left as it was"; exit 3; }
+done
+for k in "${kinds[@]}"; do
+  rm -f "$dir"/$k.tgz.*
+  for part in "$from"/$k.tgz.*; do
+    cp "$part" "$dir/" && chmod u+w "$dir/$(basename "$part")"
+  done
+  echo "$k: $(ls "$dir"/$k.tgz.* | wc -l) part(s), $(cat "$dir"/$k.tgz.* | wc -c) bytes"
+done
+[ "${#kinds[@]}" -eq 1 ] && echo "ckpt: none returned; $dir keeps its checkpoint"
+if [ -f "$from/run.log" ]; then
+  tr '\r' '\n' < "$from/run.log" | grep -a -E 'compiled in|^step |stopped at|still compiling' | tail -3
+fi
+if git rev-parse --git-dir >/dev/null 2>&1; then
+  tree=$( (git ls-files -z; git ls-files -z --others --exclude-standard) | du -cb --files0-from=- 2>/dev/null | tail -1 | cut -f1)
+  whl=$(du -cb .whl 2>/dev/null | tail -1 | cut -f1)
+  total=$(( ${tree:-0} + ${whl:-0} ))
+  echo "the tree carries $total bytes with the wheels (limit $(( 64 * 1024 * 1024 )))"
+  [ "$total" -le $(( 64 * 1024 * 1024 )) ] || echo "adopt_piece: over the 64 MiB a device call carries: move a folder that is not being run out of the tree for the call"
+fi
+exit 0
