@@ -324,8 +324,7 @@ def main(argv=None) -> int:
     from envs.bipedal import BipedalWalker
     from experiments.checkpoint_size import device_line
     from shed_jax.runtime import provenance
-    from shed_jax.student import PPOConfig, make_student
-    from shed_jax.training import load_policy
+    from shed_jax.training import load_policy, policy_student
 
     if args.episodes < 1 or args.horizon < 1 or args.chunk < 1:
         p.error("--episodes, --horizon and --chunk must be integers >= 1")
@@ -334,7 +333,7 @@ def main(argv=None) -> int:
     except (TypeError, ValueError) as err:
         p.error(f"--options: {err}")
     walker = BipedalWalker()
-    student = make_student(walker, PPOConfig.for_env("bipedal").replace(num_envs=1))
+    student = policy_student(walker, "bipedal", args.policy)
     states = load_policy(student, args.policy)
     thetas = [jax.tree_util.tree_map(lambda x: x[i], states) for i in range(int(states.obs_norm.count.shape[0]))]
     act = jax.jit(lambda theta, obs: student.act(theta, jax.random.PRNGKey(0), obs, deterministic=True))

@@ -45,6 +45,27 @@ def save_policy(path, states) -> None:
     pathlib.Path(path).write_bytes(serialization.to_bytes(Policy(params=states.params, obs_norm=states.obs_norm)))
 
 
+def policy_student(env, preset: str, path):
+    """The student a saved ``policy.msgpack`` was trained as, with one env slot (for acting, not
+    training): the env's PPO preset ``preset`` with the ``config`` of the ``summary.json`` that
+    ``python -m shed_jax ppo`` writes beside the file (its ``--ppo`` settings, e.g. hidden sizes or
+    log-std bounds); the preset alone when there is no such summary. ValueError of one line when the
+    summary cannot be read as one."""
+    from shed_jax import configs
+    from shed_jax.student import PPOConfig, make_student
+
+    config = PPOConfig.for_env(preset)
+    summary = pathlib.Path(path).with_name("summary.json")
+    if summary.is_file():
+        try:
+            saved = json.loads(summary.read_text()).get("config")
+        except (ValueError, AttributeError) as err:
+            raise ValueError(f"{summary}: not a summary of 'python -m shed_jax ppo' ({err})") from None
+        if saved is not None:
+            config = configs.with_overrides(config, {k: v for k, v in saved.items() if k != "hparams"}, f"{summary}: ")
+    return make_student(env, config.replace(num_envs=1, num_minibatches=1))
+
+
 def load_policy(student, path, seeds: int | None = None):
     """The inverse of ``save_policy``: a vmapped ``Policy`` of ``student`` (``seeds`` of them, default:
     as many as the file holds), ready for ``student.act`` / ``student.evaluate``; no env is reset.

@@ -40,3 +40,32 @@ def test_ppo_command_policy_file_round_trips(tmp_path):
     wide = make_student(env, PPOConfig.for_env("cartpole").replace(actor_hidden=(32,)))
     with pytest.raises(ValueError, match=r"is not a policy of this student: \['params'\]"):
         load_policy(wide, path)
+
+
+def test_a_policy_is_read_with_the_student_config_saved_beside_it(tmp_path):
+    import json
+
+    import pytest
+
+    from shed_jax.training import policy_student, save_policy
+
+    env = envs.make("cartpole")
+    wide = PPOConfig.for_env("cartpole").replace(actor_hidden=(32,))
+    student = make_student(env, wide)
+    states = jax.vmap(student.init_policy)(jax.random.split(jax.random.PRNGKey(1), 2))
+    path = tmp_path / "policy.msgpack"
+    save_policy(path, states)
+    # alone, the file is read with the preset's student, whose actor it does not fit
+    with pytest.raises(ValueError, match=r"is not a policy of this student"):
+        load_policy(policy_student(env, "cartpole", path), path)
+    # beside the summary 'python -m shed_jax ppo' writes (its config without hparams), it is read as saved
+    config = {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(wide).items() if k != "hparams"}
+    (tmp_path / "summary.json").write_text(json.dumps({"config": config}))
+    reader = policy_student(env, "cartpole", path)
+    assert reader.config.actor_hidden == (32,) and reader.config.num_envs == 1
+    loaded = load_policy(reader, path)
+    np.testing.assert_array_equal(loaded.params["actor"]["MLP_0"]["Dense_0"]["kernel"],
+                                  states.params["actor"]["MLP_0"]["Dense_0"]["kernel"])
+    (tmp_path / "summary.json").write_text(json.dumps({"config": {**config, "hidden": [8]}}))
+    with pytest.raises(ValueError, match=r"summary.json: .*hidden"):
+        policy_student(env, "cartpole", path)

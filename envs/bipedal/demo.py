@@ -155,11 +155,10 @@ def run_demo(args=None) -> int:
         path = pathlib.Path(get("policy"))
         if not path.is_file():
             raise UsageError(f"--policy {path}: no such file (a policy.msgpack of 'python -m shed_jax ppo --env bipedal')")
-        from shed_jax.student import PPOConfig, make_student
-        from shed_jax.training import load_policy
+        from shed_jax.training import load_policy, policy_student
 
-        student = make_student(env, PPOConfig.for_env("bipedal").replace(num_envs=1))
         try:
+            student = policy_student(env, "bipedal", path)
             theta = unstack(load_policy(student, path), 0)
         except ValueError as err:  # another student, environment or no policy at all: named by load_policy
             raise UsageError(f"--policy: {err}") from None

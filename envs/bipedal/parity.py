@@ -497,11 +497,10 @@ def write_record(path, head: dict, rows: dict, header: bool) -> None:
 
 def policy_main(args, names, record) -> int:
     """``--policy``: every saved seed's deterministic policy in both engines, pooled per setting."""
-    from shed_jax.student import PPOConfig, make_student
-    from shed_jax.training import load_policy
+    from shed_jax.training import load_policy, policy_student
 
     # only the networks and observation statistics are read: one env slot keeps the start-up cheap
-    student = make_student(BipedalWalker(), PPOConfig.for_env("bipedal").replace(num_envs=1))
+    student = policy_student(BipedalWalker(), "bipedal", args.policy)
     states = load_policy(student, args.policy)
     seeds = int(states.obs_norm.count.shape[0])
     thetas = [jax.tree_util.tree_map(lambda x: x[i], states) for i in range(seeds)]
