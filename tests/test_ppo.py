@@ -486,6 +486,8 @@ def test_config_and_hparam_validation():
         make_student(envs.make("cartpole"), SMALL).init(jax.random.PRNGKey(0), PPOHyperparams(lr=-1.0))
     with pytest.raises(ValueError, match=r"init_log_std must be finite and inside \(log_std_min, log_std_max\) = \(-2, 0\)"):
         PPOConfig(log_std_min=-2.0, log_std_max=0.0)
+    with pytest.raises(ValueError, match=r"log_std_min must be below log_std_max, .* got \(1, 0.5\)"):
+        PPOConfig(log_std_min=1.0, log_std_max=0.5, init_log_std=0.7)
     with pytest.raises(ValueError, match="log_std_max must be a number"):
         PPOConfig(log_std_max="wide")
     with pytest.raises(ValueError, match="no PPO preset"):

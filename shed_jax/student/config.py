@@ -126,6 +126,9 @@ class PPOConfig:
             v = getattr(self, name)
             if not isinstance(v, (int, float)) or isinstance(v, bool) or math.isnan(v):
                 raise ValueError(f"PPOConfig.{name} must be a number, got {v!r}")
+        if not self.log_std_min < self.log_std_max:  # also refuses a lower bound of inf or an upper of -inf
+            raise ValueError(f"PPOConfig.log_std_min must be below log_std_max, both finite or -inf/inf for no bound, "
+                             f"got ({self.log_std_min:g}, {self.log_std_max:g})")
         if math.isinf(self.init_log_std) or not self.log_std_min < self.init_log_std < self.log_std_max:
             raise ValueError(f"PPOConfig.init_log_std must be finite and inside (log_std_min, log_std_max) = "
                              f"({self.log_std_min:g}, {self.log_std_max:g}), got {self.init_log_std!r}")
