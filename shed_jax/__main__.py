@@ -42,19 +42,25 @@ def main(argv=None) -> int:
     parser = errors.Parser(prog="python -m shed_jax", description=__doc__.splitlines()[0])
     parser.add_argument("--debug", action="store_true", help=DEBUG_HELP)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    available = {}
+    available, unavailable = {}, set()
     for name, help_text in COMMANDS.items():
-        try:
+        p = sub.add_parser(name, help=help_text, description=help_text)
+        try:  # add_arguments may import the environments (and JAX) for their choices
             module = importlib.import_module(f"shed_jax.cli.{name}")
+            module.add_arguments(p)
         except ModuleNotFoundError as err:
             if err.name != f"shed_jax.cli.{name}" and not missing:
                 raise
+            sub._name_parser_map.pop(name, None)  # not listed: its help needs the missing packages
+            sub._choices_actions[:] = [a for a in sub._choices_actions if a.dest != name]
+            unavailable.add(name)
             continue
-        p = sub.add_parser(name, help=help_text, description=help_text)
-        module.add_arguments(p)
         # SUPPRESS: the subcommand's default must not overwrite a --debug given before it
         p.add_argument("--debug", action="store_true", default=argparse.SUPPRESS, help=DEBUG_HELP)
         available[name] = module
+    command = next((a for a in args_given if not a.startswith("-")), None)
+    if command in unavailable:  # `COMMAND --help` without the packages: the line above says what to do
+        return errors.EXIT_USAGE
     try:
         args = parser.parse_args(args_given)
     except SystemExit as err:  # --help (0) or a usage error argparse has printed as one line (2)

@@ -162,3 +162,17 @@ def test_a_missing_dependency_stops_the_cli_in_one_line_before_any_work(monkeypa
     out, err = capsys.readouterr()
     assert "missing package(s): orjson-gone;" in err and "--resume DIR" in out
     assert main(["--help"]) == 0 and "COMMAND" in capsys.readouterr().out
+
+
+def test_without_jax_a_command_help_is_the_missing_line_not_a_traceback():
+    # a fresh machine before `make setup`: the commands' argument lists import the environments (JAX)
+    code = ("import sys; sys.modules['jax'] = None\n"  # `import jax` now fails as if it were absent
+            "from shed_jax import runtime; runtime.REQUIRED_MODULES['jax-gone'] = 'shed_jax_no_such_module'\n"
+            "from shed_jax.__main__ import main\n"
+            "sys.exit(main(sys.argv[1:]))")
+    for argv, rc in ((["run", "--help"], 2), (["--help"], 0)):
+        out = subprocess.run([sys.executable, "-c", code, *argv], cwd=ROOT, capture_output=True, text=True,
+                             timeout=300, env={**os.environ, "PYTHONPATH": str(ROOT)})
+        assert out.returncode == rc, out.stderr
+        assert "Traceback" not in out.stderr and "missing package(s): jax-gone;" in out.stderr
+    assert "demo" in out.stdout and " run " not in out.stdout  # the top-level help lists what can run
