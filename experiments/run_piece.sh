@@ -41,8 +41,16 @@ if ls .whl/*.whl >/dev/null 2>&1; then
 fi
 export PYTHONUNBUFFERED=1 SHED_JAX_CACHE=$PWD/.cache/device
 [ -f "$dir/run.env" ] && set -a && . "$dir/run.env" && set +a
+# AOT_PROBE=1: first the parts of the run's cache key that only this GPU host knows, into
+# $OUT/aot_probe.json, so that a CPU host can compile the run's programs for it (experiments/aot_cache.py)
+probe_tool=
+if [ "${AOT_PROBE:-0}" = 1 ]; then probe_tool=${TMPDIR:-/tmp}/aot_cache.$$.py; cp experiments/aot_cache.py "$probe_tool" || exit 4; fi
 rm -rf shed_jax envs experiments && tar xzf "$dir/src.tgz" || exit 4
 mkdir -p runs .cache
+if [ -n "$probe_tool" ]; then
+  python "$probe_tool" probe "$dir/run.args" "$OUT/aot_probe.json" > "$OUT/aot_probe.log" 2>&1 || echo "run_piece: the probe failed (aot_probe.log)"
+  tail -1 "$OUT/aot_probe.log"
+fi
 if ls "$dir"/ckpt.tgz.* >/dev/null 2>&1; then
   cat "$dir"/ckpt.tgz.* | tar xzf - || exit 5
   what="--resume $run"
@@ -55,6 +63,11 @@ lim=$(( secs - ($(date +%s) - t0) - ${PACK_S:-45} ))
 timeout -k 10 $(( lim + 25 )) python -m shed_jax run $what --keep 1 --no-gif --time-limit $lim > "$OUT/run.log" 2>&1
 rc=$?
 echo "rc $rc after $(( $(date +%s) - t0 )) s"
+if [ -f "$OUT/aot_probe.json" ]; then  # did the run itself compile (or find) the initial state under the probed key?
+  key=$(python3 -c 'import json, sys; print(json.load(open(sys.argv[1]))["programs"]["jit_init_point"]["key"])' "$OUT/aot_probe.json" 2>/dev/null)
+  if [ -n "$key" ] && [ -e ".cache/device/jax/$key-cache" ]; then echo "aot probe: the run's initial state is in the cache under the probed key"
+  else echo "aot probe: the cache holds no initial state under the probed key ${key:0:40}"; fi
+fi
 # the checkpoint in parts under the 16 MiB a call returns, written whole before it is put in $OUT
 if [ -d "$run" ]; then
   whole=${TMPDIR:-/tmp}/run_piece.$$.tgz

@@ -14,6 +14,10 @@ SCRIPT = pathlib.Path(__file__).resolve().parents[1] / "experiments" / "run_piec
 ADOPT = SCRIPT.with_name("adopt_piece.sh")
 STUB = """#!/bin/bash
 echo "$@" >> "$STUB_LOG"
+if [ "${2:-}" = probe ]; then  # experiments/aot_cache.py probe ARGS OUT.json
+  echo '{"programs": {"jit_init_point": {"key": "jit_init_point-abc"}}}' > "$4"; echo probed; exit 0
+fi
+[ -n "${STUB_KEY:-}" ] && mkdir -p .cache/device/jax && touch ".cache/device/jax/$STUB_KEY-cache"
 [ -n "${PIECE_SETTING:-}" ] && echo "setting $PIECE_SETTING" >> "$STUB_LOG"
 [ -f runs/x/state ] && echo "found $(cat runs/x/state)" >> "$STUB_LOG"
 mkdir -p .cache/device/jax
@@ -169,3 +173,30 @@ def test_adopt_takes_the_returned_parts_and_refuses_a_broken_archive(tmp_path, f
     assert {p.name: p.read_bytes() for p in folder.iterdir()} == before
     r = _adopt(folder, tmp_path / "nothing", tmp_path)
     assert r.returncode == 2 and "holds no cache.tgz" in r.stdout
+
+
+def test_aot_probe_runs_before_the_run_and_its_key_is_checked_after(tmp_path, folder):
+    repo = _tree(tmp_path, folder)
+    shutil.copy(SCRIPT.with_name("aot_cache.py"), repo / "experiments" / "aot_cache.py")
+    r = _piece(tmp_path, repo, 1, AOT_PROBE="1", STUB_KEY="jit_init_point-abc")
+    assert r.returncode == 75, r.stdout + r.stderr
+    calls = (tmp_path / "stub.log").read_text().splitlines()
+    assert calls[0].split()[1:] == ["probe", "inflight/run.args", str(tmp_path / "out1" / "aot_probe.json")]
+    assert calls[0].split()[0].endswith(".py") and "--env lander" in calls[1]  # the probe first, then the run
+    assert (tmp_path / "out1" / "aot_probe.json").exists() and "probed" in r.stdout
+    assert "the run's initial state is in the cache under the probed key" in r.stdout
+
+
+def test_aot_probe_names_a_run_whose_initial_state_has_another_key(tmp_path, folder):
+    repo = _tree(tmp_path, folder)
+    shutil.copy(SCRIPT.with_name("aot_cache.py"), repo / "experiments" / "aot_cache.py")
+    r = _piece(tmp_path, repo, 1, AOT_PROBE="1", STUB_KEY="jit_init_point-zzz")
+    assert r.returncode == 75, r.stdout + r.stderr
+    assert "the cache holds no initial state under the probed key jit_init_point-abc" in r.stdout
+
+
+def test_without_aot_probe_nothing_is_probed(tmp_path, folder):
+    repo = _tree(tmp_path, folder)
+    r = _piece(tmp_path, repo, 1)
+    assert r.returncode == 75 and "probe" not in (tmp_path / "stub.log").read_text()
+    assert not (tmp_path / "out1" / "aot_probe.json").exists() and "aot probe" not in r.stdout

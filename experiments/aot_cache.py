@@ -1,0 +1,259 @@
+"""Compile a carried run's programs for its GPU on a CPU host, into the run's compilation cache.
+
+A 2-D walker run's first piece on a GPU spends most of its device call compiling (DR's chunk: more
+than 510 s on an H200; SHED's: 526 s), and device time is the scarce resource. XLA can compile for a
+GPU it does not have (deviceless ahead-of-time compilation: a compile-only PJRT topology of the
+target), and JAX's persistent cache stores the result under a key of the program, the jaxlib
+version, the platform, the XLA flags, the compile options and the devices. If a CPU host computes
+the same key as the GPU host, a piece on the GPU reads the executable from the carried cache (about
+100 s for SHED's chunk, its tracing and lowering) instead of compiling it. Two of the key's parts
+cannot be read off a CPU host: the GPU client's platform version (the CUDA runtime's) and the
+fingerprint of the GPU's topology. So the work has two steps:
+
+1. ``probe`` (on the GPU, before a piece; ``run_piece.sh`` runs it when ``AOT_PROBE=1``): build the
+   run's initial-state program as ``shed_jax run`` does, compute its cache key without compiling,
+   and write every part of the key, the platform version and the serialized topology to a JSON file.
+2. ``fill`` (on a CPU host with the GPU's jax, jaxlib and CUDA plugin versions installed): the same
+   programs (the initial state and the chunks) for the probed topology, the key computed with the
+   probed platform version, compiled into the cache; the initial state's key parts are compared with
+   the probe's and every difference is named, so a fill that the GPU would miss says so.
+
+Both steps must run the run's own sources at the path the GPU host runs them from (kernel IR holds
+source locations); ``experiments/aot_fill.sh`` does that on the CPU host with a private mount.
+This file uses JAX internals (``jax._src.cache_key``, ``jax._src.compilation_cache``) of jax 0.11:
+that is why it is a tool beside the runs, not part of ``shed_jax``.
+
+    python experiments/aot_cache.py probe RUN_ARGS OUT.json          # on the GPU
+    python experiments/aot_cache.py fill RUN_ARGS PROBE.json [--chunks] [--out REPORT.json]
+"""
+from __future__ import annotations
+
+import argparse
+import base64
+import hashlib
+import json
+import os
+import shlex
+import sys
+import time
+
+
+class _Captured(Exception):
+    """Raised from the key hook in ``probe``: the key is known, the compile is not wanted."""
+
+
+def key_parts(module, devices, options, backend, compression: str) -> dict:
+    """Each part of JAX's persistent-cache key hashed on its own (SHA-256 hex), as ``cache_key.get``
+    feeds them into one hash in this order; a part that differs between two hosts is the miss's cause."""
+    from jax._src import cache_key as ck
+
+    parts = {
+        "computation": lambda h: ck._hash_computation(h, module, False),
+        "jax_lib version": lambda h: h.update(ck.jaxlib_version_str.encode("utf-8")),
+        "backend version": lambda h: ck._hash_platform(h, backend),
+        "XLA flags": lambda h: ck._hash_xla_flags(h, ck.get_flag_prefixes()),
+        "compile_options": lambda h: ck._hash_serialized_compile_options(
+            h, options, strip_device_assignment=(backend.platform == "gpu")),
+        "accelerator_config": lambda h: ck._hash_accelerator_config(h, devices),
+        "compression": lambda h: ck._hash_string(h, compression),
+        "custom_hook": lambda h: ck._hash_string(h, ck.custom_hook()),
+    }
+    out = {}
+    for name, fn in parts.items():
+        h = hashlib.sha256()
+        fn(h)
+        out[name] = h.hexdigest()
+    return out
+
+
+class _Backend:
+    """A backend with another platform version (the GPU host's), everything else the compile-only one's."""
+
+    def __init__(self, backend, platform_version: str):
+        self._backend, self.platform_version = backend, platform_version
+
+    def __getattr__(self, name):
+        return getattr(self._backend, name)
+
+
+def hook_keys(seen: dict, platform_version: str | None = None, compression: str | None = None,
+              stop_at: str | None = None) -> None:
+    """Wrap ``compilation_cache.get_cache_key``: record each program's key and key parts in ``seen``
+    (by module name), with the given platform version and compression name in the key (the GPU host's);
+    raise :class:`_Captured` once the program named ``stop_at`` has its key."""
+    from jax._src import cache_key as ck
+    from jax._src import compilation_cache as cc
+
+    default_compression = "zstandard" if cc.zstandard is not None else "zlib"
+
+    def get_cache_key(module, devices, options, backend, ignore_custom_partitioning=False):
+        comp = default_compression
+        if backend.platform == "gpu":  # the host's own programs (eager operations on a CPU host) as they are
+            comp = compression or default_compression
+            if platform_version is not None:
+                backend = _Backend(backend, platform_version)
+        key = ck.get(module, devices, options, backend, comp, ignore_custom_partitioning)
+        name = key.split("-")[0]
+        seen[name] = {"key": key, "parts": key_parts(module, devices, options, backend, comp)}
+        if name == stop_at:
+            raise _Captured(name)
+        return key
+
+    cc.get_cache_key = get_cache_key
+
+
+def build(args_file: str, device):
+    """The run of ``args_file`` (``shed_jax run`` flags) as the driver builds it for one ``device``:
+    ``(init, abstract inputs, chunk, chunk lengths, abstract state)``, the kernels padded as a run pads them."""
+    import jax
+
+    from shed_jax import driver, rundir, runtime, sharding
+    from shed_jax import experiment as xp
+    from shed_jax.cli import errors
+    import shed_jax.cli.run as cli_run
+
+    parser = errors.Parser(prog="aot_cache")
+    cli_run.add_arguments(parser)
+    opts = driver.RunOptions.from_args(parser.parse_args(shlex.split(open(args_file).read())))
+    opts.check()
+    plan = rundir.plan_fresh(opts, "gpu")
+    batch = driver.make_batch(plan.exp, xp.build_checked(plan.exp, True), [({}, {})], num_seeds=plan.num_seeds,
+                              root_seed=plan.root_seed, chunk=plan.chunk)
+    placed = driver.place(batch, sharding.batch_mesh([device]))
+    runtime.pad_kernels_to(driver.kernel_worlds(batch, placed))
+    s = sharding.batch_sharding(placed.mesh)
+    init = sharding.sharded_init(driver.batch_init(batch.init, batch.method), placed.mesh)
+    ins = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=s), placed.inputs)
+    state = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=s), jax.eval_shape(init, *ins))
+    run_chunk = sharding.sharded_run(batch.run, placed.mesh)
+    return init, ins, run_chunk, driver.chunk_sizes(batch.chunk, 0, batch.total), state
+
+
+def _write_text(lowered, path: str) -> None:
+    """The lowered program's text without source locations, gzipped (a few MB on the 2-D walker)."""
+    import gzip
+
+    with gzip.open(path, "wt") as f:
+        f.write(lowered.as_text(debug_info=False))
+
+
+def _start(cpu_host: bool):
+    """The process as ``python -m shed_jax`` starts it: its XLA flags, cache and MLIR locations."""
+    from shed_jax.xla_cpu import apply_cpu_guard
+
+    apply_cpu_guard()
+    from shed_jax import runtime
+
+    return runtime.enable_compilation_cache(), runtime.call_site_free_locations()
+
+
+def probe(args_file: str, out: str) -> int:
+    import jax
+    from jax._src import compilation_cache as cc
+    from jax.experimental import topologies
+
+    cache, _ = _start(cpu_host=False)
+    device = jax.devices()[0]
+    seen: dict = {}
+    hook_keys(seen, stop_at="jit_init_point")
+    init, ins, *_ = build(args_file, device)
+    t = time.time()
+    lowered = init.trace(*ins).lower()
+    _write_text(lowered, out.removesuffix(".json") + "_init.mlir.gz")  # to diff with a fill's when keys differ
+    try:
+        lowered.compile()
+    except _Captured:
+        pass
+    rec = {"jax": jax.__version__, "device_kind": device.device_kind, "root": os.getcwd(), "cache": cache,
+           "platform_version": device.client.platform_version,
+           "compression": "zstandard" if cc.zstandard is not None else "zlib",
+           "topology": base64.b64encode(topologies.get_attached_topology(device.platform).serialize()).decode(),
+           "xla_flags": os.environ.get("XLA_FLAGS", ""), "programs": seen, "lower_s": round(time.time() - t, 1)}
+    with open(out, "w") as f:
+        json.dump(rec, f, indent=1)
+    print(f"aot_cache probe: {device.device_kind}, platform {rec['platform_version']!r}, "
+          f"jit_init_point key {seen.get('jit_init_point', {}).get('key', '?')[:40]}... -> {out}")
+    return 0
+
+
+def fill(args_file: str, probe_file: str, chunks: bool, out: str | None) -> int:
+    import jax
+    from jax.experimental import topologies
+
+    rec = json.load(open(probe_file))
+    if jax.__version__ != rec["jax"]:
+        print(f"aot_cache fill: this host has jax {jax.__version__}, the GPU host {rec['jax']}: install the GPU's "
+              f"version (its CUDA plugin too)", file=sys.stderr)
+        return 2
+    if os.getcwd() != rec["root"]:
+        print(f"aot_cache fill: run from {rec['root']} (the GPU host's tree; experiments/aot_fill.sh mounts it), "
+              f"not {os.getcwd()}", file=sys.stderr)
+        return 2
+    cache, _ = _start(cpu_host=True)
+    if cache != rec["cache"]:
+        print(f"aot_cache fill: the cache folder is {cache}, the GPU host's {rec['cache']}: set SHED_JAX_CACHE as "
+              f"run_piece.sh does", file=sys.stderr)
+        return 2
+    from jax._src import xla_bridge
+    from jax._src.lib import xla_client
+
+    xla_bridge._discover_and_register_pjrt_plugins()  # the CUDA plugin, loaded without a GPU to run on
+    if not xla_client.pjrt_plugin_initialized("cuda"):
+        xla_client.initialize_pjrt_plugin("cuda")
+    topo = topologies.TopologyDescription.deserialize(base64.b64decode(rec["topology"]))
+    device = topo.devices[0]
+    seen: dict = {}
+    hook_keys(seen, platform_version=rec["platform_version"], compression=rec["compression"])
+    init, ins, run_chunk, sizes, state = build(args_file, device)
+    from shed_jax import driver
+
+    report = {"probe": probe_file, "programs": {}}
+    todo = [("jit_init_point", lambda: init.trace(*ins).lower())]
+    if chunks:
+        todo += [(f"chunk of {n}", lambda n=n: driver.lower_from_clean_caches(run_chunk, state, n, 0)) for n in sizes]
+    for label, lower in todo:
+        t = time.time()
+        with jax.default_device(device):  # Pallas reads the target GPU off the default device
+            lowered = lower()
+        if label == "jit_init_point":
+            _write_text(lowered, "aot_fill_init.mlir.gz")
+        lowered.compile()
+        report["programs"][label] = {"compile_s": round(time.time() - t, 1)}
+        print(f"aot_cache fill: {label} compiled in {time.time() - t:.1f} s", flush=True)
+    ours, theirs = seen.get("jit_init_point", {}), rec["programs"].get("jit_init_point", {})
+    differ = [k for k, v in theirs.get("parts", {}).items() if ours.get("parts", {}).get(k) != v]
+    report.update(keys={k: v["key"] for k, v in seen.items()}, init_key_matches=ours.get("key") == theirs.get("key"),
+                  init_parts_differing=differ)
+    if out:
+        with open(out, "w") as f:
+            json.dump(report, f, indent=1)
+    if not theirs:
+        print(f"aot_cache fill: {probe_file} holds no key of the initial state to compare with", file=sys.stderr)
+        return 1
+    if differ:
+        print(f"aot_cache fill: the initial state's key differs from the GPU host's in {', '.join(differ)}: "
+              f"the GPU will not find these programs in the cache", file=sys.stderr)
+        return 1
+    print("aot_cache fill: the initial state's key matches the GPU host's")
+    return 0
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    p = sub.add_parser("probe", help="on the GPU: the run's initial-state key parts, platform and topology")
+    p.add_argument("args_file")
+    p.add_argument("out")
+    f = sub.add_parser("fill", help="on a CPU host: compile the run's programs for the probed GPU into the cache")
+    f.add_argument("args_file")
+    f.add_argument("probe")
+    f.add_argument("--chunks", action="store_true", help="the chunks too (minutes each), not only the initial state")
+    f.add_argument("--out", default=None, help="a JSON report: compile times, keys, differing key parts")
+    a = ap.parse_args(argv)
+    if a.cmd == "probe":
+        return probe(a.args_file, a.out)
+    return fill(a.args_file, a.probe, a.chunks, a.out)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,62 @@
+"""experiments/aot_cache.py's cache-key tools, on this host's own (CPU) programs: the key the hook
+records is the one JAX files the executable under, and the key's parts name what differs."""
+import numpy as np
+import pytest
+
+import jax
+import jax.numpy as jnp
+
+from experiments import aot_cache
+
+
+@pytest.fixture
+def hooked(monkeypatch):
+    """``hook_keys`` installed for one test; the key function's arguments captured as well."""
+    from jax._src import cache_key as ck
+    from jax._src import compilation_cache as cc
+
+    monkeypatch.setattr(cc, "get_cache_key", cc.get_cache_key)  # restored after the test
+    calls = []
+    real_get = ck.get
+
+    def get(module, devices, options, backend, *rest):
+        calls.append((module, devices, options, backend, rest[0]))
+        return real_get(module, devices, options, backend, *rest)
+
+    monkeypatch.setattr(ck, "get", get)
+    seen: dict = {}
+    aot_cache.hook_keys(seen)
+    return seen, calls
+
+
+def test_the_hook_records_each_programs_key_and_parts(hooked):
+    seen, calls = hooked
+    offset = float(np.random.default_rng().integers(1 << 30))  # a program no earlier test compiled
+
+    def aot_cache_probe_target(x):
+        return jnp.sin(x) * 2.0 + offset
+
+    jax.block_until_ready(jax.jit(aot_cache_probe_target)(jnp.ones(3)))
+    rec = seen["jit_aot_cache_probe_target"]
+    name, digest = rec["key"].split("-")
+    assert name == "jit_aot_cache_probe_target" and len(digest) == 64
+    assert list(rec["parts"]) == ["computation", "jax_lib version", "backend version", "XLA flags",
+                                  "compile_options", "accelerator_config", "compression", "custom_hook"]
+    module, devices, options, backend, compression = calls[-1]
+    assert aot_cache.key_parts(module, devices, options, backend, compression) == rec["parts"]
+
+
+def test_another_platform_version_changes_that_part_alone(hooked):
+    from jax._src import cache_key as ck
+
+    seen, calls = hooked
+    jax.block_until_ready(jax.jit(lambda x: jnp.cos(x) - 3.0)(jnp.ones(4)))
+    module, devices, options, backend, compression = calls[-1]
+    other = aot_cache._Backend(backend, "PJRT C API\ncuda 13.0.0")
+    assert other.platform == backend.platform  # everything else is the backend's own
+    mine = aot_cache.key_parts(module, devices, options, backend, compression)
+    theirs = aot_cache.key_parts(module, devices, options, other, compression)
+    assert [k for k in mine if mine[k] != theirs[k]] == ["backend version"]
+    assert ck.get(module, devices, options, other, compression) != ck.get(module, devices, options, backend, compression)
+    zlib = aot_cache.key_parts(module, devices, options, backend, "zlib" if compression != "zlib" else "zstandard")
+    assert [k for k in mine if mine[k] != zlib[k]] == ["compression"]
