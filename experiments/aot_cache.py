@@ -16,7 +16,8 @@ fingerprint of the GPU's topology. So the work has two steps:
 2. ``fill`` (on a CPU host with the GPU's jax, jaxlib and CUDA plugin versions installed): the same
    programs (the initial state and the chunks) for the probed topology, the key computed with the
    probed platform version, compiled into the cache; the initial state's key parts are compared with
-   the probe's and every difference is named, so a fill that the GPU would miss says so.
+   the probe's before any chunk is compiled, and every difference is named, so a fill that the GPU
+   would miss says so (and stops).
 
 Both steps must run the run's own sources at the path the GPU host runs them from (kernel IR holds
 source locations); ``experiments/aot_fill.sh`` does that on the CPU host with a private mount.
@@ -206,13 +207,15 @@ def fill(args_file: str, probe_file: str, chunks: bool, out: str | None) -> int:
     seen: dict = {}
     hook_keys(seen, platform_version=rec["platform_version"], compression=rec["compression"])
     init, ins, run_chunk, sizes, state = build(args_file, device)
-    from shed_jax import driver
-
     report = {"probe": probe_file, "programs": {}}
-    todo = [("jit_init_point", lambda: init.trace(*ins).lower())]
-    if chunks:
-        todo += [(f"chunk of {n}", lambda n=n: driver.lower_from_clean_caches(run_chunk, state, n, 0)) for n in sizes]
-    for label, lower in todo:
+    theirs = rec["programs"].get("jit_init_point", {})
+    if not theirs:
+        print(f"aot_cache fill: {probe_file} holds no key of the initial state to compare with", file=sys.stderr)
+        return 1
+    # a probe of another run (one probe serves every run on that GPU host): its program differs, the rest must not
+    same_run = rec.get("run_args") == open(args_file).read().strip()
+
+    def compile_one(label, lower):
         t = time.time()
         with jax.default_device(device):  # Pallas reads the target GPU off the default device
             lowered = lower()
@@ -221,25 +224,31 @@ def fill(args_file: str, probe_file: str, chunks: bool, out: str | None) -> int:
         lowered.compile()
         report["programs"][label] = {"compile_s": round(time.time() - t, 1)}
         print(f"aot_cache fill: {label} compiled in {time.time() - t:.1f} s", flush=True)
-    ours, theirs = seen.get("jit_init_point", {}), rec["programs"].get("jit_init_point", {})
-    # a probe of another run (one probe serves every run on that GPU host): its program differs, the rest must not
-    same_run = rec.get("run_args") == open(args_file).read().strip()
+
+    def write_report(**kw):
+        report.update(keys={k: v["key"] for k, v in seen.items()}, same_run_as_probe=same_run, **kw)
+        if out:
+            with open(out, "w") as f:
+                json.dump(report, f, indent=1)
+
+    compile_one("jit_init_point", lambda: init.trace(*ins).lower())
+    ours = seen.get("jit_init_point", {})
     differ = [k for k, v in theirs.get("parts", {}).items()
               if ours.get("parts", {}).get(k) != v and (same_run or k != "computation")]
-    report.update(keys={k: v["key"] for k, v in seen.items()}, same_run_as_probe=same_run,
-                  init_key_matches=ours.get("key") == theirs.get("key"), init_parts_differing=differ)
-    if out:
-        with open(out, "w") as f:
-            json.dump(report, f, indent=1)
-    if not theirs:
-        print(f"aot_cache fill: {probe_file} holds no key of the initial state to compare with", file=sys.stderr)
-        return 1
-    if differ:
+    if differ:  # the chunks would be filed under keys the GPU host never asks for: not compiled
+        write_report(init_key_matches=False, init_parts_differing=differ)
         print(f"aot_cache fill: the initial state's key differs from the GPU host's in {', '.join(differ)}: "
-              f"the GPU will not find these programs in the cache", file=sys.stderr)
+              f"the GPU would not find these programs in the cache; chunks not compiled", file=sys.stderr)
         return 1
     print("aot_cache fill: the initial state's key matches the GPU host's" if same_run else
-          "aot_cache fill: every key part but the program matches the GPU host's (the probe was of another run)")
+          "aot_cache fill: every key part but the program matches the GPU host's (the probe was of another run)",
+          flush=True)
+    if chunks:
+        from shed_jax import driver
+
+        for n in sizes:
+            compile_one(f"chunk of {n}", lambda n=n: driver.lower_from_clean_caches(run_chunk, state, n, 0))
+    write_report(init_key_matches=ours.get("key") == theirs.get("key"), init_parts_differing=[])
     return 0
 
 
