@@ -11,7 +11,8 @@ seconds, so kernel variants can be compared in one device call. Two stages:
 
 Variants: ``block=B`` worlds per kernel instance (B/32 warps), ``lower2`` (the velocity / position
 pass over the lower legs' first two manifolds only: what a block whose worlds touch nothing else
-would need). ``ms`` is the wall time of a call (with the stacking and slicing around the kernel);
+would need), ``reload`` (the kernel reads its constants at every iteration, ``fused.RELOAD_CONSTS``).
+``ms`` is the wall time of a call (with the stacking and slicing around the kernel);
 ``--trace`` adds the kernels' device time.
 """
 from __future__ import annotations
@@ -62,13 +63,13 @@ def _env_and_inputs(batch: int, steps: int, concrete: bool = True):
 
 
 def _structures(env, inputs):
-    """Trace one vmapped step: per loop, (n, body, consts treedef, carry treedef)."""
+    """Trace one vmapped step: per loop, (n, body, consts treedef, carry treedef, its early stop or None)."""
     found = {}
 
-    def record(n, body, consts, carry, *, mode="auto", unroll=1):
+    def record(n, body, consts, carry, *, mode="auto", unroll=1, done=None):
         found.setdefault(_name(body), (n, body, jax.tree_util.tree_structure(consts),
-                                       jax.tree_util.tree_structure(carry)))
-        return orig(n, body, consts, carry, mode="xla", unroll=unroll)
+                                       jax.tree_util.tree_structure(carry), done))
+        return orig(n, body, consts, carry, mode="xla", unroll=unroll, done=done)
 
     with _patched(record) as orig:
         jax.eval_shape(jax.vmap(env.step_without_reset), *inputs)
@@ -79,11 +80,11 @@ def capture(batch: int, steps: int, out: str) -> None:
     env, inputs = _env_and_inputs(batch, steps)
     got = {}
 
-    def record(n, body, consts, carry, *, mode="auto", unroll=1):
+    def record(n, body, consts, carry, *, mode="auto", unroll=1, done=None):
         name = _name(body)
         leaves = jax.tree_util.tree_leaves((consts, carry))
         got.setdefault(name, leaves)
-        return orig(n, body, consts, carry, mode="xla", unroll=unroll)
+        return orig(n, body, consts, carry, mode="xla", unroll=unroll, done=done)
 
     # vmap a function that returns the loops' inputs: run the step, then read them back
     def inputs_of(*a):
@@ -153,7 +154,7 @@ def bench(inputs: str, variants: list[str], repeats: int, out: str, mode: str = 
     rec = {**provenance("experiments.solver_kernel_bench", None), "inputs": inputs, "batch": batch,
            "captured_after_steps": steps, "rows": []}
     for name in loops:
-        n, body, c_tree, s_tree = structs[name]
+        n, body, c_tree, s_tree, done = structs[name]
         leaves = [jnp.asarray(data[f"{name}/{i}"]) for i in range(c_tree.num_leaves + s_tree.num_leaves)]
         consts = jax.tree_util.tree_unflatten(c_tree, leaves[:c_tree.num_leaves])
         carry = jax.tree_util.tree_unflatten(s_tree, leaves[c_tree.num_leaves:])
@@ -167,7 +168,8 @@ def bench(inputs: str, variants: list[str], repeats: int, out: str, mode: str = 
                 b, c, s = _lower2(body, consts, carry)
             fused.BLOCK = int(opts.get("block", 128))
             fused.NUM_WARPS = max(1, fused.BLOCK // 32)
-            fn = jax.jit(jax.vmap(lambda c_, s_, b=b: fused.per_world_fori_loop(n, b, c_, s_, mode=mode)))
+            fused.RELOAD_CONSTS = "reload" in opts
+            fn = jax.jit(jax.vmap(lambda c_, s_, b=b: fused.per_world_fori_loop(n, b, c_, s_, mode=mode, done=done)))
             t = time.perf_counter()
             try:
                 res = jax.block_until_ready(fn(c, s))
@@ -188,14 +190,14 @@ def bench(inputs: str, variants: list[str], repeats: int, out: str, mode: str = 
             if "lower2" not in opts:
                 flat = np.concatenate([np.ravel(x) for x in jax.tree_util.tree_leaves(res)])
                 if ref is None:
-                    xla = jax.jit(jax.vmap(lambda c_, s_: fused.per_world_fori_loop(n, body, c_, s_, mode="xla")))
+                    xla = jax.jit(jax.vmap(lambda c_, s_: fused.per_world_fori_loop(n, body, c_, s_, mode="xla", done=done)))
                     ref = np.concatenate([np.ravel(x) for x in jax.tree_util.tree_leaves(xla(consts, carry))])
                 row["max_abs_diff_vs_xla"] = float(np.max(np.abs(flat - ref)))
             rec["rows"].append(row)
             print(json.dumps(row), flush=True)
             with open(out, "w") as f:
                 json.dump(rec, f, indent=1)
-    fused.BLOCK, fused.NUM_WARPS = 128, 4
+    fused.BLOCK, fused.NUM_WARPS, fused.RELOAD_CONSTS = 128, 4, False
     return rec
 
 
