@@ -3,7 +3,7 @@
 # Run from the repository root:
 #   bash experiments/adopt_piece.sh FOLDER FROM
 # FROM is where the piece's files came back (the device call's files_at): cache.tgz.*, run.log and,
-# when the run saved, ckpt.tgz.*. Every archive is checked whole (gzip -t) before FOLDER is touched;
+# when the run saved, ckpt.tgz.*; with AOT_PROBE=1, aot_probe.json (copied too). Every archive is checked whole (gzip -t) before FOLDER is touched;
 # then FOLDER's old parts of each returned archive are removed (the split may change) and the new ones
 # copied in. A piece without a checkpoint (its compile cut off, or its call ended before it saved)
 # leaves FOLDER's checkpoint as it was. Prints the run log's compile and last progress lines (for the
@@ -27,6 +27,8 @@ for k in "${kinds[@]}"; do
   echo "$k: $(ls "$dir"/$k.tgz.* | wc -l) part(s), $(cat "$dir"/$k.tgz.* | wc -c) bytes"
 done
 [ "${#kinds[@]}" -eq 1 ] && echo "ckpt: none returned; $dir keeps its checkpoint"
+# a piece run with AOT_PROBE=1: its probe of the GPU host's key parts (a few kB), for experiments/aot_fill.sh
+if [ -f "$from/aot_probe.json" ]; then cp "$from/aot_probe.json" "$dir/" && chmod u+w "$dir/aot_probe.json" && echo "aot probe: $dir/aot_probe.json"; fi
 if [ -f "$from/run.log" ]; then
   tr '\r' '\n' < "$from/run.log" | grep -a -E 'compiled in|^step |stopped at|still compiling' | tail -3
 fi

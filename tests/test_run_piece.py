@@ -162,6 +162,12 @@ def test_adopt_takes_the_returned_parts_and_refuses_a_broken_archive(tmp_path, f
     r = _adopt(folder, cut, tmp_path)
     assert r.returncode == 0 and "keeps its checkpoint" in r.stdout
     assert (folder / "ckpt.tgz.aa").read_bytes() == ckpt
+    assert not (folder / "aot_probe.json").exists()
+
+    # a piece run with AOT_PROBE=1: its probe comes into the folder too
+    (cut / "aot_probe.json").write_text('{"programs": {}}')
+    r = _adopt(folder, cut, tmp_path)
+    assert r.returncode == 0 and (folder / "aot_probe.json").read_text() == '{"programs": {}}'
 
     # a truncated archive: refused, the folder untouched
     broken = tmp_path / "broken"
