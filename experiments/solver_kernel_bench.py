@@ -11,8 +11,7 @@ seconds, so kernel variants can be compared in one device call. Two stages:
 
 Variants: ``block=B`` worlds per kernel instance (B/32 warps), ``lower2`` (the velocity / position
 pass over the lower legs' first two manifolds only: what a block whose worlds touch nothing else
-would need), ``reload`` (the kernel reads its constants at every iteration, ``fused.RELOAD_CONSTS``).
-``ms`` is the wall time of a call (with the stacking and slicing around the kernel);
+would need). ``ms`` is the wall time of a call (with the stacking and slicing around the kernel);
 ``--trace`` adds the kernels' device time.
 """
 from __future__ import annotations
@@ -168,7 +167,6 @@ def bench(inputs: str, variants: list[str], repeats: int, out: str, mode: str = 
                 b, c, s = _lower2(body, consts, carry)
             fused.BLOCK = int(opts.get("block", 128))
             fused.NUM_WARPS = max(1, fused.BLOCK // 32)
-            fused.RELOAD_CONSTS = "reload" in opts
             fn = jax.jit(jax.vmap(lambda c_, s_, b=b: fused.per_world_fori_loop(n, b, c_, s_, mode=mode, done=done)))
             t = time.perf_counter()
             try:
@@ -197,7 +195,7 @@ def bench(inputs: str, variants: list[str], repeats: int, out: str, mode: str = 
             print(json.dumps(row), flush=True)
             with open(out, "w") as f:
                 json.dump(rec, f, indent=1)
-    fused.BLOCK, fused.NUM_WARPS, fused.RELOAD_CONSTS = 128, 4, False
+    fused.BLOCK, fused.NUM_WARPS = 128, 4
     return rec
 
 
