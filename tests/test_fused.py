@@ -37,12 +37,8 @@ def closed_form(a, b, x0, n):
     return an * x0 + b * (1 - an) / (1 - a)
 
 
-@pytest.mark.parametrize("mode", ["xla", "interpret", "interpret_reload"])
-def test_loop_matches_closed_form_unbatched_vmapped_and_nested(mode, monkeypatch):
-    """"interpret_reload": the kernel reads its constants at every iteration (``RELOAD_CONSTS``)."""
-    if mode == "interpret_reload":
-        monkeypatch.setattr(fused, "RELOAD_CONSTS", True)
-        mode = "interpret"
+@pytest.mark.parametrize("mode", ["xla", "interpret"])
+def test_loop_matches_closed_form_unbatched_vmapped_and_nested(mode):
     n = 7
     run = lambda a, b, x0: fused.per_world_fori_loop(  # noqa: E731
         n, affine, dict(a=a, b=b), (V2(x0, -x0), jnp.float32(0.0)), mode=mode)
@@ -64,14 +60,11 @@ def test_loop_matches_closed_form_unbatched_vmapped_and_nested(mode, monkeypatch
     np.testing.assert_allclose(np.asarray(x.x), closed_form(np.asarray(a2), 0.25, np.asarray(x2), n), rtol=1e-5)
 
 
-@pytest.mark.parametrize("reload", [False, True])
-def test_when_skips_per_kernel_block_and_never_on_the_xla_path(reload, monkeypatch):
+def test_when_skips_per_kernel_block_and_never_on_the_xla_path():
     """``fused.when``: on the XLA path ``fn`` always runs; in the kernel it runs in a block of worlds
     only if some world of that block has its flag set. The ``fn`` here breaks ``when``'s contract on
     purpose (it changes every world it runs for), which shows the granularity: 130 worlds are two
     kernel blocks (128 + 2), and a flag set in world 129 alone changes worlds 128 and 129 only."""
-    monkeypatch.setattr(fused, "RELOAD_CONSTS", reload)  # the flags reduced once, or at every iteration
-
     def body(c, x):
         return fused.when(c["flag"], lambda v: v + 1.0, x, c["enabled"])
 

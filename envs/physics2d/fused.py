@@ -43,10 +43,6 @@ NUM_WARPS = 4  # Triton warps per kernel instance (32 threads each)
 # multiprocessors than that. The interpreter (CPU tests) pads to whole blocks only. ``pad_worlds_to``
 # raises it for a program whose largest batch is larger (the driver: a run's training batch).
 DEFAULT_MIN_WORLDS = 1024
-#: Experimental, off: a kernel reads its per-world constants from memory at every iteration instead of
-#: holding them in registers across the loop (fewer live registers, more loads). Same results; what it
-#: does to compile and step time is measured in docs/log/benchmarks.md. Process-wide, read when traced.
-RELOAD_CONSTS = False
 MIN_WORLDS = DEFAULT_MIN_WORLDS
 
 
@@ -256,18 +252,13 @@ def _kernel(n, step, c_tree, s_tree, x_tree, y_tree, nc, ns, leaves, interpret, 
     def kernel(*refs):
         x_ref, seq_ref = refs[0], refs[1] if f_x else None
         o_ref, ys_ref = refs[len(inputs)], refs[len(inputs) + 1] if f_y else None
-        def consts(rows):
-            c = jax.tree_util.tree_unflatten(c_tree, rows)
-            # block-uniform flags: reduced once per read of the constants
-            return jax.tree_util.tree_map(lambda x: BlockAny(jnp.max(x.flag)) if _is_flag(x) else x, c, is_leaf=_is_flag)
-
-        reload = RELOAD_CONSTS
-        rows = [x_ref[f, :] for f in range(nc if reload else 0, f_in)]
-        c_once = None if reload else consts(rows[:nc])
-        s = jax.tree_util.tree_unflatten(s_tree, rows[len(rows) - ns:])
+        rows = [x_ref[f, :] for f in range(f_in)]
+        c = jax.tree_util.tree_unflatten(c_tree, rows[:nc])
+        # block-uniform flags: reduced once, before the loop
+        c = jax.tree_util.tree_map(lambda x: BlockAny(jnp.max(x.flag)) if _is_flag(x) else x, c, is_leaf=_is_flag)
+        s = jax.tree_util.tree_unflatten(s_tree, rows[nc:])
 
         def iteration(i, s):
-            c = consts([x_ref[f, :] for f in range(nc)]) if reload else c_once
             xi = jax.tree_util.tree_unflatten(x_tree, [seq_ref[f, i, :] for f in range(f_x)])
             s, y = step(c, s, xi)
             for g, v in enumerate(jax.tree_util.tree_leaves(y)):
