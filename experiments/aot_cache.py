@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import argparse
 import base64
+import contextlib
 import hashlib
 import json
 import os
@@ -130,6 +131,22 @@ def build(args_file: str, device):
     return init, ins, run_chunk, driver.chunk_sizes(batch.chunk, 0, batch.total), state
 
 
+@contextlib.contextmanager
+def _as_gpu_host(device):
+    """Trace as the GPU host does: ``jax.default_backend()`` says "gpu" (the code's own choices at trace
+    time read it: the 2-D physics' fused loops are Pallas kernels there, XLA loops here; the lander's
+    unroll) and the default device is the target (Pallas reads the GPU's kind off it)."""
+    import jax
+
+    real = jax.default_backend
+    jax.default_backend = lambda: "gpu"
+    try:
+        with jax.default_device(device):
+            yield
+    finally:
+        jax.default_backend = real
+
+
 def _write_text(lowered, path: str) -> None:
     """The lowered program's text without source locations, gzipped (a few MB on the 2-D walker)."""
     import gzip
@@ -217,7 +234,7 @@ def fill(args_file: str, probe_file: str, chunks: bool, out: str | None) -> int:
 
     def compile_one(label, lower):
         t = time.time()
-        with jax.default_device(device):  # Pallas reads the target GPU off the default device
+        with _as_gpu_host(device):
             lowered = lower()
         if label == "jit_init_point":
             _write_text(lowered, "aot_fill_init.mlir.gz")
