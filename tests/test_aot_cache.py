@@ -60,3 +60,15 @@ def test_another_platform_version_changes_that_part_alone(hooked):
     assert ck.get(module, devices, options, other, compression) != ck.get(module, devices, options, backend, compression)
     zlib = aot_cache.key_parts(module, devices, options, backend, "zlib" if compression != "zlib" else "zstandard")
     assert [k for k in mine if mine[k] != zlib[k]] == ["compression"]
+
+
+def test_a_fill_traces_as_the_gpu_host_and_restores_this_host():
+    """The fill lowers on a CPU host the program the GPU host lowers: there ``"auto"`` fused loops are
+    Pallas kernels (a fill once compiled the XLA loops instead: another program, filed under keys the
+    GPU never asks for)."""
+    from envs.physics2d import fused
+
+    assert jax.default_backend() == "cpu" and fused.resolve_mode("auto") == "xla"
+    with aot_cache._as_gpu_host(jax.devices()[0]):
+        assert jax.default_backend() == "gpu" and fused.resolve_mode("auto") == "pallas"
+    assert jax.default_backend() == "cpu" and fused.resolve_mode("auto") == "xla"
