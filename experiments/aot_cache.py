@@ -79,10 +79,12 @@ class _Backend:
 
 
 def hook_keys(seen: dict, platform_version: str | None = None, compression: str | None = None,
-              stop_at: str | None = None) -> None:
+              stop_at: str | None = None, present_in: str | None = None) -> None:
     """Wrap ``compilation_cache.get_cache_key``: record each program's key and key parts in ``seen``
     (by module name), with the given platform version and compression name in the key (the GPU host's);
-    raise :class:`_Captured` once the program named ``stop_at`` has its key."""
+    raise :class:`_Captured` once the program named ``stop_at`` has its key, or once a GPU program's
+    entry is already in the cache folder ``present_in`` (e.g. compiled by the GPU host itself: this
+    host could not load it to check it, and would replace it with its own)."""
     from jax._src import cache_key as ck
     from jax._src import compilation_cache as cc
 
@@ -98,6 +100,9 @@ def hook_keys(seen: dict, platform_version: str | None = None, compression: str 
         name = key.split("-")[0]
         seen[name] = {"key": key, "parts": key_parts(module, devices, options, backend, comp)}
         if name == stop_at:
+            raise _Captured(name)
+        if present_in and backend.platform == "gpu" and os.path.exists(os.path.join(present_in, f"{key}-cache")):
+            seen[name]["present"] = True
             raise _Captured(name)
         return key
 
@@ -222,7 +227,7 @@ def fill(args_file: str, probe_file: str, chunks: bool, out: str | None) -> int:
     topo = topologies.TopologyDescription.deserialize(base64.b64decode(rec["topology"]))
     device = topo.devices[0]
     seen: dict = {}
-    hook_keys(seen, platform_version=rec["platform_version"], compression=rec["compression"])
+    hook_keys(seen, platform_version=rec["platform_version"], compression=rec["compression"], present_in=cache)
     init, ins, run_chunk, sizes, state = build(args_file, device)
     report = {"probe": probe_file, "programs": {}}
     theirs = rec["programs"].get("jit_init_point", {})
@@ -238,7 +243,12 @@ def fill(args_file: str, probe_file: str, chunks: bool, out: str | None) -> int:
             lowered = lower()
         if label == "jit_init_point":
             _write_text(lowered, "aot_fill_init.mlir.gz")
-        lowered.compile()
+        try:
+            lowered.compile()
+        except _Captured:  # its entry is in the cache already (hook_keys' present_in)
+            report["programs"][label] = {"already_in_cache": True}
+            print(f"aot_cache fill: {label} is in the cache already; left as it is", flush=True)
+            return
         report["programs"][label] = {"compile_s": round(time.time() - t, 1)}
         print(f"aot_cache fill: {label} compiled in {time.time() - t:.1f} s", flush=True)
 

@@ -72,3 +72,25 @@ def test_a_fill_traces_as_the_gpu_host_and_restores_this_host():
     with aot_cache._as_gpu_host(jax.devices()[0]):
         assert jax.default_backend() == "gpu" and fused.resolve_mode("auto") == "pallas"
     assert jax.default_backend() == "cpu" and fused.resolve_mode("auto") == "xla"
+
+
+def test_a_gpu_program_already_in_the_cache_is_not_compiled_again(hooked, tmp_path, monkeypatch):
+    """A fill leaves an entry the cache already holds (the GPU host's own executable, which a CPU host
+    cannot load to check) instead of replacing it with its own compile."""
+    from jax._src import compilation_cache as cc
+
+    seen, calls = hooked
+    jax.block_until_ready(jax.jit(lambda x: jnp.tanh(x) * 5.0)(jnp.ones(6)))
+    module, devices, options, backend, _ = calls[-1]
+
+    class Gpu:  # the key of a GPU host's program, computed here
+        platform, platform_version = "gpu", "PJRT C API\ncuda 13.0.0"
+
+    aot_cache.hook_keys(seen, present_in=str(tmp_path))
+    key = cc.get_cache_key(module, devices, options, Gpu())
+    name = key.split("-")[0]
+    assert "present" not in seen[name]
+    (tmp_path / f"{key}-cache").write_bytes(b"an executable")
+    with pytest.raises(aot_cache._Captured):
+        cc.get_cache_key(module, devices, options, Gpu())
+    assert seen[name]["present"] and seen[name]["key"] == key
