@@ -152,6 +152,17 @@ def _as_gpu_host(device):
         jax.default_backend = real
 
 
+def _cpu_model() -> str:
+    """This host's CPU, for the fill's report (compile times depend on it)."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            return next(line.split(":", 1)[1].strip() for line in f if line.startswith("model name"))
+    except (OSError, StopIteration):
+        import platform
+
+        return platform.processor() or platform.machine()
+
+
 def _write_text(lowered, path: str) -> None:
     """The lowered program's text without source locations, gzipped (a few MB on the 2-D walker)."""
     import gzip
@@ -229,7 +240,9 @@ def fill(args_file: str, probe_file: str, chunks: bool, out: str | None) -> int:
     seen: dict = {}
     hook_keys(seen, platform_version=rec["platform_version"], compression=rec["compression"], present_in=cache)
     init, ins, run_chunk, sizes, state = build(args_file, device)
-    report = {"probe": probe_file, "programs": {}}
+    report = {"date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "host": _cpu_model(),
+              "cpus": os.cpu_count(), "jax": jax.__version__, "target": rec["device_kind"],
+              "command": " ".join(sys.argv), "probe": probe_file, "programs": {}}
     theirs = rec["programs"].get("jit_init_point", {})
     if not theirs:
         print(f"aot_cache fill: {probe_file} holds no key of the initial state to compare with", file=sys.stderr)
