@@ -244,7 +244,7 @@ def fill(args_file: str, probe_file: str, chunks: bool, out: str | None) -> int:
               "cpus": os.cpu_count(), "jax": jax.__version__, "target": rec["device_kind"],
               "command": " ".join(sys.argv), "probe": probe_file, "programs": {}}
     theirs = rec["programs"].get("jit_init_point", {})
-    if not theirs:
+    if not theirs.get("parts"):
         print(f"aot_cache fill: {probe_file} holds no key of the initial state to compare with", file=sys.stderr)
         return 1
     # a probe of another run (one probe serves every run on that GPU host): its program differs, the rest must not
