@@ -172,13 +172,16 @@ def _write_text(lowered, path: str) -> None:
 
 
 def _start():
-    """The process as ``python -m shed_jax`` starts it: its XLA flags, cache and MLIR locations."""
+    """The process as ``python -m shed_jax`` starts it: its XLA flags, cache and MLIR locations; returns
+    the cache folder."""
     from shed_jax.xla_cpu import apply_cpu_guard
 
     apply_cpu_guard()
     from shed_jax import runtime
 
-    return runtime.enable_compilation_cache(), runtime.call_site_free_locations()
+    cache = runtime.enable_compilation_cache()
+    runtime.call_site_free_locations()
+    return cache
 
 
 def probe(args_file: str, out: str) -> int:
@@ -186,7 +189,7 @@ def probe(args_file: str, out: str) -> int:
     from jax._src import compilation_cache as cc
     from jax.experimental import topologies
 
-    cache, _ = _start()
+    cache = _start()
     device = jax.devices()[0]
     seen: dict = {}
     hook_keys(seen, stop_at="jit_init_point")
@@ -224,7 +227,7 @@ def fill(args_file: str, probe_file: str, chunks: bool, out: str | None) -> int:
         print(f"aot_cache fill: run from {rec['root']} (the GPU host's tree; experiments/aot_fill.sh mounts it), "
               f"not {os.getcwd()}", file=sys.stderr)
         return 2
-    cache, _ = _start()
+    cache = _start()
     if cache != rec["cache"]:
         print(f"aot_cache fill: the cache folder is {cache}, the GPU host's {rec['cache']}: set SHED_JAX_CACHE as "
               f"run_piece.sh does", file=sys.stderr)

@@ -44,17 +44,17 @@ def main(argv=None) -> int:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     available, unavailable = {}, set()
     for name, help_text in COMMANDS.items():
-        p = sub.add_parser(name, help=help_text, description=help_text)
-        try:  # add_arguments may import the environments (and JAX) for their choices
+        try:
             module = importlib.import_module(f"shed_jax.cli.{name}")
-            module.add_arguments(p)
+            if missing:  # its argument list may import what is missing (JAX, for the environments' names)
+                module.add_arguments(argparse.ArgumentParser(add_help=False))
         except ModuleNotFoundError as err:
             if err.name != f"shed_jax.cli.{name}" and not missing:
                 raise
-            sub._name_parser_map.pop(name, None)  # not listed: its help needs the missing packages
-            sub._choices_actions[:] = [a for a in sub._choices_actions if a.dest != name]
-            unavailable.add(name)
+            unavailable.add(name)  # not listed: its help needs the missing packages
             continue
+        p = sub.add_parser(name, help=help_text, description=help_text)
+        module.add_arguments(p)
         # SUPPRESS: the subcommand's default must not overwrite a --debug given before it
         p.add_argument("--debug", action="store_true", default=argparse.SUPPRESS, help=DEBUG_HELP)
         available[name] = module
