@@ -9,7 +9,9 @@ seconds, so kernel variants can be compared in one device call. Two stages:
     # GPU: each loop (velocity, position, the time of impact's two) per variant, ms per call
     python -m experiments.solver_kernel_bench bench --inputs runs/kernel_inputs.npz --out $OUT/kernels.json
 
-Variants: ``block=B`` worlds per kernel instance (B/32 warps), ``lower2`` (the velocity / position
+Variants: ``block=B`` worlds per kernel instance (B/32 warps), ``tile=T`` per-world fields per memory
+access of the kernel's inputs and outputs (``fused.TILE``; 1 was the layout until 2026-12-05, and the
+compile time falls as T grows: ``experiments.gpu_compile``), ``lower2`` (the velocity / position
 pass over the lower legs' first two manifolds only: what a block whose worlds touch nothing else
 would need). ``ms`` is the wall time of a call (with the stacking and slicing around the kernel);
 ``--trace`` adds the kernels' device time.
@@ -27,7 +29,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-LOOPS = ("_velocity_pass_edges", "_position_pass_edges", "_toi_position_pass", "_toi_velocity_pass")
+LOOPS = ("_velocity_pass_edges", "_position_pass_edges", "_toi_position_pass_polygons", "_toi_velocity_pass_polygons")
 
 
 def _name(body) -> str:
@@ -110,7 +112,7 @@ def _lower2(body, consts, carry, keep=(0, 1, 9, 10)):
         args[2] = tuple(args[2][k] for k in pts)
     new_body = functools.partial(f, *args)
     per_point = {"on", "any", "fb", "a", "nrm", "pt", "n", "t", "arm", "nm", "tm"}
-    per_manifold = {"blk", "k11", "k12", "k22", "m11", "m12", "m22"}
+    per_manifold = {"blk", "k11", "k12", "k22", "inv"}
     c = dict(consts)
     for k in list(c):
         if k in per_point and len(c[k]) == len(body.args[1]):
@@ -146,6 +148,7 @@ def bench(inputs: str, variants: list[str], repeats: int, out: str, mode: str = 
     from envs.physics2d import fused
     from shed_jax.runtime import provenance
 
+    tile = fused.TILE
     data = np.load(inputs)
     batch, steps = int(data["batch"]), int(data["steps"])
     env, ins = _env_and_inputs(batch, 1, concrete=False)  # only the loops' structures
@@ -167,6 +170,7 @@ def bench(inputs: str, variants: list[str], repeats: int, out: str, mode: str = 
                 b, c, s = _lower2(body, consts, carry)
             fused.BLOCK = int(opts.get("block", 128))
             fused.NUM_WARPS = max(1, fused.BLOCK // 32)
+            fused.TILE = int(opts.get("tile", tile))
             fn = jax.jit(jax.vmap(lambda c_, s_, b=b: fused.per_world_fori_loop(n, b, c_, s_, mode=mode, done=done)))
             t = time.perf_counter()
             try:
@@ -195,7 +199,7 @@ def bench(inputs: str, variants: list[str], repeats: int, out: str, mode: str = 
             print(json.dumps(row), flush=True)
             with open(out, "w") as f:
                 json.dump(rec, f, indent=1)
-    fused.BLOCK, fused.NUM_WARPS = 128, 4
+    fused.BLOCK, fused.NUM_WARPS, fused.TILE = 128, 4, tile
     return rec
 
 
@@ -208,7 +212,7 @@ def main(argv=None) -> int:
     c.add_argument("--out", default="runs/kernel_inputs.npz")
     b = sub.add_parser("bench")
     b.add_argument("--inputs", default="runs/kernel_inputs.npz")
-    b.add_argument("--variants", default="default,block=32,lower2")
+    b.add_argument("--variants", default="default,tile=1,tile=32")
     b.add_argument("--repeats", type=int, default=20)
     b.add_argument("--out", default="runs/solver_kernel_bench.json")
     b.add_argument("--trace", action="store_true", help="also the kernels' device time (jax.profiler)")

@@ -137,6 +137,42 @@ def leaky(c, s, x):
     return y, (y, jnp.sign(y - 0.5) * x["i"])
 
 
+def many_fields(c, s):
+    """37 consts and 11 carried values, each carried value fed by its own consts: a field read from or
+    written to the wrong column of the kernel's tiles changes the result."""
+    return tuple(s[j] * c[j] + sum(c[k] for k in range(11 + j, 37, 11)) for j in range(11))
+
+
+def _kernel_accesses(fn, *args) -> int:
+    """Memory reads and writes of per-world fields in the first Pallas kernel of ``fn`` (outside its loop)."""
+    def calls(jaxpr):  # the pallas_calls, through the custom_vmap / pjit jaxprs around them
+        for e in jaxpr.eqns:
+            if e.primitive.name == "pallas_call":
+                yield e
+            for v in e.params.values():
+                inner = getattr(v, "jaxpr", v)
+                if isinstance(inner, jax.extend.core.Jaxpr):
+                    yield from calls(inner)
+
+    eqn = next(calls(jax.make_jaxpr(fn)(*args).jaxpr))
+    return sum(e.primitive.name in ("get", "swap", "load", "store") for e in eqn.params["jaxpr"].eqns)
+
+
+@pytest.mark.parametrize("tile", [1, 4, 8])
+def test_kernel_reads_and_writes_tiles_of_fields_in_order(tile, monkeypatch):
+    monkeypatch.setattr(fused, "TILE", tile)
+    worlds, n = 130, 3  # two kernel blocks, one of them partly padding
+    c = jax.random.uniform(jax.random.PRNGKey(0), (37, worlds), jnp.float32, 0.5, 1.0)
+    s0 = jax.random.normal(jax.random.PRNGKey(1), (11, worlds), jnp.float32)
+    run = lambda mode: jax.vmap(lambda c, s: fused.per_world_fori_loop(  # noqa: E731
+        n, many_fields, tuple(c), tuple(s), mode=mode), in_axes=(1, 1))
+    want = np.asarray(run("xla")(c, s0))
+    got = np.asarray(run("interpret")(c, s0))
+    np.testing.assert_array_equal(got, want)
+    # one read per tile of the 48 input fields and one write per tile of the 11 outputs
+    assert _kernel_accesses(run("interpret"), c, s0) == -(-48 // tile) + -(-11 // tile)
+
+
 def test_scan_matches_lax_scan_unbatched_vmapped_and_nested():
     """``per_world_scan``: the kernel (through the interpreter) stores every iteration's outputs where
     ``lax.scan`` stacks them, over more worlds than one block (130 = 128 + 2), with an unbatched

@@ -37,6 +37,7 @@ MODES = ("auto", "xla", "pallas", "interpret")
 _TRACING = threading.local()  # .in_kernel: True while this thread traces a kernel body (``when`` branches)
 BLOCK = 128  # worlds per kernel instance (one per thread with 4 warps)
 NUM_WARPS = 4  # Triton warps per kernel instance (32 threads each)
+TILE = 4  # per-world fields per memory access of the kernel's inputs and outputs (a power of two)
 # Compiled kernels pad their worlds to at least MIN_WORLDS, so that loops run at different batches (a
 # teacher's evaluation, a test set, the training rollout) are one kernel to XLA, which compiles a
 # Triton call once per grid: a kernel of 8 or 40 blocks takes the same time on a GPU with more
@@ -214,31 +215,58 @@ def _pow2(k: int) -> int:
     return 1 << max(0, (k - 1).bit_length())
 
 
+def _tiles(fields: int, tile: int) -> int:
+    """Columns for ``fields`` per-world fields: whole tiles, a power of two in all (Triton's block shapes)."""
+    return _pow2(-(-fields // tile) * tile)
+
+
 def _blocks(w: int, interpret: bool) -> int:
     """Kernel instances for ``w`` worlds: whole blocks, covering at least ``MIN_WORLDS`` when compiled."""
     return -(-w // BLOCK) if interpret else -(-max(w, MIN_WORLDS) // BLOCK)
 
 
+def _tile_split(tile, width: int):
+    """The ``width`` columns of a (BLOCK, width) tile as (BLOCK,) rows (``width`` a power of two)."""
+    if width == 1:
+        return [tile.reshape(tile.shape[0])]
+    return [p.reshape(tile.shape[0]) for p in jnp.split(tile, width, axis=1)]
+
+
+def _tile_join(rows):
+    """(BLOCK,) rows (a power of two of them) as one (BLOCK, len(rows)) tile, column j = ``rows[j]``: joined
+    pairwise (Triton's join makes a new last axis of two), evens and odds first so the columns interleave
+    back into order."""
+    if len(rows) == 1:
+        return rows[0].reshape(rows[0].shape[0], 1)
+    if len(rows) == 2:
+        return jnp.stack(rows, axis=-1)
+    a, b = _tile_join(rows[0::2]), _tile_join(rows[1::2])
+    return jnp.stack([a, b], axis=-1).reshape(a.shape[0], 2 * a.shape[1])
+
+
 def _kernel(n, step, c_tree, s_tree, x_tree, y_tree, nc, ns, leaves, interpret, done=None):
     """All ``n`` iterations for W worlds in one ``pallas_call`` over blocks of ``BLOCK`` worlds:
-    per-world inputs and outputs as (fields, worlds) rows, per-iteration ones as (fields, n, worlds).
-    With ``done``, a block stops once every world in it is done (padding worlds count as done)."""
+    per-world inputs and outputs as (worlds, fields) arrays, read and written ``TILE`` fields per memory
+    access; per-iteration ones as (fields, n, worlds) rows. With ``done``, a block stops once every
+    world in it is done (padding worlds count as done)."""
     from jax.experimental import pallas as pl
 
     w = leaves[0].shape[0]
     f_in, f_out = nc + ns, ns
     f_x, f_y = x_tree.num_leaves, y_tree.num_leaves
-    # with ``done``, one more input row says which worlds are real (1) or padding (0): as data, not as
+    # with ``done``, one more input field says which worlds are real (1) or padding (0): as data, not as
     # a constant ``w``, so calls at different batches of one grid are the same kernel
     f_real = f_in + (done is not None)
     # Triton wants power-of-two block shapes: pad fields, iterations and worlds (padding worlds are
     # zeros, computed and dropped; the solver's divisions are guarded, so they stay finite).
-    rows_in, rows_out, wp = _pow2(f_real), _pow2(f_out), _blocks(w, interpret) * BLOCK
+    tile = min(TILE, _pow2(max(f_real, f_out)))
+    cols_in, cols_out, wp = _tiles(f_real, tile), _tiles(f_out, tile), _blocks(w, interpret) * BLOCK
     per_world = list(leaves[:f_in]) + ([jnp.ones((w,), jnp.float32)] if done is not None else [])
-    x = jnp.pad(jnp.stack(per_world, 0), ((0, rows_in - f_real), (0, wp - w)))
-    in_specs = [pl.BlockSpec((rows_in, BLOCK), lambda i: (0, i))]
-    out_shape = [jax.ShapeDtypeStruct((rows_out, wp), jnp.float32)]
-    out_specs = [pl.BlockSpec((rows_out, BLOCK), lambda i: (0, i))]
+    # stacked as rows, then one transpose (XLA's tiled transpose, not a strided gather per field)
+    x = jnp.pad(jnp.stack(per_world, 0), ((0, cols_in - f_real), (0, wp - w))).T
+    in_specs = [pl.BlockSpec((BLOCK, cols_in), lambda i: (i, 0))]
+    out_shape = [jax.ShapeDtypeStruct((wp, cols_out), jnp.float32)]
+    out_specs = [pl.BlockSpec((BLOCK, cols_out), lambda i: (i, 0))]
     inputs = [x]
     if f_x:
         n_p = _pow2(n)
@@ -252,11 +280,13 @@ def _kernel(n, step, c_tree, s_tree, x_tree, y_tree, nc, ns, leaves, interpret, 
     def kernel(*refs):
         x_ref, seq_ref = refs[0], refs[1] if f_x else None
         o_ref, ys_ref = refs[len(inputs)], refs[len(inputs) + 1] if f_y else None
-        rows = [x_ref[f, :] for f in range(f_in)]
+        # one memory access per ``tile`` fields: Triton's coalescing pass walks the whole kernel once per
+        # access, so a kernel of a few hundred one-field accesses compiled for minutes
+        rows = [r for j in range(0, f_real, tile) for r in _tile_split(x_ref[:, j:j + tile], tile)]
         c = jax.tree_util.tree_unflatten(c_tree, rows[:nc])
         # block-uniform flags: reduced once, before the loop
         c = jax.tree_util.tree_map(lambda x: BlockAny(jnp.max(x.flag)) if _is_flag(x) else x, c, is_leaf=_is_flag)
-        s = jax.tree_util.tree_unflatten(s_tree, rows[nc:])
+        s = jax.tree_util.tree_unflatten(s_tree, rows[nc:f_in])
 
         def iteration(i, s):
             xi = jax.tree_util.tree_unflatten(x_tree, [seq_ref[f, i, :] for f in range(f_x)])
@@ -270,15 +300,15 @@ def _kernel(n, step, c_tree, s_tree, x_tree, y_tree, nc, ns, leaves, interpret, 
             if done is None:
                 s = lax.fori_loop(0, n, iteration, s)
             else:
-                real = x_ref[f_in, :] > 0.5
+                real = rows[f_in] > 0.5
                 cond = lambda x: (x[0] < n) & (jnp.min(jnp.where(real, done(x[1]), 1.0)) < 0.5)  # noqa: E731
                 s = lax.while_loop(cond, lambda x: (x[0] + 1, iteration(x[0], x[1])), (jnp.int32(0), s))[1]
         finally:
             _TRACING.in_kernel = False
-        for g, v in enumerate(jax.tree_util.tree_leaves(s)):
-            o_ref[g, :] = jnp.broadcast_to(jnp.asarray(v, jnp.float32), (BLOCK,))
-        for g in range(f_out, rows_out):
-            o_ref[g, :] = jnp.zeros((BLOCK,), jnp.float32)
+        out = [jnp.broadcast_to(jnp.asarray(v, jnp.float32), (BLOCK,)) for v in jax.tree_util.tree_leaves(s)]
+        out += [jnp.zeros((BLOCK,), jnp.float32)] * (-len(out) % tile)  # the last tile's padding fields
+        for j in range(0, len(out), tile):
+            o_ref[:, j:j + tile] = _tile_join(out[j:j + tile])
 
     kwargs = {}
     if not interpret:
@@ -294,7 +324,8 @@ def _kernel(n, step, c_tree, s_tree, x_tree, y_tree, nc, ns, leaves, interpret, 
         interpret=interpret,
         **kwargs,
     )(*inputs)
-    out = [outs[0][g, :w] for g in range(f_out)]
+    fields = outs[0][:w, :f_out].T
+    out = [fields[g] for g in range(f_out)]
     if f_y:
         out += [outs[1][g, :n, :w].T for g in range(f_y)]
     return out

@@ -287,7 +287,7 @@ def step(model: Model, world: WorldState, ground, gravity, force=None, torque=No
              tuple(lam_n[k] for k in cslots), tuple(lam_t[k] for k in cslots))
     if edge_mode:  # the manifolds' constants replace the vertex slots' (none without manifolds)
         vconsts = {k: v for k, v in vconsts.items() if k not in ("on", "arm", "n", "t", "nm", "tm")}
-        vconsts.update(econ)
+        vconsts.update({k: v for k, v in econ.items() if k != "t"})  # the pass turns n into t itself
         vpass = functools.partial(_velocity_pass_edges, model, ebody, ec["friction"])
     else:
         vpass = functools.partial(_velocity_pass, model, slots)
@@ -840,8 +840,9 @@ MAX_CONDITION_NUMBER = 1000.0  # Box2D's k_maxConditionNumber for the 2-point bl
 def _edge_velocity_constants(model: Model, bodies: BodyState, ec):
     """Per edge contact point (E) and per manifold (E / 2), as b2ContactSolver::InitializeVelocityConstraints:
     arm from the body's centre to Box2D's world point, normal / tangent and their effective masses; for
-    two-point manifolds the block matrix K and its inverse, used when K is well conditioned (otherwise
-    Box2D solves the first point only, so the second is switched off here). Per-world scalars."""
+    two-point manifolds the block matrix K and the inverse of its determinant (the pass forms K's
+    inverse from them), used when K is well conditioned (otherwise Box2D solves the first point only,
+    so the second is switched off here). Per-world scalars."""
     inv_m, inv_i = model.inv_mass, model.inv_inertia
     body = ec["body"]
     ne = len(body)
@@ -856,7 +857,7 @@ def _edge_velocity_constants(model: Model, bodies: BodyState, ec):
     nm = jnp.where(kn > 0, 1.0 / kn, 0.0)
     tm = jnp.where(kt > 0, 1.0 / kt, 0.0)
     on = ec["on"]
-    c = dict(n=[], t=[], arm=[], nm=[], tm=[], on=[], blk=[], k11=[], k12=[], k22=[], m11=[], m12=[], m22=[])
+    c = dict(n=[], t=[], arm=[], nm=[], tm=[], on=[], blk=[], k11=[], k12=[], k22=[], inv=[])
     for p in range(ne // 2):
         a, b_ = 2 * p, 2 * p + 1
         k11, k22 = kn[a], kn[b_]
@@ -865,8 +866,7 @@ def _edge_velocity_constants(model: Model, bodies: BodyState, ec):
         well = k11 * k11 < MAX_CONDITION_NUMBER * det
         inv = jnp.where(det != 0.0, 1.0 / jnp.where(det != 0.0, det, 1.0), 0.0)
         blk = on[a] & on[b_] & well
-        for name, val in (("k11", k11), ("k12", k12), ("k22", k22), ("m11", inv * k22), ("m12", -inv * k12),
-                          ("m22", inv * k11)):
+        for name, val in (("k11", k11), ("k12", k12), ("k22", k22), ("inv", inv)):
             c[name].append(val)
         c["blk"].append(blk.astype(jnp.float32))
         for k, on_k in ((a, on[a]), (b_, on[b_] & well)):
@@ -932,7 +932,8 @@ def _manifolds_velocity(model: Model, body, friction, c, vel, omg, ln, lt):
         k1, k2 = 2 * p, 2 * p + 1
         i = body[k1]
         mi, ii = inv_m[i], inv_i[i]
-        n, t = c["n"][k1], c["t"][k1]
+        n = c["n"][k1]
+        t = V2(n.y, -n.x)  # the tangent, as Box2D's b2Cross(normal, 1.0f): two fewer kernel inputs
         for k in (k1, k2):  # friction
             arm = c["arm"][k]
             vt = (vel[i] + cross_sv2(omg[i], arm)).dot(t)
@@ -949,11 +950,12 @@ def _manifolds_velocity(model: Model, body, friction, c, vel, omg, ln, lt):
         s_new = jnp.maximum(ln[k1] - c["nm"][k1] * vn1, 0.0) * c["on"][k1]
         # block solve of both points
         a1, a2 = ln[k1], ln[k2]
-        k11, k12, k22 = c["k11"][p], c["k12"][p], c["k22"][p]
+        k11, k12, k22, inv = c["k11"][p], c["k12"][p], c["k22"][p], c["inv"][p]
+        m11, m12, m22 = inv * k22, -inv * k12, inv * k11  # K's inverse, in the kernel: fewer inputs held
         bx = vn1 - (k11 * a1 + k12 * a2)
         by = vn2 - (k12 * a1 + k22 * a2)
-        x1 = -(c["m11"][p] * bx + c["m12"][p] * by)
-        y1 = -(c["m12"][p] * bx + c["m22"][p] * by)
+        x1 = -(m11 * bx + m12 * by)
+        y1 = -(m12 * bx + m22 * by)
         ok1 = (x1 >= 0.0) & (y1 >= 0.0)
         x2 = -c["nm"][k1] * bx
         ok2 = (x2 >= 0.0) & (k12 * x2 + by >= 0.0)

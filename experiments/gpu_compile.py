@@ -1,0 +1,177 @@
+"""How long XLA takes to compile the 2-D walker's GPU programs, measured on a CPU host with no GPU.
+
+A new 2-D walker program costs minutes of a device call before it runs a step, most of it in the
+Triton compile of the fused solver loops (``envs.physics2d.fused``). XLA compiles for a GPU it does
+not have from a description of the target (``targets/h200.txtpb``: an H200's multiprocessors,
+memory, clock and compute capability), so changes to those loops can be weighed here: compile
+seconds, and ptxas' registers and spills for every Pallas kernel (XLA logs them; spills inside a
+loop cost time on the GPU, which only the GPU measures). The device host's own compile was about
+twice as slow per thread as this 2-core AMD EPYC's (2026-12-04); these figures are the CPU host's.
+
+Needs a Python with the GPU host's jax, jaxlib and CUDA plugin (its set-up: docs/running.md,
+"Compiling for the GPU on a CPU host"); no cache is read or written, so every figure is a cold
+compile:
+
+    PY -m experiments.gpu_compile loops --out FILE.json       # each fused loop of one step, alone
+    PY -m experiments.gpu_compile run "RUN FLAGS" --out FILE.json  # a run's initial state and first chunk
+"""
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import os
+import re
+import sys
+import tempfile
+import time
+
+TARGETS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "targets")
+# XLA prints ptxas' report of each kernel at these log settings (set before jax is imported)
+_LOG = {"TF_CPP_MIN_LOG_LEVEL": "0", "TF_CPP_VMODULE": "subprocess_compilation=2"}
+
+
+def _device(target: str):
+    from jax.experimental import topologies
+
+    path = os.path.join(TARGETS, f"{target}.txtpb")
+    if not os.path.exists(path):
+        have = sorted(f[:-6] for f in os.listdir(TARGETS) if f.endswith(".txtpb"))
+        raise SystemExit(f"gpu_compile: no target {target!r}; have {', '.join(have)}")
+    with open(path) as f:
+        return topologies.get_topology_desc(platform="cuda", target_config=f.read(), topology="1x1x1").devices[0]
+
+
+def ptxas_report(text: str) -> list[dict]:
+    """Per Pallas kernel in XLA's log (ptxas' entries ``kernel``, ``kernel__1``, ...: XLA numbers a
+    program's Triton kernels): registers, spill bytes, stack frame."""
+    out = []
+    for m in re.finditer(r"Compiling entry function '(kernel(?:__\d+)?)'.*?(\d+) bytes stack frame, (\d+) bytes "
+                         r"spill stores, (\d+) bytes spill loads.*?Used (\d+) registers", text, re.S):
+        frame, stores, loads, regs = (int(g) for g in m.groups()[1:])
+        out.append({"kernel": m.group(1), "registers": regs, "spill_stores": stores, "spill_loads": loads,
+                    "stack_frame": frame})
+    return out
+
+
+@contextlib.contextmanager
+def _stderr_to(path: str):
+    """The process's file descriptor 2 (XLA's C++ log) into ``path`` for the block."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    with open(path, "w") as f:
+        os.dup2(f.fileno(), 2)
+    try:
+        yield
+    finally:
+        sys.stderr.flush()
+        os.dup2(saved, 2)
+        os.close(saved)
+
+
+def _compile(label: str, lower) -> dict:
+    """Lower (timed), then compile (timed) with XLA's log captured for ptxas' kernel reports."""
+    t = time.time()
+    lowered = lower()
+    lower_s = time.time() - t
+    with tempfile.NamedTemporaryFile(suffix=".log") as log:
+        t = time.time()
+        with _stderr_to(log.name):
+            lowered.compile()
+        compile_s = time.time() - t
+        with open(log.name) as f:
+            kernels = ptxas_report(f.read())
+    row = {"program": label, "lower_s": round(lower_s, 1), "compile_s": round(compile_s, 1), "kernels": kernels}
+    print(json.dumps(row), flush=True)
+    return row
+
+
+def loops(device, worlds: int) -> list[dict]:
+    """Each fused loop of one 2-D walker step (``env.step_without_reset``), vmapped over ``worlds``
+    worlds, as the Pallas kernel the GPU runs (inputs abstract: nothing is computed)."""
+    import jax
+    import jax.numpy as jnp
+    from jax.sharding import SingleDeviceSharding
+
+    from envs.physics2d import fused
+    from experiments import solver_kernel_bench as skb
+
+    env, inputs = skb._env_and_inputs(worlds, 2, concrete=False)
+    sh = SingleDeviceSharding(device)
+    rows = []
+    for name, (n, body, ctree, stree, done) in skb._structures(env, inputs).items():
+        def run(cl, sl, n=n, body=body, ctree=ctree, stree=stree, done=done):
+            one = lambda c, s: fused.per_world_fori_loop(  # noqa: E731
+                n, body, jax.tree_util.tree_unflatten(ctree, c), jax.tree_util.tree_unflatten(stree, s),
+                mode="pallas", done=done)
+            return jax.vmap(one)(cl, sl)
+
+        cl = [jax.ShapeDtypeStruct((worlds,), jnp.float32, sharding=sh) for _ in range(ctree.num_leaves)]
+        sl = [jax.ShapeDtypeStruct((worlds,), jnp.float32, sharding=sh) for _ in range(stree.num_leaves)]
+        with jax.default_device(device):
+            row = _compile(name, lambda: jax.jit(run).trace(cl, sl).lower())
+        rows.append(dict(row, iterations=n, consts=ctree.num_leaves, carry=stree.num_leaves))
+    return rows
+
+
+def run_programs(device, flags: str) -> list[dict]:
+    """A run's initial state and its first chunk, as ``shed_jax run FLAGS`` builds them for the GPU."""
+    from experiments import aot_cache
+    from shed_jax import driver, runtime
+
+    runtime.call_site_free_locations()  # as ``python -m shed_jax`` starts (kernel IR holds locations)
+
+    with tempfile.NamedTemporaryFile("w", suffix=".args") as f:
+        f.write(flags)
+        f.flush()
+        init, ins, run_chunk, sizes, state = aot_cache.build(f.name, device)
+    rows = []
+    with aot_cache._as_gpu_host(device):
+        rows.append(_compile("jit_init_point", lambda: init.trace(*ins).lower()))
+        rows.append(_compile(f"chunk of {sizes[0]}", lambda: driver.lower_from_clean_caches(run_chunk, state, sizes[0], 0)))
+    return rows
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    lp = sub.add_parser("loops", help="each fused loop of a 2-D walker step, alone")
+    lp.add_argument("--worlds", type=int, default=1024, help="worlds per loop (default: the kernels' least padding)")
+    rp = sub.add_parser("run", help="a run's initial state and first chunk")
+    rp.add_argument("flags", help="shed_jax run's flags, one string, e.g. \"--env bipedal --method dr --preset dcd\"")
+    for p in (lp, rp):
+        p.add_argument("--target", default="h200", help="a GPU description in experiments/targets (default h200)")
+        p.add_argument("--tile", type=int, default=None,
+                       help="per-world fields per kernel memory access (default: envs.physics2d.fused.TILE)")
+        p.add_argument("--out", required=True, help="JSON record to write")
+    a = ap.parse_args(argv)
+    for k, v in _LOG.items():
+        os.environ.setdefault(k, v)
+    os.environ["JAX_ENABLE_COMPILATION_CACHE"] = "false"  # cold compiles only
+    os.environ.setdefault("JAX_PLATFORMS", "cpu")  # the CUDA plugin then loads for compiling only
+    import jax
+
+    from experiments.aot_cache import _cpu_model
+
+    device = _device(a.target)
+    if a.tile is not None:
+        from envs.physics2d import fused
+
+        fused.TILE = a.tile
+    t = time.time()
+    rows = loops(device, a.worlds) if a.cmd == "loops" else run_programs(device, a.flags)
+    from envs.physics2d import fused
+
+    from shed_jax.runtime import provenance
+
+    record = {**provenance("experiments.gpu_compile", argv), "jax": jax.__version__,
+              "device": f"{_cpu_model()} ({os.cpu_count()} CPUs), compiling for {device.device_kind} (deviceless)",
+              "kernel_tile": getattr(fused, "TILE", 1), "total_s": round(time.time() - t, 1), "programs": rows}
+    os.makedirs(os.path.dirname(os.path.abspath(a.out)), exist_ok=True)
+    with open(a.out, "w") as f:
+        json.dump(record, f, indent=1)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
