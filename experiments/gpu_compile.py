@@ -145,28 +145,30 @@ def main(argv=None) -> int:
                        help="per-world fields per kernel memory access (default: envs.physics2d.fused.TILE)")
         p.add_argument("--out", required=True, help="JSON record to write")
     a = ap.parse_args(argv)
+    if a.tile is not None and (a.tile < 1 or a.tile & (a.tile - 1)):
+        ap.error(f"--tile must be a power of two (1, 2, 4, ...), got {a.tile}")
     for k, v in _LOG.items():
         os.environ.setdefault(k, v)
     os.environ["JAX_ENABLE_COMPILATION_CACHE"] = "false"  # cold compiles only
     os.environ.setdefault("JAX_PLATFORMS", "cpu")  # the CUDA plugin then loads for compiling only
     import jax
 
+    from envs.physics2d import fused
     from experiments.aot_cache import _cpu_model
+    from shed_jax.runtime import provenance
 
-    device = _device(a.target)
+    try:
+        device = _device(a.target)
+    except NotImplementedError:  # jax without its CUDA plugin
+        raise SystemExit(f"gpu_compile: jax {jax.__version__} here has no CUDA plugin to compile with; use a Python "
+                         "with jax[cuda13] (docs/running.md, 'Compiling for the GPU on a CPU host')") from None
     if a.tile is not None:
-        from envs.physics2d import fused
-
         fused.TILE = a.tile
     t = time.time()
     rows = loops(device, a.worlds) if a.cmd == "loops" else run_programs(device, a.flags)
-    from envs.physics2d import fused
-
-    from shed_jax.runtime import provenance
-
     record = {**provenance("experiments.gpu_compile", argv), "jax": jax.__version__,
               "device": f"{_cpu_model()} ({os.cpu_count()} CPUs), compiling for {device.device_kind} (deviceless)",
-              "kernel_tile": getattr(fused, "TILE", 1), "total_s": round(time.time() - t, 1), "programs": rows}
+              "kernel_tile": fused.TILE, "total_s": round(time.time() - t, 1), "programs": rows}
     os.makedirs(os.path.dirname(os.path.abspath(a.out)), exist_ok=True)
     with open(a.out, "w") as f:
         json.dump(record, f, indent=1)
