@@ -10,8 +10,9 @@ seconds, so kernel variants can be compared in one device call. Two stages:
     python -m experiments.solver_kernel_bench bench --inputs runs/kernel_inputs.npz --out $OUT/kernels.json
 
 Variants: ``block=B`` worlds per kernel instance (B/32 warps), ``tile=T`` per-world fields per memory
-access of the kernel's inputs and outputs (``fused.TILE``; 1 was the layout until 2026-12-05, and the
-compile time falls as T grows: ``experiments.gpu_compile``), ``lower2`` (the velocity / position
+access of the kernel's inputs and outputs (``fused.TILE``; 1 is one field per access, as before
+2026-12-05 though in the (worlds, fields) layout; the compile time falls as T grows:
+``experiments.gpu_compile``), ``lower2`` (the velocity / position
 pass over the lower legs' first two manifolds only: what a block whose worlds touch nothing else
 would need). ``ms`` is the wall time of a call (with the stacking and slicing around the kernel);
 ``--trace`` adds the kernels' device time.
