@@ -93,23 +93,16 @@ def loops(device, worlds: int) -> list[dict]:
     import jax.numpy as jnp
     from jax.sharding import SingleDeviceSharding
 
-    from envs.physics2d import fused
     from experiments import solver_kernel_bench as skb
 
     env, inputs = skb._env_and_inputs(worlds, 2, concrete=False)
-    sh = SingleDeviceSharding(device)
+    leaf = jax.ShapeDtypeStruct((worlds,), jnp.float32, sharding=SingleDeviceSharding(device))
     rows = []
     for name, (n, body, ctree, stree, done) in skb._structures(env, inputs).items():
-        def run(cl, sl, n=n, body=body, ctree=ctree, stree=stree, done=done):
-            one = lambda c, s: fused.per_world_fori_loop(  # noqa: E731
-                n, body, jax.tree_util.tree_unflatten(ctree, c), jax.tree_util.tree_unflatten(stree, s),
-                mode="pallas", done=done)
-            return jax.vmap(one)(cl, sl)
-
-        cl = [jax.ShapeDtypeStruct((worlds,), jnp.float32, sharding=sh) for _ in range(ctree.num_leaves)]
-        sl = [jax.ShapeDtypeStruct((worlds,), jnp.float32, sharding=sh) for _ in range(stree.num_leaves)]
+        consts = jax.tree_util.tree_unflatten(ctree, [leaf] * ctree.num_leaves)
+        carry = jax.tree_util.tree_unflatten(stree, [leaf] * stree.num_leaves)
         with jax.default_device(device):
-            row = _compile(name, lambda: jax.jit(run).trace(cl, sl).lower())
+            row = _compile(name, lambda: skb.loop_program(n, body, done, "pallas").trace(consts, carry).lower())
         rows.append(dict(row, iterations=n, consts=ctree.num_leaves, carry=stree.num_leaves))
     return rows
 

@@ -78,6 +78,14 @@ def _structures(env, inputs):
     return found
 
 
+def loop_program(n: int, body, done, mode: str):
+    """One fused loop alone, vmapped over worlds and jitted: ``(consts, carry) -> carry`` (per-world
+    leaves (W,)), as ``mode`` runs it ("pallas", "interpret" or "xla")."""
+    from envs.physics2d import fused
+
+    return jax.jit(jax.vmap(lambda c, s: fused.per_world_fori_loop(n, body, c, s, mode=mode, done=done)))
+
+
 def capture(batch: int, steps: int, out: str) -> None:
     env, inputs = _env_and_inputs(batch, steps)
     got = {}
@@ -172,7 +180,7 @@ def bench(inputs: str, variants: list[str], repeats: int, out: str, mode: str = 
             fused.BLOCK = int(opts.get("block", 128))
             fused.NUM_WARPS = max(1, fused.BLOCK // 32)
             fused.TILE = int(opts.get("tile", tile))
-            fn = jax.jit(jax.vmap(lambda c_, s_, b=b: fused.per_world_fori_loop(n, b, c_, s_, mode=mode, done=done)))
+            fn = loop_program(n, b, done, mode)
             t = time.perf_counter()
             try:
                 res = jax.block_until_ready(fn(c, s))
@@ -193,8 +201,8 @@ def bench(inputs: str, variants: list[str], repeats: int, out: str, mode: str = 
             if "lower2" not in opts:
                 flat = np.concatenate([np.ravel(x) for x in jax.tree_util.tree_leaves(res)])
                 if ref is None:
-                    xla = jax.jit(jax.vmap(lambda c_, s_: fused.per_world_fori_loop(n, body, c_, s_, mode="xla", done=done)))
-                    ref = np.concatenate([np.ravel(x) for x in jax.tree_util.tree_leaves(xla(consts, carry))])
+                    xla = loop_program(n, body, done, "xla")(consts, carry)
+                    ref = np.concatenate([np.ravel(x) for x in jax.tree_util.tree_leaves(xla)])
                 row["max_abs_diff_vs_xla"] = float(np.max(np.abs(flat - ref)))
             rec["rows"].append(row)
             print(json.dumps(row), flush=True)
