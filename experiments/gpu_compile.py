@@ -13,6 +13,7 @@ Needs a Python with the GPU host's jax, jaxlib and CUDA plugin (its set-up: docs
 compile:
 
     PY -m experiments.gpu_compile loops --out FILE.json       # each fused loop of one step, alone
+    PY -m experiments.gpu_compile loops --velocity-manifolds 6 --out FILE.json  # with 6 packed slots
     PY -m experiments.gpu_compile run "RUN FLAGS" --out FILE.json  # a run's initial state and first chunk
 """
 from __future__ import annotations
@@ -86,16 +87,16 @@ def _compile(label: str, lower) -> dict:
     return row
 
 
-def loops(device, worlds: int) -> list[dict]:
-    """Each fused loop of one 2-D walker step (``env.step_without_reset``), vmapped over ``worlds``
-    worlds, as the Pallas kernel the GPU runs (inputs abstract: nothing is computed)."""
+def loops(device, worlds: int, **options) -> list[dict]:
+    """Each fused loop of one 2-D walker step (``env.step_without_reset``; ``options``: the env's), vmapped
+    over ``worlds`` worlds, as the Pallas kernel the GPU runs (inputs abstract: nothing is computed)."""
     import jax
     import jax.numpy as jnp
     from jax.sharding import SingleDeviceSharding
 
     from experiments import solver_kernel_bench as skb
 
-    env, inputs = skb._env_and_inputs(worlds, 2, concrete=False)
+    env, inputs = skb._env_and_inputs(worlds, 2, concrete=False, **options)
     leaf = jax.ShapeDtypeStruct((worlds,), jnp.float32, sharding=SingleDeviceSharding(device))
     rows = []
     for name, (n, body, ctree, stree, done) in skb._structures(env, inputs).items():
@@ -130,6 +131,8 @@ def main(argv=None) -> int:
     sub = ap.add_subparsers(dest="cmd", required=True)
     lp = sub.add_parser("loops", help="each fused loop of a 2-D walker step, alone")
     lp.add_argument("--worlds", type=int, default=1024, help="worlds per loop (default: the kernels' least padding)")
+    lp.add_argument("--velocity-manifolds", type=int, default=0,
+                    help="the env's velocity_manifolds: manifold slots of the velocity passes (0: all 12)")
     rp = sub.add_parser("run", help="a run's initial state and first chunk")
     rp.add_argument("flags", help="shed_jax run's flags, one string, e.g. \"--env bipedal --method dr --preset dcd\"")
     for p in (lp, rp):
@@ -158,7 +161,13 @@ def main(argv=None) -> int:
     if a.tile is not None:
         fused.TILE = a.tile
     t = time.time()
-    rows = loops(device, a.worlds) if a.cmd == "loops" else run_programs(device, a.flags)
+    if a.cmd == "loops":
+        try:
+            rows = loops(device, a.worlds, velocity_manifolds=a.velocity_manifolds)
+        except ValueError as e:  # the env's own check of the option, one line
+            raise SystemExit(f"gpu_compile: {e}") from None
+    else:
+        rows = run_programs(device, a.flags)
     record = {**provenance("experiments.gpu_compile", argv), "jax": jax.__version__,
               "device": f"{_cpu_model()} ({os.cpu_count()} CPUs), compiling for {device.device_kind} (deviceless)",
               "kernel_tile": fused.TILE, "total_s": round(time.time() - t, 1), "programs": rows}

@@ -18,7 +18,8 @@ of Box2D's position passes in every block, solved or not: the solver before 2026
 env's ``light_reset=False``: the reset's physics step with its edge manifolds), ``profile_obstacles``
 (the env's ``obstacles="profile"``: obstacles as the height profile's edges, the model before Box2D
 polygons), ``terrain_loop`` (the env's ``terrain_kernel="xla"``: the terrain's 200-column loop as an
-XLA loop, the generator before 2026-12-02).
+XLA loop, the generator before 2026-12-02), ``packed_6`` / ``packed_4`` (the velocity passes over the
+manifolds with points packed into 6 or 4 slots instead of all 12, ``SolverConfig.velocity_manifolds``).
 
     python -m experiments.profile_bipedal_step --batches 200 --variants default,passes_1_1 --out $OUT/profile.json
 """
@@ -47,6 +48,8 @@ VARIANTS = {
     "full_reset": {},  # env options below: the reset's physics step with its edge manifolds
     "profile_obstacles": {},  # the height profile's edges at obstacles instead of Box2D polygons
     "terrain_loop": {},  # the terrain generator as an XLA loop instead of one kernel
+    "packed_6": {"velocity_manifolds": 6},  # the velocity passes over 6 packed manifold slots, not 12
+    "packed_4": {"velocity_manifolds": 4},
 }
 ENV_OPTIONS = {"full_reset": {"light_reset": False}, "profile_obstacles": {"obstacles": "profile"},
                "terrain_loop": {"terrain_kernel": "xla"}}

@@ -49,12 +49,13 @@ def _patched(fn):
         fused.per_world_fori_loop = orig
 
 
-def _env_and_inputs(batch: int, steps: int, concrete: bool = True):
-    """The env (XLA solver) and one step's inputs: the states after ``steps`` random-action steps."""
+def _env_and_inputs(batch: int, steps: int, concrete: bool = True, **options):
+    """The env (XLA solver; ``options``: more of its options) and one step's inputs: the states after
+    ``steps`` random-action steps."""
     import envs
     from experiments.bench_latency import random_action_scan
 
-    env = envs.make("bipedal", solver_kernel="xla")
+    env = envs.make("bipedal", solver_kernel="xla", **options)
     levels = env.param_space.sample(jax.random.PRNGKey(1), (batch,))  # random_action_scan's levels
     play = random_action_scan(env, batch, steps, final_state=True)
     state = play(jax.random.PRNGKey(0)) if concrete else jax.eval_shape(play, jax.random.PRNGKey(0))

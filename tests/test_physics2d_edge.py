@@ -183,3 +183,47 @@ def test_edge_contacts_run_in_the_fused_kernel_bitwise():
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     first_vy = out["xla"][1].bodies.vel[3, 0, 0, 1]  # the fast box after its first step
     assert abs(float(first_vy)) < 1.0, first_vy  # from 10.2 m/s: stopped by the time of impact
+
+
+@pytest.mark.optimized  # bitwise: several programs
+def test_velocity_passes_over_packed_manifolds_equal_the_passes_over_every_slot():
+    """``SolverConfig.velocity_manifolds``: two boxes on ground edges (4 manifold slots), the first across
+    a junction (2 manifolds with points once landed), the second on one edge (1). Packed into 3 slots the
+    velocity passes give the passes over all 4 (to float32 rounding: the programs differ), the same
+    bitwise through the kernel's interpreter as with XLA loops (a slot's body is a per-world input
+    there), and report no crowding; packed into 2 they report it and the trajectories differ."""
+    box = ((-0.5, -0.25), (0.5, -0.25), (0.5, 0.25), (-0.5, 0.25))
+    ground = jnp.asarray([[0.0, 1.0], [5.2, 1.0], [10.0, 1.0], [20.0, 1.0]], jnp.float32)
+
+    def run(slots, kernel):
+        cfg = physics2d.SolverConfig(dt=1 / 50, velocity_iterations=8, position_iterations=3, edge_contacts=2,
+                                     velocity_manifolds=slots, kernel=kernel, toi_loop=True, toi_position_iterations=20)
+        m = physics2d.make_model(2, [physics2d.Polygon(0, box, 2.0, 0.4), physics2d.Polygon(1, box, 1.0, 0.3)], (), cfg)
+
+        def make(y, a):
+            return physics2d.init_world(m, physics2d.bodies_from_origin(
+                m, jnp.stack([jnp.stack([5.0, y]), jnp.stack([12.0, y + 0.02])]), jnp.stack([a, -a]),
+                vel=jnp.asarray([[0.3, 0.0], [-0.2, 0.0]], jnp.float32)))
+
+        ws = jax.vmap(make)(jnp.asarray([1.3, 1.26, 1.28]), jnp.asarray([0.0, 0.02, -0.01]))
+
+        def step(w, _):
+            w, info = physics2d.step(m, w, ground, -10.0)
+            return w, (w, info["manifolds_crowded"])
+
+        return jax.jit(jax.vmap(lambda w: jax.lax.scan(step, w, None, length=12)[1]))(ws)
+
+    full, _ = run(0, "xla")
+    on = np.asarray(full.touching).reshape(3, 12, 4, 2).any(-1).sum(-1)  # manifolds with points
+    assert on.max() == 3 and (on == 3).sum() >= 12, on  # the case the packing must get right
+    packed = {kernel: run(3, kernel) for kernel in ("xla", "interpret")}
+    for a, b, c in zip(*(jax.tree_util.tree_leaves(x) for x in (full, packed["xla"][0], packed["interpret"][0]))):
+        np.testing.assert_array_equal(np.asarray(b), np.asarray(c))  # the kernel's contract
+        if np.issubdtype(np.asarray(a).dtype, np.floating):  # XLA may fuse the two programs' sums apart
+            np.testing.assert_allclose(np.asarray(b), np.asarray(a), rtol=2e-5, atol=1e-6)
+        else:
+            np.testing.assert_array_equal(np.asarray(b), np.asarray(a))
+    assert not np.asarray(packed["xla"][1]).any()
+    short, crowded = run(2, "xla")
+    np.testing.assert_array_equal(np.asarray(crowded), on > 2)
+    assert not np.array_equal(np.asarray(short.normal_impulse), np.asarray(full.normal_impulse))

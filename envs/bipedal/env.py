@@ -74,6 +74,10 @@ class BipedalOptions:
                         its sub-step the step's velocity iterations and 20 position iterations). The
                         default stays 4: Box2D's 180 brings a lone shin's trajectory closer to pybox2d's
                         but not the walker's gait parity (docs/bipedal.md, "A lone shin thrown at a stump").
+    velocity_manifolds: with edge contacts, the manifold slots of the velocity passes
+                        (``SolverConfig.velocity_manifolds``): 0 solves all 12 (3 per leg) in every
+                        pass, m packs the manifolds with points into m (exact while a world has at most
+                        m; ``experiments.manifold_census`` never saw more than 6).
     window_boxes:       obstacle boxes the physics collides with per step ("polygon"): the first ones
                         that reach into the window (8 covers DCD's FULL space; ``tests/test_bipedal_env.py``).
     """
@@ -94,11 +98,12 @@ class BipedalOptions:
     continuous: bool = True
     toi_events: int = 1
     toi_velocity_iterations: int | None = 4
+    velocity_manifolds: int = 0
 
     def __post_init__(self):
         ints = dict(velocity_iterations=(1, 1000), position_iterations=(0, 1000), terrain_resolution=(1, 32),
                     window_columns=(12, 64), max_boxes=(8, 512), terrain_unroll=(1, 200), unroll=(1, 64),
-                    window_boxes=(1, 64), toi_events=(1, 8))
+                    window_boxes=(1, 64), toi_events=(1, 8), velocity_manifolds=(0, 4 * M.EDGE_CONTACTS))
         for name, (lo, hi) in ints.items():
             v = getattr(self, name)
             if not isinstance(v, int) or isinstance(v, bool) or not lo <= v <= hi:
@@ -156,7 +161,7 @@ class BipedalWalker(WalkerInterface, Environment):
         self.options = o = BipedalOptions(**options)
         self.model = M.walker_model(o.velocity_iterations, o.position_iterations, o.unroll, o.solver_kernel,
                                     M.EDGE_CONTACTS if o.contacts == "edge" else 0, o.continuous, o.toi_events,
-                                    o.toi_velocity_iterations)
+                                    o.toi_velocity_iterations, o.velocity_manifolds if o.contacts == "edge" else 0)
         self.grid = T.make_grid(o.terrain_resolution)
         self._start = M.initial_pose()
 

@@ -54,12 +54,13 @@ def _box(hx: float, hy: float) -> tuple:
 @functools.lru_cache(maxsize=None)
 def walker_model(velocity_iterations: int = VELOCITY_ITERATIONS, position_iterations: int = POSITION_ITERATIONS,
                  unroll: int = 1, kernel: str = "auto", edge_contacts: int = 0,
-                 continuous: bool = True, toi_events: int = 1, toi_iterations: int | None = 4) -> physics2d.Model:
+                 continuous: bool = True, toi_events: int = 1, toi_iterations: int | None = 4,
+                 velocity_manifolds: int = 0) -> physics2d.Model:
     """The (cached, static) walker model for the given solver iteration counts; ``edge_contacts``:
     ``physics2d.SolverConfig.edge_contacts`` (0: leg vertices against the polyline); ``continuous``:
     the time of impact (Box2D's ``continuousPhysics``); ``toi_iterations``: the velocity passes of a
     time-of-impact solve (``BipedalOptions.toi_velocity_iterations``), None for Box2D's
-    (``velocity_iterations``, as ``b2World::SolveTOI``)."""
+    (``velocity_iterations``, as ``b2World::SolveTOI``); ``velocity_manifolds``: ``SolverConfig``'s."""
     # Gymnasium lists the hull clockwise; Box2D reorders any convex polygon counter-clockwise
     hull = physics2d.Polygon(body=HULL, vertices=tuple((x / C.SCALE, y / C.SCALE) for x, y in reversed(C.HULL_POLY)),
                              density=C.HULL_DENSITY, friction=C.HULL_FRICTION, sensor=True)
@@ -84,7 +85,7 @@ def walker_model(velocity_iterations: int = VELOCITY_ITERATIONS, position_iterat
                                  position_iterations=position_iterations, ground_friction=C.TERRAIN_FRICTION,
                                  unroll=unroll, kernel=kernel, toi_loop=True, toi_position_iterations=20,
                                  toi_from_touching=True, edge_contacts=edge_contacts, continuous=continuous,
-                                 toi_events=toi_events,
+                                 toi_events=toi_events, velocity_manifolds=velocity_manifolds,
                                  toi_iterations=velocity_iterations if toi_iterations is None else toi_iterations)
     return physics2d.make_model(NUM_BODIES, tuple(polygons), tuple(joints), cfg)
 

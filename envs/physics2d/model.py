@@ -106,6 +106,11 @@ class SolverConfig:
     # two points, face A or face B) of each polygon against every ground edge as a separate Box2D edge
     # (no ghost vertices), the first k touching edges per polygon solved (Box2D's 2-point block solver)
     edge_contacts: int = 0
+    # edge contacts: 0 = the velocity passes solve every manifold slot (edge_contacts per solid polygon),
+    # touched or not; m > 0 = only the manifolds with points, packed in their order into m slots (the
+    # same values while a world has at most m; one with more leaves out the last ones and says so in
+    # the step's info["manifolds_crowded"]). Fewer slots make the fused velocity loop smaller
+    velocity_manifolds: int = 0
     unroll: int = 1  # unroll factor of the solver-iteration loops (speed knob, no effect on results)
     # in the fused kernel, skip an edge contact point's position correction, and a body's time-of-impact
     # passes, in blocks of worlds none of which needs them (speed knob; results equal up to the sign of zero)
@@ -131,6 +136,9 @@ class SolverConfig:
             v = getattr(self, name)
             if not isinstance(v, int) or isinstance(v, bool) or v < lo:
                 raise ValueError(f"SolverConfig.{name} must be an int >= {lo}, got {v!r}")
+        if not isinstance(self.velocity_manifolds, int) or isinstance(self.velocity_manifolds, bool) \
+                or self.velocity_manifolds < 0:
+            raise ValueError(f"SolverConfig.velocity_manifolds must be an int >= 0, got {self.velocity_manifolds!r}")
         if self.edge_contacts < 0:
             raise ValueError(f"SolverConfig.edge_contacts must be >= 0, got {self.edge_contacts}")
         if self.unroll < 1:

@@ -169,6 +169,8 @@ def step(model: Model, world: WorldState, ground, gravity, force=None, torque=No
     (vertex contacts) or per edge (edge contacts: the solid polygons' manifolds, sensor rows False),
     ``box_touching`` (num_polygons, K) per box and ``toi_crowded`` () (edge contacts: some polygon had
     more shapes in reach of its sweep than ``config.toi_candidates``, the farthest then not tried),
+    ``manifolds_crowded`` () (edge contacts: more manifolds had points than ``config.velocity_manifolds``
+    packs, the last ones then left out of the velocity passes),
     ``position_solved`` (), ``asleep`` ().
     """
     cfg = model.config
@@ -291,11 +293,23 @@ def step(model: Model, world: WorldState, ground, gravity, force=None, torque=No
         vpass = functools.partial(_velocity_pass_edges, model, ebody, ec["friction"])
     else:
         vpass = functools.partial(_velocity_pass, model, slots)
+    packed = edge_mode and projector is None and 0 < cfg.velocity_manifolds < len(ebody) // 2
+    crowded = jnp.zeros((), bool)
+    if packed:  # only manifolds with points enter the passes, packed into velocity_manifolds slots
+        vconsts = {k: v for k, v in vconsts.items() if k not in econ}
+        pc, ln_p, lt_p, idx, crowded = _pack_manifolds(model, ebody, ec["friction"], econ, lam_n, lam_t,
+                                                       cfg.velocity_manifolds)
+        vconsts.update(pc)
+        carry = carry[:4] + (ln_p, lt_p)
+        vpass = functools.partial(_velocity_pass_packed, model, tuple(sorted(set(ebody))))
     if projector is None:
         with jax.named_scope("velocity_passes"):
             vel, omg, jimp, jmot, ln, lt = fused.per_world_fori_loop(
                 cfg.velocity_iterations, vpass, vconsts, carry,
                 mode=cfg.kernel, unroll=cfg.unroll)
+        if packed:
+            ln = tuple(scalars_of(_unpack_impulses(idx, ln, len(ebody))))
+            lt = tuple(scalars_of(_unpack_impulses(idx, lt, len(ebody))))
         vel, omg = [v.array() for v in vel], list(omg)
         jimp = [jnp.stack(list(i)) for i in jimp]
     else:  # exact locked-joint solve from the integrated (not warm-started) velocities
@@ -438,6 +452,7 @@ def step(model: Model, world: WorldState, ground, gravity, force=None, torque=No
     if edge_mode:
         info["box_touching"] = box_pairs
         info["toi_crowded"] = toi_crowded
+        info["manifolds_crowded"] = crowded
     return new_world, info
 
 
@@ -931,47 +946,126 @@ def _manifolds_velocity(model: Model, body, friction, c, vel, omg, ln, lt):
     for p in range(len(body) // 2):
         k1, k2 = 2 * p, 2 * p + 1
         i = body[k1]
-        mi, ii = inv_m[i], inv_i[i]
-        n = c["n"][k1]
-        t = V2(n.y, -n.x)  # the tangent, as Box2D's b2Cross(normal, 1.0f): two fewer kernel inputs
-        for k in (k1, k2):  # friction
-            arm = c["arm"][k]
-            vt = (vel[i] + cross_sv2(omg[i], arm)).dot(t)
-            max_f = np.float32(friction[k]) * ln[k]
-            new_t = jnp.clip(lt[k] - c["tm"][k] * vt, -max_f, max_f) * c["on"][k]
-            pt = (new_t - lt[k]) * t
-            lt[k] = new_t
-            vel[i] = vel[i] + mi * pt
-            omg[i] = omg[i] + ii * arm.cross(pt)
-        r1, r2 = c["arm"][k1], c["arm"][k2]
-        vn1 = (vel[i] + cross_sv2(omg[i], r1)).dot(n)
-        vn2 = (vel[i] + cross_sv2(omg[i], r2)).dot(n)
-        # one point (Box2D's pointCount == 1)
-        s_new = jnp.maximum(ln[k1] - c["nm"][k1] * vn1, 0.0) * c["on"][k1]
-        # block solve of both points
-        a1, a2 = ln[k1], ln[k2]
-        k11, k12, k22, inv = c["k11"][p], c["k12"][p], c["k22"][p], c["inv"][p]
-        m11, m12, m22 = inv * k22, -inv * k12, inv * k11  # K's inverse, in the kernel: fewer inputs held
-        bx = vn1 - (k11 * a1 + k12 * a2)
-        by = vn2 - (k12 * a1 + k22 * a2)
-        x1 = -(m11 * bx + m12 * by)
-        y1 = -(m12 * bx + m22 * by)
-        ok1 = (x1 >= 0.0) & (y1 >= 0.0)
-        x2 = -c["nm"][k1] * bx
-        ok2 = (x2 >= 0.0) & (k12 * x2 + by >= 0.0)
-        y3 = -c["nm"][k2] * by
-        ok3 = (y3 >= 0.0) & (k12 * y3 + bx >= 0.0)
-        ok4 = (bx >= 0.0) & (by >= 0.0)
-        bxn = jnp.where(ok1, x1, jnp.where(ok2, x2, jnp.where(ok3, 0.0, jnp.where(ok4, 0.0, a1))))
-        byn = jnp.where(ok1, y1, jnp.where(ok2, 0.0, jnp.where(ok3, y3, jnp.where(ok4, 0.0, a2))))
-        blk = c["blk"][p] > 0.5
-        new1 = jnp.where(blk, bxn, s_new)
-        new2 = jnp.where(blk, byn, ln[k2])
-        d1, d2 = new1 - ln[k1], new2 - ln[k2]
-        ln[k1], ln[k2] = new1, new2
-        p1, p2 = d1 * n, d2 * n
-        vel[i] = vel[i] + mi * (p1 + p2)
-        omg[i] = omg[i] + ii * (r1.cross(p1) + r2.cross(p2))
+        vel[i], omg[i], ln[k1], ln[k2], lt[k1], lt[k2] = _manifold_velocity(
+            c, p, inv_m[i], inv_i[i], np.float32(friction[k1]), np.float32(friction[k2]),
+            vel[i], omg[i], ln[k1], ln[k2], lt[k1], lt[k2])
+
+
+def _manifold_velocity(c, p, mi, ii, f1, f2, v, w, ln1, ln2, lt1, lt2):
+    """One manifold ``p`` (points 2p, 2p + 1 of ``c``) on its body's velocity ``v``, ``w``, with the
+    body's inverse mass and inertia ``mi``, ``ii`` and the points' friction ``f1``, ``f2`` (numbers,
+    or per-world scalars where the manifold's body varies by world): b2ContactSolver's friction of
+    each point, then the normal impulses. Returns (v, w, ln1, ln2, lt1, lt2)."""
+    k1, k2 = 2 * p, 2 * p + 1
+    n = c["n"][k1]
+    t = V2(n.y, -n.x)  # the tangent, as Box2D's b2Cross(normal, 1.0f): two fewer kernel inputs
+    lt_ = [lt1, lt2]
+    for j, (k, f, ln_k) in enumerate(((k1, f1, ln1), (k2, f2, ln2))):  # friction
+        arm = c["arm"][k]
+        vt = (v + cross_sv2(w, arm)).dot(t)
+        max_f = f * ln_k
+        new_t = jnp.clip(lt_[j] - c["tm"][k] * vt, -max_f, max_f) * c["on"][k]
+        pt = (new_t - lt_[j]) * t
+        lt_[j] = new_t
+        v = v + mi * pt
+        w = w + ii * arm.cross(pt)
+    r1, r2 = c["arm"][k1], c["arm"][k2]
+    vn1 = (v + cross_sv2(w, r1)).dot(n)
+    vn2 = (v + cross_sv2(w, r2)).dot(n)
+    # one point (Box2D's pointCount == 1)
+    s_new = jnp.maximum(ln1 - c["nm"][k1] * vn1, 0.0) * c["on"][k1]
+    # block solve of both points
+    a1, a2 = ln1, ln2
+    k11, k12, k22, inv = c["k11"][p], c["k12"][p], c["k22"][p], c["inv"][p]
+    m11, m12, m22 = inv * k22, -inv * k12, inv * k11  # K's inverse, in the kernel: fewer inputs held
+    bx = vn1 - (k11 * a1 + k12 * a2)
+    by = vn2 - (k12 * a1 + k22 * a2)
+    x1 = -(m11 * bx + m12 * by)
+    y1 = -(m12 * bx + m22 * by)
+    ok1 = (x1 >= 0.0) & (y1 >= 0.0)
+    x2 = -c["nm"][k1] * bx
+    ok2 = (x2 >= 0.0) & (k12 * x2 + by >= 0.0)
+    y3 = -c["nm"][k2] * by
+    ok3 = (y3 >= 0.0) & (k12 * y3 + bx >= 0.0)
+    ok4 = (bx >= 0.0) & (by >= 0.0)
+    bxn = jnp.where(ok1, x1, jnp.where(ok2, x2, jnp.where(ok3, 0.0, jnp.where(ok4, 0.0, a1))))
+    byn = jnp.where(ok1, y1, jnp.where(ok2, 0.0, jnp.where(ok3, y3, jnp.where(ok4, 0.0, a2))))
+    blk = c["blk"][p] > 0.5
+    new1 = jnp.where(blk, bxn, s_new)
+    new2 = jnp.where(blk, byn, ln2)
+    d1, d2 = new1 - ln1, new2 - ln2
+    p1, p2 = d1 * n, d2 * n
+    v = v + mi * (p1 + p2)
+    w = w + ii * (r1.cross(p1) + r2.cross(p2))
+    return v, w, new1, new2, lt_[0], lt_[1]
+
+
+def _pack_manifolds(model: Model, body, friction, econ, ln, lt, slots: int):
+    """The velocity passes' inputs with the manifolds that have points packed, in their order, into
+    ``slots`` manifold slots (``SolverConfig.velocity_manifolds``). A manifold without points changes
+    nothing in a pass, so while a world has at most ``slots`` of them the passes give what they give
+    over every manifold; a world with more keeps its first ``slots``. Returns (consts: ``econ``'s
+    entries packed, plus per slot its body ``bid``, inverse mass and inertia ``mi``, ``ii`` and per
+    point its friction ``f``; ``ln``, ``lt`` packed (2 slots,); ``idx`` (slots,) int32, each slot's
+    manifold (``len(body) // 2`` where a slot is empty); ``crowded``: more manifolds than slots)."""
+    n_man = len(body) // 2
+    on_pt = jnp.stack(econ["on"]) > 0.5
+    has = on_pt[0::2] | on_pt[1::2]  # (n_man,) the manifold has a point
+    rank = jnp.cumsum(has) - 1
+    slot_of = jnp.where(has & (rank < slots), rank, slots)  # ``slots``: not packed
+    idx = jnp.full((slots + 1,), n_man, jnp.int32).at[slot_of].set(jnp.arange(n_man, dtype=jnp.int32))[:slots]
+    crowded = jnp.sum(has) > slots
+
+    def man(x):  # (n_man,) -> (slots,), zero in empty slots
+        return jnp.concatenate([jnp.asarray(x, jnp.float32), jnp.zeros((1,), jnp.float32)])[idx]
+
+    def pts(x):  # (2 n_man,) -> (2 slots,)
+        x = jnp.concatenate([jnp.asarray(x, jnp.float32).reshape(n_man, 2), jnp.zeros((1, 2), jnp.float32)])
+        return x[idx].reshape(-1)
+
+    scalars = scalars_of
+    inv_m, inv_i = np.asarray(model.inv_mass, np.float32), np.asarray(model.inv_inertia, np.float32)
+    b = np.asarray(body[0::2], np.int32)
+    c = {"bid": scalars(man(b.astype(np.float32))), "mi": scalars(man(inv_m[b])), "ii": scalars(man(inv_i[b])),
+         "f": scalars(pts(np.asarray(friction, np.float32)))}
+    for name in ("on", "nm", "tm"):
+        c[name] = scalars(pts(jnp.stack(econ[name])))
+    for name in ("n", "arm"):
+        x, y = pts(jnp.stack([v.x for v in econ[name]])), pts(jnp.stack([v.y for v in econ[name]]))
+        c[name] = tuple(V2(x[k], y[k]) for k in range(2 * slots))
+    for name in ("blk", "k11", "k12", "k22", "inv"):
+        c[name] = scalars(man(jnp.stack(econ[name])))
+    return c, scalars(pts(ln)), scalars(pts(lt)), idx, crowded
+
+
+def scalars_of(a):
+    """The entries of a 1-D array as a tuple of scalars."""
+    return tuple(a[k] for k in range(a.shape[0]))
+
+
+def _unpack_impulses(idx, packed, n_points: int):
+    """The packed slots' impulses (2 slots,) back at their points (n_points,), zero where unpacked."""
+    x = jnp.zeros((n_points // 2 + 1, 2), jnp.float32).at[idx].set(jnp.stack(packed).reshape(-1, 2))
+    return x[:-1].reshape(-1)
+
+
+def _velocity_pass_packed(model: Model, bodies, c, carry):
+    """``_velocity_pass_edges`` over packed manifold slots (``_pack_manifolds``): each slot's body is
+    a per-world input (``bid``), so the slot reads that body's velocity out of ``bodies`` (the bodies
+    with contacts) by selects and writes it back the same way. Per-world scalars only."""
+    vel, omg, jimp, jmot, ln, lt = (list(x) for x in carry)
+    _joint_velocity_pass(model, c, vel, omg, jimp, jmot)
+    for q in range(len(c["bid"])):
+        k1, k2 = 2 * q, 2 * q + 1
+        at = [c["bid"][q] == np.float32(j) for j in bodies]
+        v, w = vel[bodies[0]], omg[bodies[0]]
+        for j, here in zip(bodies[1:], at[1:]):
+            v, w = vel[j].where(here, v), jnp.where(here, omg[j], w)
+        v, w, ln[k1], ln[k2], lt[k1], lt[k2] = _manifold_velocity(
+            c, q, c["mi"][q], c["ii"][q], c["f"][k1], c["f"][k2], v, w, ln[k1], ln[k2], lt[k1], lt[k2])
+        for j, here in zip(bodies, at):
+            vel[j], omg[j] = v.where(here, vel[j]), jnp.where(here, w, omg[j])
+    return tuple(vel), tuple(omg), tuple(jimp), tuple(jmot), tuple(ln), tuple(lt)
 
 
 def _position_pass_edges(model: Model, body, c, carry):
