@@ -40,6 +40,25 @@ import sys
 import time
 
 
+SOURCE_DIRS = ("shed_jax", "envs", "experiments")  # what a run folder's src.tgz holds
+
+
+def sources_digest(root: str = ".") -> str:
+    """SHA-256 over the Python sources a run's programs are built from (``SOURCE_DIRS`` under
+    ``root``: each file's relative path and bytes, in sorted order). Two trees with one digest build
+    the same programs; a probe records it so that a fill can tell a probe of its own program from
+    one of other sources."""
+    h = hashlib.sha256()
+    files = sorted(os.path.relpath(os.path.join(d, f), root)
+                   for top in SOURCE_DIRS for d, _, fs in os.walk(os.path.join(root, top))
+                   for f in fs if f.endswith(".py"))
+    for rel in files:
+        h.update(rel.encode() + b"\0")
+        with open(os.path.join(root, rel), "rb") as fh:
+            h.update(fh.read() + b"\0")
+    return h.hexdigest()
+
+
 class _Captured(Exception):
     """Raised from the key hook in ``probe``: the key is known, the compile is not wanted."""
 
@@ -201,7 +220,8 @@ def probe(args_file: str, out: str) -> int:
         lowered.compile()
     except _Captured:
         pass
-    rec = {"run_args": open(args_file).read().strip(), "jax": jax.__version__, "device_kind": device.device_kind,
+    rec = {"run_args": open(args_file).read().strip(), "sources": sources_digest(),
+           "jax": jax.__version__, "device_kind": device.device_kind,
            "root": os.getcwd(), "cache": cache,
            "platform_version": device.client.platform_version,
            "compression": "zstandard" if cc.zstandard is not None else "zlib",
@@ -250,8 +270,10 @@ def fill(args_file: str, probe_file: str, chunks: bool, out: str | None) -> int:
     if not theirs.get("parts"):
         print(f"aot_cache fill: {probe_file} holds no key of the initial state to compare with", file=sys.stderr)
         return 1
-    # a probe of another run (one probe serves every run on that GPU host): its program differs, the rest must not
-    same_run = rec.get("run_args") == open(args_file).read().strip()
+    # a probe of another run, or of the same flags on other sources (one probe serves every run on that
+    # GPU host): its program differs, the rest must not. A probe without "sources" (before 2026-12-05)
+    # cannot say which sources it ran, so only its other key parts are compared
+    same_run = rec.get("run_args") == open(args_file).read().strip() and rec.get("sources") == sources_digest()
 
     def compile_one(label, lower):
         t = time.time()
@@ -284,7 +306,8 @@ def fill(args_file: str, probe_file: str, chunks: bool, out: str | None) -> int:
               f"the GPU would not find these programs in the cache; chunks not compiled", file=sys.stderr)
         return 1
     print("aot_cache fill: the initial state's key matches the GPU host's" if same_run else
-          "aot_cache fill: every key part but the program matches the GPU host's (the probe was of another run)",
+          "aot_cache fill: every key part but the program matches the GPU host's (the probe was of another "
+          "run or other sources)",
           flush=True)
     if chunks:
         from shed_jax import driver

@@ -94,3 +94,22 @@ def test_a_gpu_program_already_in_the_cache_is_not_compiled_again(hooked, tmp_pa
     with pytest.raises(aot_cache._Captured):
         cc.get_cache_key(module, devices, options, Gpu())
     assert seen[name]["present"] and seen[name]["key"] == key
+
+
+def test_sources_digest_names_the_python_sources_and_nothing_else(tmp_path):
+    """A fill trusts a probe's program only when the probe ran the same sources: the digest must move
+    with any byte or path of a .py file under the source folders, and with nothing else."""
+    for top in aot_cache.SOURCE_DIRS:
+        (tmp_path / top / "sub").mkdir(parents=True)
+        (tmp_path / top / "sub" / "m.py").write_text(f"X = '{top}'\n")
+    d0 = aot_cache.sources_digest(str(tmp_path))
+    assert len(d0) == 64 and d0 == aot_cache.sources_digest(str(tmp_path))
+    (tmp_path / "envs" / "notes.txt").write_text("not a source")
+    (tmp_path / "docs").mkdir()
+    (tmp_path / "docs" / "x.py").write_text("outside the source folders")
+    assert aot_cache.sources_digest(str(tmp_path)) == d0
+    (tmp_path / "envs" / "sub" / "m.py").write_text("X = 'envs' \n")
+    d1 = aot_cache.sources_digest(str(tmp_path))
+    assert d1 != d0
+    (tmp_path / "envs" / "sub" / "m.py").rename(tmp_path / "envs" / "sub" / "n.py")
+    assert aot_cache.sources_digest(str(tmp_path)) not in (d0, d1)
