@@ -59,13 +59,35 @@ def sources_digest(root: str = ".") -> str:
     return h.hexdigest()
 
 
+PROGRAM_FREE_OPTIONS = "compile_options but the program's shape"
+# the key parts that follow the program: a probe of another program is compared on the others
+PROGRAM_PARTS = ("computation", "compile_options")
+
+
+def _without_program_shape(options):
+    """A copy of XLA ``CompileOptions`` without the fields JAX sets from the program (whether its
+    inputs are passed as a tuple, per input and output whether sharding may propagate to it, and
+    XLA's detailed logging, on for programs of 10 or more operations): what two programs compiled on
+    one host share."""
+    from jax._src.lib import xla_client
+
+    o = xla_client.CompileOptions.ParseFromString(options.SerializeAsString())
+    o.parameter_is_tupled_arguments = False
+    o.executable_build_options.debug_options.xla_detailed_logging = True
+    o.executable_build_options.allow_spmd_sharding_propagation_to_parameters = []
+    o.executable_build_options.allow_spmd_sharding_propagation_to_output = []
+    return o
+
+
 class _Captured(Exception):
     """Raised from the key hook in ``probe``: the key is known, the compile is not wanted."""
 
 
 def key_parts(module, devices, options, backend, compression: str) -> dict:
     """Each part of JAX's persistent-cache key hashed on its own (SHA-256 hex), as ``cache_key.get``
-    feeds them into one hash in this order; a part that differs between two hosts is the miss's cause."""
+    feeds them into one hash in this order; a part that differs between two hosts is the miss's cause.
+    One more entry, not in JAX's key: ``PROGRAM_FREE_OPTIONS``, the compile options with the fields
+    that follow the program's inputs and outputs cleared, to compare a probe of another program."""
     from jax._src import cache_key as ck
 
     parts = {
@@ -78,6 +100,8 @@ def key_parts(module, devices, options, backend, compression: str) -> dict:
         "accelerator_config": lambda h: ck._hash_accelerator_config(h, devices),
         "compression": lambda h: ck._hash_string(h, compression),
         "custom_hook": lambda h: ck._hash_string(h, ck.custom_hook()),
+        PROGRAM_FREE_OPTIONS: lambda h: ck._hash_serialized_compile_options(
+            h, _without_program_shape(options), strip_device_assignment=(backend.platform == "gpu")),
     }
     out = {}
     for name, fn in parts.items():
@@ -298,8 +322,14 @@ def fill(args_file: str, probe_file: str, chunks: bool, out: str | None) -> int:
 
     compile_one("jit_init_point", lambda: init.trace(*ins).lower())
     ours = seen.get("jit_init_point", {})
-    differ = [k for k, v in theirs.get("parts", {}).items()
-              if ours.get("parts", {}).get(k) != v and (same_run or k != "computation")]
+    tp, op = theirs.get("parts", {}), ours.get("parts", {})
+    if same_run:
+        differ = [k for k, v in tp.items() if op.get(k) != v]
+    else:  # another program: every part but those that follow it
+        differ = [k for k, v in tp.items() if k not in PROGRAM_PARTS and op.get(k) != v]
+        if PROGRAM_FREE_OPTIONS not in tp:
+            print("aot_cache fill: the probe predates the program-free compile options; those were not "
+                  "compared", flush=True)
     if differ:  # the chunks would be filed under keys the GPU host never asks for: not compiled
         write_report(init_key_matches=False, init_parts_differing=differ)
         print(f"aot_cache fill: the initial state's key differs from the GPU host's in {', '.join(differ)}: "

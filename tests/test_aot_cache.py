@@ -41,7 +41,8 @@ def test_the_hook_records_each_programs_key_and_parts(hooked):
     name, digest = rec["key"].split("-")
     assert name == "jit_aot_cache_probe_target" and len(digest) == 64
     assert list(rec["parts"]) == ["computation", "jax_lib version", "backend version", "XLA flags",
-                                  "compile_options", "accelerator_config", "compression", "custom_hook"]
+                                  "compile_options", "accelerator_config", "compression", "custom_hook",
+                                  aot_cache.PROGRAM_FREE_OPTIONS]
     module, devices, options, backend, compression = calls[-1]
     assert aot_cache.key_parts(module, devices, options, backend, compression) == rec["parts"]
 
@@ -113,3 +114,24 @@ def test_sources_digest_names_the_python_sources_and_nothing_else(tmp_path):
     assert d1 != d0
     (tmp_path / "envs" / "sub" / "m.py").rename(tmp_path / "envs" / "sub" / "n.py")
     assert aot_cache.sources_digest(str(tmp_path)) not in (d0, d1)
+
+
+def test_program_free_options_match_across_programs_of_other_arities(hooked):
+    """Two programs with other numbers of inputs and outputs: JAX's compile options differ (per input
+    and output fields), the program-free ones do not, so a probe of one program can vouch for the
+    host-dependent options of another."""
+    seen, _ = hooked
+    salt = float(np.random.default_rng().integers(1 << 30))
+
+    def aot_cache_one_in(x):
+        return x * salt
+
+    def aot_cache_three_in(x, y, z):
+        return x + y * z + salt, x - salt
+
+    jax.block_until_ready(jax.jit(aot_cache_one_in)(jnp.ones(3)))
+    jax.block_until_ready(jax.jit(aot_cache_three_in)(jnp.ones(3), jnp.ones(3), jnp.ones(3)))
+    a, b = seen["jit_aot_cache_one_in"]["parts"], seen["jit_aot_cache_three_in"]["parts"]
+    assert a["compile_options"] != b["compile_options"]
+    assert a[aot_cache.PROGRAM_FREE_OPTIONS] == b[aot_cache.PROGRAM_FREE_OPTIONS]
+    assert [k for k in a if a[k] != b[k]] == list(aot_cache.PROGRAM_PARTS)
