@@ -2,7 +2,7 @@
 # Takes what one piece of experiments/run_piece.sh returned into the run's folder, for the next piece.
 # Run from the repository root:
 #   bash experiments/adopt_piece.sh FOLDER FROM
-# FROM is where the piece's files came back (the device call's files_at): cache.tgz.*, run.log and,
+# FROM is where the piece's files came back (the device call's files_at): cache.tgz.*, run.log, gpu and,
 # when the run saved, ckpt.tgz.*; with AOT_PROBE=1, aot_probe.json (copied too). Every archive is checked whole (gzip -t) before FOLDER is touched;
 # then FOLDER's old parts of each returned archive are removed (the split may change) and the new ones
 # copied in. A piece without a checkpoint (its compile cut off, or its call ended before it saved)
@@ -19,12 +19,18 @@ ls "$from"/ckpt.tgz.* >/dev/null 2>&1 && kinds+=(ckpt)
 for k in "${kinds[@]}"; do
   cat "$from"/$k.tgz.* | gzip -t 2>/dev/null || { echo "adopt_piece: $from/$k.tgz.* is not a whole gzip archive; $dir left as it was"; exit 3; }
 done
+# the cache goes back where the piece took it from: FOLDER/gpu-MODEL/ when the folder has one for
+# the GPU the piece ran on (its $OUT/gpu), else FOLDER itself
+cdir=$dir
+if [ -f "$from/gpu" ] && [ -d "$dir/gpu-$(cat "$from/gpu")" ]; then cdir=$dir/gpu-$(cat "$from/gpu"); fi
 for k in "${kinds[@]}"; do
-  rm -f "$dir"/$k.tgz.*
+  to=$dir
+  [ "$k" = cache ] && to=$cdir
+  rm -f "$to"/$k.tgz.*
   for part in "$from"/$k.tgz.*; do
-    cp "$part" "$dir/" && chmod u+w "$dir/$(basename "$part")"
+    cp "$part" "$to/" && chmod u+w "$to/$(basename "$part")"
   done
-  echo "$k: $(ls "$dir"/$k.tgz.* | wc -l) part(s), $(cat "$dir"/$k.tgz.* | wc -c) bytes"
+  echo "$k: $(ls "$to"/$k.tgz.* | wc -l) part(s), $(cat "$to"/$k.tgz.* | wc -c) bytes$( [ -f "$from/gpu" ] && echo " (ran on $(cat "$from/gpu"))") in $to"
 done
 [ "${#kinds[@]}" -eq 1 ] && echo "ckpt: none returned; $dir keeps its checkpoint"
 # a piece run with AOT_PROBE=1: its probe of the GPU host's key parts (a few kB), for experiments/aot_fill.sh

@@ -5,10 +5,13 @@
 # PY is a Python with the GPU host's jax, jaxlib and jax-cuda plugin versions (the probe names jax's;
 # docs/running.md has the set-up). The run's sources (FOLDER/src.tgz) are put at the path the GPU host
 # ran them from (the probe's "root"), through a private mount: kernel IR holds source paths, so the
-# programs are the GPU host's only there. FOLDER's cache.tgz.* parts are replaced by the filled cache
-# (what they held is kept), and aot_report.json beside them says the compile times and whether the
-# initial state's key matched the probe's; when it did not (exit status 1), aot_fill_init.mlir.gz beside
-# it is the program's text, to diff with the probe's aot_probe_init.mlir.gz. Exit status: aot_cache.py's.
+# programs are the GPU host's only there. The filled cache goes to FOLDER/gpu-MODEL/cache.tgz.*, MODEL
+# the probed GPU's (experiments/gpu_model.sh: h100, h200, ...), where run_piece.sh looks for it on a
+# host with that GPU; what that folder's cache held is kept (FOLDER's own cache.tgz.* is left alone:
+# it holds the programs of the GPU the run began on). aot_report.json beside the parts says the
+# compile times and whether the initial state's key matched the probe's; when it did not (exit status
+# 1), aot_fill_init.mlir.gz beside it is the program's text, to diff with the probe's
+# aot_probe_init.mlir.gz. Exit status: aot_cache.py's.
 set -u
 usage="usage: AOT_PYTHON=PY bash experiments/aot_fill.sh FOLDER PROBE.json [--chunks]"
 dir=${1:?$usage}
@@ -19,13 +22,16 @@ py=${AOT_PYTHON:?"aot_fill: set AOT_PYTHON to a Python with the GPU host's jax, 
 [ -f "$probe" ] || { echo "aot_fill: no probe file $probe"; exit 2; }
 [ "$(id -u)" = 0 ] || { echo "aot_fill: needs root for its private mount (unshare -m)"; exit 2; }
 root=$(python3 -c 'import json, sys; print(json.load(open(sys.argv[1]))["root"])' "$probe") || exit 2
+model=$(bash "$(dirname "$0")/gpu_model.sh" "$(python3 -c 'import json, sys; print(json.load(open(sys.argv[1]))["device_kind"])' "$probe")")
+[ -n "$model" ] || { echo "aot_fill: $probe names no GPU model (device_kind)"; exit 2; }
+dest=$dir/gpu-$model
 work=$(mktemp -d)
 trap 'rm -rf "$work"' EXIT
 tar xzf "$dir/src.tgz" -C "$work" || exit 4
 cp "$dir/run.args" "$work/run.args"
 cp experiments/aot_cache.py "$work/.aot_cache.py"
 cp "$probe" "$work/probe.json"
-if ls "$dir"/cache.tgz.* >/dev/null 2>&1; then cat "$dir"/cache.tgz.* | tar xzf - -C "$work" || exit 5; fi
+if ls "$dest"/cache.tgz.* >/dev/null 2>&1; then cat "$dest"/cache.tgz.* | tar xzf - -C "$work" || exit 5; fi
 envs=(PYTHONUNBUFFERED=1 "PYTHONPATH=$root" "SHED_JAX_CACHE=$root/.cache/device" JAX_PLATFORMS=cpu)
 if [ -f "$dir/run.env" ]; then
   while IFS= read -r line; do
@@ -37,13 +43,14 @@ unshare -m --propagation private env "${envs[@]}" bash -c \
   'mount --bind "$0" "$1" && cd "$1" && exec "$2" .aot_cache.py fill run.args probe.json --out aot_report.json "${@:3}"' \
   "$work" "$root" "$py" "$@"
 rc=$?
-cp "$work/aot_report.json" "$dir/aot_report.json" 2>/dev/null
+mkdir -p "$dest"
+cp "$work/aot_report.json" "$dest/aot_report.json" 2>/dev/null
 # a key that differs: the program's text beside the report, to diff with the probe's aot_probe_init.mlir.gz
-[ "$rc" = 1 ] && cp "$work/aot_fill_init.mlir.gz" "$dir/" 2>/dev/null
-if [ -d "$work/.cache/device" ]; then
+[ "$rc" = 1 ] && cp "$work/aot_fill_init.mlir.gz" "$dest/" 2>/dev/null
+if [ "$rc" = 0 ] && [ -d "$work/.cache/device" ]; then  # a fill that the GPU would miss is not kept
   (cd "$work" && tar czf - .cache/device | split -b 15M - "$work/cache.tgz.") || exit 6
-  rm -f "$dir"/cache.tgz.*
-  cp "$work"/cache.tgz.* "$dir"/
-  ls -l "$dir"/cache.tgz.*
+  rm -f "$dest"/cache.tgz.*
+  cp "$work"/cache.tgz.* "$dest"/
+  ls -l "$dest"/cache.tgz.*
 fi
 exit $rc

@@ -8,11 +8,12 @@
 # JAX_PERSISTENT_CACHE_ENABLE_XLA_CACHES=all: settings that change cache keys must not change between
 # pieces), and after the first piece ckpt.tgz.* (parts of one archive of the run directory) and
 # cache.tgz.* (JAX's persistent compilation cache, with what XLA keeps there: autotuning results, and
-# its kernel cache where run.env asks for it; packed also after a compile the piece's limit cut off).
+# its kernel cache where run.env asks for it; packed also after a compile the piece's limit cut off),
+# and optionally gpu-MODEL/cache.tgz.*, the cache a host with that GPU model reads instead (below).
 # The script installs the wheels in .whl if there are any, puts the run's sources in place OF THIS
 # TREE'S (so OUT must be set: it runs on a disposable copy, e.g. the device machine's), starts the run
 # (no ckpt.tgz.* yet) or resumes it, stops it with --time-limit SECONDS counted from the script's
-# start, and writes the new ckpt.tgz.*, cache.tgz.* and run.log into $OUT. SECONDS is the whole
+# start, and writes the new ckpt.tgz.*, cache.tgz.*, run.log and gpu (the GPU model) into $OUT. SECONDS is the whole
 # piece, packing included: the run stops PACK_S (45) seconds before it, which covers the checkpoint
 # the run writes when it stops (about 15 s for SHED on the 2-D walker) and the packing. Give it the
 # device call's limit_s less about 20 s: a call ended by its limit returns nothing of the piece. It exits with the run's exit code (75: stopped at
@@ -45,6 +46,8 @@ export PYTHONUNBUFFERED=1 SHED_JAX_CACHE=$PWD/.cache/device
 # $OUT/aot_probe.json, so that a CPU host can compile the run's programs for it (experiments/aot_cache.py)
 probe_tool=
 if [ "${AOT_PROBE:-0}" = 1 ]; then probe_tool=${TMPDIR:-/tmp}/aot_cache.$$.py; cp experiments/aot_cache.py "$probe_tool" || exit 4; fi
+# this host's GPU model (before the run's sources replace experiments/); RUN_PIECE_GPU= overrides it
+gpu=${RUN_PIECE_GPU-$(bash experiments/gpu_model.sh 2>/dev/null)}
 rm -rf shed_jax envs experiments && tar xzf "$dir/src.tgz" || exit 4
 mkdir -p runs .cache
 if [ -n "$probe_tool" ]; then
@@ -57,7 +60,15 @@ if ls "$dir"/ckpt.tgz.* >/dev/null 2>&1; then
 else
   what=$args
 fi
-if ls "$dir"/cache.tgz.* >/dev/null 2>&1; then cat "$dir"/cache.tgz.* | tar xzf -; fi
+# A cache per GPU model: FOLDER/gpu-MODEL/cache.tgz.* (MODEL as gpu_model.sh names this host's GPU,
+# e.g. h100; one filled on a CPU host by aot_fill.sh) serves this host in place of FOLDER/cache.tgz.*,
+# which holds the programs compiled for the GPU the run began on. $OUT/gpu says which model ran.
+cache=$dir
+if [ -n "$gpu" ]; then
+  echo "$gpu" > "$OUT/gpu"
+  if ls "$dir/gpu-$gpu"/cache.tgz.* >/dev/null 2>&1; then cache=$dir/gpu-$gpu; echo "run_piece: the cache for $gpu ($cache)"; fi
+fi
+if ls "$cache"/cache.tgz.* >/dev/null 2>&1; then cat "$cache"/cache.tgz.* | tar xzf -; fi
 lim=$(( secs - ($(date +%s) - t0) - ${PACK_S:-45} ))
 [ "$lim" -gt 0 ] || { echo "run_piece: SECONDS=$secs leaves no time to run after set-up and packing"; exit 2; }
 timeout -k 10 $(( lim + 25 )) python -m shed_jax run $what --keep 1 --no-gif --time-limit $lim > "$OUT/run.log" 2>&1

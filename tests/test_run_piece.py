@@ -46,7 +46,8 @@ def _piece(root, repo, piece, seconds="100", out=True, **extra):
     bin_.mkdir(exist_ok=True)
     (bin_ / "python").write_text(STUB)
     (bin_ / "python").chmod(0o755)
-    env = {**os.environ, "PATH": f"{bin_}:{os.environ['PATH']}", "STUB_LOG": str(root / "stub.log"), "PIECE": str(piece), **extra}
+    env = {**os.environ, "PATH": f"{bin_}:{os.environ['PATH']}", "STUB_LOG": str(root / "stub.log"), "PIECE": str(piece),
+           "RUN_PIECE_GPU": "", **extra}  # no GPU model unless a test names one
     if out:
         env["OUT"] = str(root / f"out{piece}")
         (root / f"out{piece}").mkdir()
@@ -206,3 +207,49 @@ def test_without_aot_probe_nothing_is_probed(tmp_path, folder):
     r = _piece(tmp_path, repo, 1)
     assert r.returncode == 75 and "probe" not in (tmp_path / "stub.log").read_text()
     assert not (tmp_path / "out1" / "aot_probe.json").exists() and "aot probe" not in r.stdout
+
+
+def _cache_archive(path: pathlib.Path, name: str):
+    """A cache part holding one marker file ``.cache/device/jax/NAME``."""
+    src = path.parent / f"src_{name}"
+    (src / ".cache" / "device" / "jax").mkdir(parents=True)
+    (src / ".cache" / "device" / "jax" / name).write_text(name)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with tarfile.open(path, "w:gz") as tar:
+        tar.add(src / ".cache", arcname=".cache")
+
+
+def test_a_gpu_models_own_cache_is_read_on_that_gpu_and_the_new_one_goes_back_there(tmp_path, folder):
+    """FOLDER/gpu-h100/ (e.g. filled on a CPU host) serves an H100 host; FOLDER's own cache serves any
+    other; adopt_piece puts each piece's cache back where it came from, the checkpoint always in FOLDER."""
+    _cache_archive(folder / "cache.tgz.aa", "began_on_h200")
+    _cache_archive(folder / "gpu-h100" / "cache.tgz.aa", "filled_for_h100")
+    h200_cache = (folder / "cache.tgz.aa").read_bytes()
+    runs = {}
+    for gpu in ("h100", "h200"):
+        root = tmp_path / gpu
+        repo = _tree(root, folder)
+        r = _piece(root, repo, 1, RUN_PIECE_GPU=gpu)
+        assert r.returncode == 75, r.stdout + r.stderr
+        have = {p.name for p in (repo / ".cache" / "device" / "jax").iterdir()}
+        assert ("filled_for_h100" in have) == (gpu == "h100") and ("began_on_h200" in have) == (gpu == "h200")
+        assert (root / "out1" / "gpu").read_text() == f"{gpu}\n"
+        runs[gpu] = root / "out1"
+    r = _adopt(folder, runs["h100"], tmp_path)
+    assert r.returncode == 0 and "ran on h100" in r.stdout, r.stdout
+    assert (folder / "gpu-h100" / "cache.tgz.aa").read_bytes() == (runs["h100"] / "cache.tgz.aa").read_bytes()
+    assert (folder / "cache.tgz.aa").read_bytes() == h200_cache  # the other GPU's cache untouched
+    assert (folder / "ckpt.tgz.aa").read_bytes() == (runs["h100"] / "ckpt.tgz.aa").read_bytes()
+    assert not (folder / "gpu-h100" / "ckpt.tgz.aa").exists()
+    r = _adopt(folder, runs["h200"], tmp_path)  # no gpu-h200/: the folder's own cache is replaced
+    assert r.returncode == 0
+    assert (folder / "cache.tgz.aa").read_bytes() == (runs["h200"] / "cache.tgz.aa").read_bytes()
+    assert (folder / "gpu-h100" / "cache.tgz.aa").read_bytes() == (runs["h100"] / "cache.tgz.aa").read_bytes()
+
+
+def test_gpu_model_names(tmp_path):
+    model = SCRIPT.with_name("gpu_model.sh")
+    names = {"NVIDIA H100 80GB HBM3": "h100", "NVIDIA H200": "h200", "NVIDIA A100-SXM4-40GB": "a100", "": ""}
+    for name, want in names.items():
+        r = subprocess.run(["bash", str(model), name], capture_output=True, text=True, timeout=30)
+        assert r.returncode == 0 and r.stdout.strip() == want, (name, r.stdout)
