@@ -15,6 +15,7 @@ compile:
     PY -m experiments.gpu_compile loops --out FILE.json       # each fused loop of one step, alone
     PY -m experiments.gpu_compile loops --velocity-manifolds 6 --out FILE.json  # with 6 packed slots
     PY -m experiments.gpu_compile run "RUN FLAGS" --out FILE.json  # a run's initial state and first chunk
+    PY -m experiments.gpu_compile launches [--variant V] --out FILE.json  # kernel launches per step
 """
 from __future__ import annotations
 
@@ -108,6 +109,44 @@ def loops(device, worlds: int, **options) -> list[dict]:
     return rows
 
 
+def launches(device, variant: str, batch: int, steps: int, depth: int, hlo: str | None = None) -> list[dict]:
+    """The kernel launches per step of ``steps`` sequential steps of ``batch`` walkers with random
+    actions (``bench_latency.random_action_scan``, the program ``profile_bipedal_step --step step``
+    traces on a GPU; its reset amortized over the steps), counted in the optimized HLO
+    (``experiments.hlo_launches``), overall, per opcode and per JAX scope to ``depth``; ``hlo``: a
+    file to keep the optimized HLO in (gzipped), to count it again another way."""
+    import jax
+    import jax.numpy as jnp
+    from jax.sharding import SingleDeviceSharding
+
+    from experiments import aot_cache, hlo_launches
+    from experiments.bench_latency import random_action_scan
+    from experiments.profile_bipedal_step import make_env
+
+    run = random_action_scan(make_env(variant), batch, steps)
+    key = jax.ShapeDtypeStruct((2,), jnp.uint32, sharding=SingleDeviceSharding(device))
+    with aot_cache._as_gpu_host(device):
+        t = time.time()
+        lowered = run.trace(key).lower()
+        lower_s = time.time() - t
+        t = time.time()
+        text = lowered.compile().as_text()
+        compile_s = time.time() - t
+    if hlo:
+        import gzip
+
+        with gzip.open(hlo, "wt") as f:
+            f.write(text)
+    c = hlo_launches.count(text)
+    per = lambda d: {k: round(v / steps, 2) for k, v in d.items()}  # noqa: E731
+    row = {"program": f"{batch} walkers x {steps} steps ({variant})", "lower_s": round(lower_s, 1),
+           "compile_s": round(compile_s, 1), "launches_per_step": round(c["total"] / steps, 2),
+           "by_op": per(c["by_op"]), "by_scope": per(hlo_launches.by_scope(text, depth)),
+           "unknown_trips": len(c["unknown_trips"])}
+    print(json.dumps({k: row[k] for k in ("program", "compile_s", "launches_per_step")}), flush=True)
+    return [row]
+
+
 def run_programs(device, flags: str) -> list[dict]:
     """A run's initial state and its first chunk, as ``shed_jax run FLAGS`` builds them for the GPU."""
     from experiments import aot_cache
@@ -133,9 +172,16 @@ def main(argv=None) -> int:
     lp.add_argument("--worlds", type=int, default=1024, help="worlds per loop (default: the kernels' least padding)")
     lp.add_argument("--velocity-manifolds", type=int, default=0,
                     help="the env's velocity_manifolds: manifold slots of the velocity passes (0: all 12)")
+    cp = sub.add_parser("launches", help="kernel launches per 2-D walker step (optimized HLO), by op and scope")
+    cp.add_argument("--variant", default="default",
+                    help="an env variant of experiments.profile_bipedal_step (default, packed_6, no_toi, ...)")
+    cp.add_argument("--batch", type=int, default=200, help="walkers (default 200)")
+    cp.add_argument("--steps", type=int, default=200, help="sequential steps in the program (default 200)")
+    cp.add_argument("--depth", type=int, default=2, help="scope levels to group launches by (default 2)")
+    cp.add_argument("--hlo", default=None, help="also write the optimized HLO text here (gzipped)")
     rp = sub.add_parser("run", help="a run's initial state and first chunk")
     rp.add_argument("flags", help="shed_jax run's flags, one string, e.g. \"--env bipedal --method dr --preset dcd\"")
-    for p in (lp, rp):
+    for p in (lp, cp, rp):
         p.add_argument("--target", default="h200", help="a GPU description in experiments/targets (default h200)")
         p.add_argument("--tile", type=int, default=None,
                        help="per-world fields per kernel memory access (default: envs.physics2d.fused.TILE)")
@@ -166,6 +212,14 @@ def main(argv=None) -> int:
             rows = loops(device, a.worlds, velocity_manifolds=a.velocity_manifolds)
         except ValueError as e:  # the env's own check of the option, one line
             raise SystemExit(f"gpu_compile: {e}") from None
+    elif a.cmd == "launches":
+        from experiments.profile_bipedal_step import VARIANTS
+
+        if a.variant not in VARIANTS:
+            ap.error(f"--variant must be one of {', '.join(VARIANTS)}, got {a.variant!r}")
+        if min(a.batch, a.steps, a.depth) < 1:
+            ap.error("--batch, --steps and --depth must be at least 1")
+        rows = launches(device, a.variant, a.batch, a.steps, a.depth, a.hlo)
     else:
         rows = run_programs(device, a.flags)
     record = {**provenance("experiments.gpu_compile", argv), "jax": jax.__version__,
