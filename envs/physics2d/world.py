@@ -517,7 +517,8 @@ def _toi_event(model: Model, sweep, end, shapes, ok, edges, valid, boxes, box_va
         i = np.asarray([model.polygons[k].body for k in ks], np.int32)
         local = jnp.asarray(np.stack([np.asarray(model.polygons[k].vertices, np.float32) - lc[model.polygons[k].body]
                                       for k in ks]))
-        a_k, _, crowd_k = impact(local, s_com[i], s_ang[i], com[i], ang[i], shapes, ok)
+        with jax.named_scope("search"):
+            a_k, _, crowd_k = impact(local, s_com[i], s_ang[i], com[i], ang[i], shapes, ok)
         beta = beta.at[i].min(a_k)
         crowded = crowded | jnp.any(crowd_k)
     alpha = alpha0 + (1.0 - alpha0) * beta  # the impact's time within the step
@@ -525,7 +526,8 @@ def _toi_event(model: Model, sweep, end, shapes, ok, edges, valid, boxes, box_va
     c_t = s_com + beta[:, None] * (com - s_com)
     a_t = s_ang + beta * (ang - s_ang)
     at_toi = BodyState(com=c_t, angle=a_t, vel=vel, omega=omg)
-    ec = edge_constraints(model, at_toi, edges, valid, boxes, box_valid)
+    with jax.named_scope("manifolds"):
+        ec = edge_constraints(model, at_toi, edges, valid, boxes, box_valid)
     body = ec["body"]
     cb = np.asarray(body, np.int32)
     groups = [[k for k, i in enumerate(body) if i == g] for g in range(nb)]
@@ -538,7 +540,8 @@ def _toi_event(model: Model, sweep, end, shapes, ok, edges, valid, boxes, box_va
     flags = tuple(fused.BlockAny(hit[g].astype(f32)) for g in moving)
 
     # position passes at the time of impact, per body (its contacts only)
-    pconsts = dict(_edge_position_constants(model, at_toi, ec), hit=flags)
+    with jax.named_scope("position_constants"):
+        pconsts = dict(_edge_position_constants(model, at_toi, ec), hit=flags)
     carry = (tuple(V2.of(c_t[g]) for g in moving), tuple(a_t[g] for g in moving), tuple(jnp.zeros((), f32) for _ in moving))
     if cfg.toi_position_iterations > 0:
         ppass = functools.partial(_toi_position_pass_polygons, cfg, [groups[g] for g in moving], inv_m, inv_i)
@@ -551,7 +554,8 @@ def _toi_event(model: Model, sweep, end, shapes, ok, edges, valid, boxes, box_va
     # velocity passes from the corrected pose (Box2D's "leap of faith"), no warm start
     moved = _manifolds_moved(ec, c_t[cb], a_t[cb], c_p[cb], a_p[cb])
     at_p = BodyState(com=c_p, angle=a_p, vel=vel, omega=omg)
-    vconsts = _edge_velocity_constants(model, at_p, moved)
+    with jax.named_scope("velocity_constants"):
+        vconsts = _edge_velocity_constants(model, at_p, moved)
     zeros = tuple(jnp.zeros((), f32) for _ in body)
     vpass = functools.partial(_toi_velocity_pass_polygons, model, body, ec["friction"])
     vs, ws, _, _ = _toi_passes(cfg, cfg.toi_iterations, vpass, vconsts,
