@@ -330,10 +330,10 @@ def test_gym_hardcore_shapes(gen):
     assert 26.0 < t.n_boxes.mean() < 32.0
 
 
-def test_rasterise_by_comparisons_equals_jnps_binary_search(gen):
-    """``rasterise`` finds its polyline segment and box by comparing every sample with every point
-    (one GPU kernel) instead of ``jnp.interp`` / ``jnp.searchsorted``'s binary-search loop: the
-    heights are the same bits, on generated terrains with every obstacle type and on a polyline with
+def test_rasterise_with_unrolled_search_equals_jnps_search_loop(gen):
+    """``rasterise`` finds its polyline segment and box by an unrolled binary search (a few GPU
+    kernels) instead of ``jnp.interp`` / ``jnp.searchsorted``'s ``while`` loop: the heights are the
+    same bits, on generated terrains with every obstacle type and on a polyline with
     repeated x (zero-width segments) and samples beyond both ends."""
     grid = T.make_grid(2)
 

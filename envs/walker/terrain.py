@@ -335,17 +335,18 @@ def rasterise(terrain: Terrain, grid: Grid) -> jax.Array:
     h = _interp(xs, terrain.x, terrain.y)  # constant beyond the ends
     b = terrain.boxes
     x0 = jnp.where(terrain.box_valid, b[:, 0] - 1e-4, jnp.inf)
-    k = jnp.clip(jnp.searchsorted(x0, xs, side="right", method="compare_all") - 1, 0, b.shape[0] - 1)
+    k = jnp.clip(jnp.searchsorted(x0, xs, side="right", method="scan_unrolled") - 1, 0, b.shape[0] - 1)
     inside = (xs >= x0[k]) & (xs <= b[k, 1] + 1e-4) & terrain.box_valid[k]
     return jnp.where(inside, jnp.maximum(h, b[k, 3]), h)
 
 
 def _interp(x, xp, fp):
-    """``jnp.interp(x, xp, fp)`` (its formula, bit for bit) with the bracketing index found by
-    comparing every x with every xp (``searchsorted(method="compare_all")``) instead of jnp's binary
-    search, a while loop of about ten steps that a GPU runs as some 30 small kernels per call; here
-    one fused kernel does it (a few hundred by a few hundred comparisons per world)."""
-    i = jnp.clip(jnp.searchsorted(xp, x, side="right", method="compare_all"), 1, xp.shape[0] - 1)
+    """``jnp.interp(x, xp, fp)`` (its formula, bit for bit) with its binary search unrolled
+    (``searchsorted(method="scan_unrolled")``): jnp's own runs it as a ``while`` loop of about ten
+    steps, some 30 small kernels per call on a GPU; unrolled, XLA fuses it into a few. Comparing every
+    x with every xp (``"compare_all"``) launches as few but does O(len(x) len(xp)) work, too much at
+    tens of thousands of walkers."""
+    i = jnp.clip(jnp.searchsorted(xp, x, side="right", method="scan_unrolled"), 1, xp.shape[0] - 1)
     df = fp[i] - fp[i - 1]
     dx = xp[i] - xp[i - 1]
     delta = x - xp[i - 1]
