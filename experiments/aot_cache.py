@@ -289,6 +289,7 @@ def fill(args_file: str, probe_file: str, chunks: bool, out: str | None) -> int:
     init, ins, run_chunk, sizes, state = build(args_file, device)
     report = {"date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "host": _cpu_model(),
               "cpus": os.cpu_count(), "jax": jax.__version__, "target": rec["device_kind"],
+              "device": f"{_cpu_model()} ({os.cpu_count()} CPUs), compiling for {rec['device_kind']} (deviceless)",
               "command": " ".join(sys.argv), "probe": probe_file, "programs": {}}
     theirs = rec["programs"].get("jit_init_point", {})
     if not theirs.get("parts"):
