@@ -49,6 +49,9 @@ if [ "${AOT_PROBE:-0}" = 1 ]; then probe_tool=${TMPDIR:-/tmp}/aot_cache.$$.py; c
 # this host's GPU model (before the run's sources replace experiments/); RUN_PIECE_GPU= overrides it
 gpu=${RUN_PIECE_GPU-$(bash experiments/gpu_model.sh 2>/dev/null)}
 rm -rf shed_jax envs experiments && tar xzf "$dir/src.tgz" || exit 4
+# a warm machine keeps ignored paths between calls: another run's cache, or this run's directory as
+# an earlier piece left it, would be packed with this piece's; it starts from the folder's parts alone
+rm -rf .cache/device "$run"
 mkdir -p runs .cache
 if [ -n "$probe_tool" ]; then
   python "$probe_tool" probe "$dir/run.args" "$OUT/aot_probe.json" > "$OUT/aot_probe.log" 2>&1 || echo "run_piece: the probe failed (aot_probe.log)"
@@ -71,13 +74,23 @@ fi
 if ls "$cache"/cache.tgz.* >/dev/null 2>&1; then cat "$cache"/cache.tgz.* | tar xzf -; fi
 lim=$(( secs - ($(date +%s) - t0) - ${PACK_S:-45} ))
 [ "$lim" -gt 0 ] || { echo "run_piece: SECONDS=$secs leaves no time to run after set-up and packing"; exit 2; }
-timeout -k 10 $(( lim + 25 )) python -m shed_jax run $what --keep 1 --no-gif --time-limit $lim > "$OUT/run.log" 2>&1
+# the run stops itself at lim and then writes its checkpoint (about 15-25 s); it is killed only if it
+# has not exited 12 s before the packing must begin
+timeout -k 5 $(( lim + ${PACK_S:-45} - 12 )) python -m shed_jax run $what --keep 1 --no-gif --time-limit $lim > "$OUT/run.log" 2>&1
 rc=$?
 echo "rc $rc after $(( $(date +%s) - t0 )) s"
 if [ -f "$OUT/aot_probe.json" ]; then  # did the run itself compile (or find) the initial state under the probed key?
   key=$(python3 -c 'import json, sys; print(json.load(open(sys.argv[1]))["programs"]["jit_init_point"]["key"])' "$OUT/aot_probe.json" 2>/dev/null)
   if [ -n "$key" ] && [ -e ".cache/device/jax/$key-cache" ]; then echo "aot probe: the run's initial state is in the cache under the probed key"
   else echo "aot probe: the cache holds no initial state under the probed key ${key:0:40}"; fi
+fi
+# Only the newest committed checkpoint goes back: one the run resumed from is deleted by the run
+# only once its next save has finished in the background, which a stopped run may not reach.
+if [ -d "$run/checkpoints" ]; then
+  newest=$(for c in "$run"/checkpoints/*/commit_success.txt; do [ -f "$c" ] && basename "$(dirname "$c")"; done | grep -E '^[0-9]+$' | sort -n | tail -1)
+  if [ -n "$newest" ]; then
+    for c in "$run"/checkpoints/*; do [ "$(basename "$c")" = "$newest" ] || { rm -rf "$c"; echo "run_piece: left out checkpoint $(basename "$c"): the newest complete one is $newest"; }; done
+  fi
 fi
 # the checkpoint in parts under the 16 MiB a call returns, written whole before it is put in $OUT
 if [ -d "$run" ]; then

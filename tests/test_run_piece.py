@@ -20,6 +20,7 @@ fi
 [ -n "${STUB_KEY:-}" ] && mkdir -p .cache/device/jax && touch ".cache/device/jax/$STUB_KEY-cache"
 [ -n "${PIECE_SETTING:-}" ] && echo "setting $PIECE_SETTING" >> "$STUB_LOG"
 [ -f runs/x/state ] && echo "found $(cat runs/x/state)" >> "$STUB_LOG"
+[ -n "${STUB_STEPS:-}" ] && for s in $STUB_STEPS; do mkdir -p runs/x/checkpoints/${s%+}; [ "${s%+}" = "$s" ] || touch runs/x/checkpoints/${s%+}/commit_success.txt; done
 mkdir -p .cache/device/jax
 echo cached > .cache/device/jax/entry
 echo kernels > .cache/device/jax/xla_gpu_kernel_cache_file
@@ -253,3 +254,21 @@ def test_gpu_model_names(tmp_path):
     for name, want in names.items():
         r = subprocess.run(["bash", str(model), name], capture_output=True, text=True, timeout=30)
         assert r.returncode == 0 and r.stdout.strip() == want, (name, r.stdout)
+
+
+def test_only_the_newest_committed_checkpoint_and_the_folders_own_cache_go_back(tmp_path, folder):
+    """A stopped run may leave the checkpoint it resumed from (its deletion waits for the next save)
+    and one it had not finished; only the newest complete one is packed. A warm machine's leftover
+    cache of another run is not packed with this run's."""
+    repo = _tree(tmp_path, folder)
+    (repo / ".cache" / "device" / "jax").mkdir(parents=True)
+    (repo / ".cache" / "device" / "jax" / "other-run-cache").write_text("another run's")
+    # "+": the checkpoint is complete (commit_success.txt); 120 was cut off while being written
+    r = _piece(tmp_path, repo, 1, STUB_STEPS="2+ 80+ 120")
+    assert r.returncode == 75, r.stdout + r.stderr
+    assert "left out checkpoint 2: the newest complete one is 80" in r.stdout and "left out checkpoint 120:" in r.stdout
+    with tarfile.open(tmp_path / "out1" / "ckpt.tgz.aa") as tar:
+        steps = {n.split("/")[3] for n in tar.getnames() if n.count("/") >= 3}
+    assert steps == {"80"}
+    with tarfile.open(tmp_path / "out1" / "cache.tgz.aa") as tar:
+        assert sorted(tar.getnames()) == [".cache/device", ".cache/device/jax", ".cache/device/jax/entry"]
