@@ -104,6 +104,23 @@ def test_isolation_in_one_batch(sim):
     assert np.abs(np.asarray(s_a.profile[2]) - np.asarray(s_b.profile[2])).max() > 0.1
 
 
+def test_reset_profile_is_the_terrains_polyline(sim):
+    """The profile reset rasterises, inside its own program, is the generated polyline at the grid:
+    an unrolled search whose sample positions were computed in the program, rounded differently in
+    its fused steps, once returned another segment's heights at samples on vertices (2.7 m off)."""
+    env, reset, _ = sim
+    # fixed terrains: the polyline depends on the level's seed alone, not on the key reset splits
+    p = stack([LEVELS["Roughness"](terrain_seed=sd, fixed_terrain=True) for sd in (11, 12, 13, 14)])
+    keys = jax.random.split(jax.random.PRNGKey(5), B)
+    _, s = reset(keys, p)
+    t = jax.jit(jax.vmap(env.terrain))(keys, p)
+    xs = env.grid.x_min + env.grid.dx * np.arange(env.grid.n)
+    for b in range(B):
+        tx, ty = np.asarray(t.x[b], np.float64), np.asarray(t.y[b], np.float64)
+        assert np.all(np.diff(tx) > 0) and not np.asarray(t.box_valid[b]).any()  # roughness alone: a function of x
+        np.testing.assert_allclose(np.asarray(s.profile[b]), np.interp(xs, tx, ty), rtol=0, atol=1e-4)
+
+
 def test_reward_rules_and_auto_reset(sim):
     env, reset, step = sim
     p = stack([LEVELS["Roughness"](terrain_seed=11, fixed_terrain=True)] * 2 + [LEVELS["Roughness"](terrain_seed=11)] * 2)

@@ -328,3 +328,32 @@ def test_gym_hardcore_shapes(gen):
     assert set(stumps) == {1.0, 2.0} and set(gaps) == {3.0, 4.0} and set(runs) <= {3, 4} and len(runs) > 0
     # Gymnasium BipedalWalkerHardcore, seeds 0-39 (measured 2026-11-22): 28.9 boxes per level
     assert 26.0 < t.n_boxes.mean() < 32.0
+
+
+def test_rasterise_with_unrolled_search_equals_jnps_search_loop(gen):
+    """``rasterise`` finds its polyline segment and box by an unrolled binary search (a few GPU
+    kernels) instead of ``jnp.interp`` / ``jnp.searchsorted``'s ``while`` loop: the heights are the
+    same bits, on generated terrains with every obstacle type and on a polyline with
+    repeated x (zero-width segments) and samples beyond both ends."""
+    grid = T.make_grid(2)
+
+    def old(t):  # rasterise as it was, with jnp's own search
+        xs = jnp.asarray(grid.x_min + grid.dx * np.arange(grid.n, dtype=np.float32))
+        h = jnp.interp(xs, t.x, t.y)
+        x0 = jnp.where(t.box_valid, t.boxes[:, 0] - 1e-4, jnp.inf)
+        k = jnp.clip(jnp.searchsorted(x0, xs, side="right") - 1, 0, t.boxes.shape[0] - 1)
+        inside = (xs >= x0[k]) & (xs <= t.boxes[k, 1] + 1e-4) & t.box_valid[k]
+        return jnp.where(inside, jnp.maximum(h, t.boxes[k, 3]), h)
+
+    t = gen(make_params(roughness=2.0, pit_gap_high=2.0, stump_height_high=1.0, stair_height_high=1.0, stair_steps=4.0))
+    t = jax.tree_util.tree_map(jnp.asarray, t)
+    new_h = jax.jit(jax.vmap(lambda t: T.rasterise(t, grid)))(t)
+    np.testing.assert_array_equal(np.asarray(new_h), np.asarray(jax.jit(jax.vmap(old))(t)))
+    rng = np.random.default_rng(0)
+    xp = np.sort(rng.uniform(-5.0, 50.0, 64)).astype(np.float32)
+    xp[10:13] = xp[10]  # zero-width segments
+    fp = rng.normal(size=64).astype(np.float32)
+    x = rng.uniform(-10.0, 60.0, 1000).astype(np.float32)
+    x[:64] = xp  # exactly on the points
+    np.testing.assert_array_equal(np.asarray(jax.jit(T._interp)(x, xp, fp)), np.asarray(jnp.interp(x, xp, fp)))
+

@@ -27,6 +27,7 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from flax import struct
 
 from envs.walker import constants as C
@@ -330,13 +331,33 @@ def rasterise(terrain: Terrain, grid: Grid) -> jax.Array:
     The generator emits boxes in increasing x without overlaps, so each sample finds its only
     candidate box by binary search (O(n log K) instead of an O(n K) all-pairs test).
     """
-    xs = grid.x_min + grid.dx * jnp.arange(grid.n, dtype=jnp.float32)
-    h = jnp.interp(xs, terrain.x, terrain.y)  # constant beyond the ends
+    # The sample positions are a constant of the program, not computed in it: XLA may recompute a
+    # computed xs inside each fused step of the unrolled searches, rounding it differently in each,
+    # and a search whose comparisons disagree about a sample one ulp from a vertex ends up to two
+    # segments off (seen in the MJX walker's step and reset programs on XLA:CPU, 2026-12-05).
+    xs = jnp.asarray(grid.x_min + grid.dx * np.arange(grid.n, dtype=np.float32))
+    h = _interp(xs, terrain.x, terrain.y)  # constant beyond the ends
     b = terrain.boxes
     x0 = jnp.where(terrain.box_valid, b[:, 0] - 1e-4, jnp.inf)
-    k = jnp.clip(jnp.searchsorted(x0, xs, side="right") - 1, 0, b.shape[0] - 1)
+    k = jnp.clip(jnp.searchsorted(x0, xs, side="right", method="scan_unrolled") - 1, 0, b.shape[0] - 1)
     inside = (xs >= x0[k]) & (xs <= b[k, 1] + 1e-4) & terrain.box_valid[k]
     return jnp.where(inside, jnp.maximum(h, b[k, 3]), h)
+
+
+def _interp(x, xp, fp):
+    """``jnp.interp(x, xp, fp)`` (its formula, bit for bit) with its binary search unrolled
+    (``searchsorted(method="scan_unrolled")``): jnp's own runs it as a ``while`` loop of about ten
+    steps, some 30 small kernels per call on a GPU; unrolled, XLA fuses it into a few. Comparing every
+    x with every xp (``"compare_all"``) launches as few but does O(len(x) len(xp)) work, too much at
+    tens of thousands of walkers."""
+    i = jnp.clip(jnp.searchsorted(xp, x, side="right", method="scan_unrolled"), 1, xp.shape[0] - 1)
+    df = fp[i] - fp[i - 1]
+    dx = xp[i] - xp[i - 1]
+    delta = x - xp[i - 1]
+    dx0 = jnp.abs(dx) <= np.spacing(np.finfo(np.float32).eps)
+    f = jnp.where(dx0, fp[i - 1], fp[i - 1] + (delta / jnp.where(dx0, 1, dx)) * df)
+    f = jnp.where(x < xp[0], fp[0], f)
+    return jnp.where(x > xp[-1], fp[-1], f)
 
 
 def height_at(profile: jax.Array, grid: Grid, x: jax.Array) -> jax.Array:
