@@ -1,0 +1,85 @@
+#!/bin/bash
+# Keep a device call's carried tree under its 64 MiB: everything under docs/ but one carried run's
+# folder goes to .aside/ (git-ignored, so it is not carried, and it stays in the checkout), and so,
+# with --no-mujoco-core, does MuJoCo's 9.7 MB compiled wheel (a 2-D walker run imports no MuJoCo; the
+# mujoco and mujoco_mjx wheels stay, because `python -m shed_jax` checks that they are installed).
+# With --gpu MODEL (a call that names its kind, e.g. nvidia-h100-x1 -> h100), the folder's caches for
+# other GPU models go aside too: FOLDER/cache.tgz.* when FOLDER/gpu-MODEL/ exists, and other gpu-*/.
+# Run from the repository root:
+#   bash experiments/slim_tree.sh [--no-mujoco-core] [--gpu MODEL] FOLDER   # before the call(s)
+#   bash experiments/slim_tree.sh --restore                   # after adopt_piece.sh
+# docs/ must have no uncommitted changes outside FOLDER, so that nothing but moves happens; commit
+# only FOLDER (`git add FOLDER`, never `git commit -a`) while the rest is aside.
+set -u
+usage="usage: bash experiments/slim_tree.sh [--no-mujoco-core] FOLDER | --restore"
+aside=.aside
+size() {  # what a call carries: tracked and untracked-unignored files, and the wheels
+  local tree whl
+  tree=$( (git ls-files -z; git ls-files -z --others --exclude-standard) | du -cb --files0-from=- 2>/dev/null | tail -1 | cut -f1)
+  whl=$(find .whl -type f -print0 2>/dev/null | du -cb --files0-from=- 2>/dev/null | tail -1 | cut -f1)
+  echo $(( ${tree:-0} + ${whl:-0} ))
+}
+git rev-parse --git-dir >/dev/null 2>&1 && [ -d docs ] || { echo "slim_tree: run it from the repository root"; exit 2; }
+grep -qx "/$aside/" .git/info/exclude 2>/dev/null || echo "/$aside/" >> .git/info/exclude
+if [ "${1:-}" = --restore ]; then
+  [ -d "$aside" ] || { echo "slim_tree: nothing is aside"; exit 0; }
+  # the carried folder's caches for other GPU models, back into it (a part the piece replaced is kept)
+  [ -d "$aside/docs/results" ] && for f in "$aside"/docs/results/*; do
+    [ -d "$f" ] && [ -d "docs/results/$(basename "$f")" ] || continue
+    for p in "$f"/*; do
+      q=docs/results/$(basename "$f")/$(basename "$p")
+      [ -e "$q" ] && { echo "slim_tree: $q exists in the tree too; left in $aside"; continue; }
+      mv "$p" "$q"
+    done
+  done
+  find "$aside" -depth -type d -empty -delete 2>/dev/null
+  if [ -d "$aside/docs" ]; then
+    (cd "$aside/docs" && find . -mindepth 1 -maxdepth 1 -print0) | while IFS= read -r -d '' p; do
+      [ "$p" = ./results ] && continue  # its entries, below
+      [ -e "docs/$p" ] && { echo "slim_tree: docs/${p#./} exists in the tree too; left in $aside"; continue; }
+      mv "$aside/docs/$p" "docs/$p"
+    done
+    [ -d "$aside/docs/results" ] && for p in "$aside"/docs/results/*; do
+      [ -e "$p" ] || continue
+      q=docs/results/$(basename "$p")
+      [ -e "$q" ] && { echo "slim_tree: $q exists in the tree too; left in $aside"; continue; }
+      mv "$p" "$q"
+    done
+  fi
+  [ -d "$aside/whl" ] && mkdir -p .whl && mv "$aside"/whl/* .whl/ 2>/dev/null
+  find "$aside" -depth -type d -empty -delete 2>/dev/null
+  [ -d "$aside" ] && echo "slim_tree: $aside still holds: $(find "$aside" -type f | head -3 | tr '\n' ' ')" && exit 1
+  echo "slim_tree: restored; the tree carries $(size) bytes with the wheels"
+  exit 0
+fi
+core=0 gpu=
+while [ $# -gt 1 ]; do
+  case $1 in
+    --no-mujoco-core) core=1; shift;;
+    --gpu) gpu=${2:-}; shift 2;;
+    *) break;;
+  esac
+done
+case $gpu in ''|h100|h200|a100) ;; *) echo "slim_tree: --gpu takes a model as experiments/gpu_model.sh names it (h100, h200, a100), got '$gpu'"; exit 2;; esac
+folder=${1:?$usage}
+folder=${folder%/}
+case $folder in docs/results/?*) ;; *) echo "slim_tree: FOLDER must be a folder under docs/results/, got '$folder'"; exit 2;; esac
+[ -d "$folder" ] || { echo "slim_tree: no folder $folder"; exit 2; }
+[ -e "$aside" ] && { echo "slim_tree: $aside exists: restore first (bash experiments/slim_tree.sh --restore)"; exit 2; }
+dirty=$(git status --porcelain -- docs ":(exclude)$folder" | head -3)
+[ -z "$dirty" ] || { echo "slim_tree: docs/ has uncommitted changes outside $folder (commit them first): $(echo "$dirty" | tr '\n' ' ')"; exit 2; }
+mkdir -p "$aside/docs/results"
+for p in docs/*; do [ "$p" = docs/results ] || mv "$p" "$aside/docs/"; done
+for p in docs/results/*; do [ "$p" = "$folder" ] || mv "$p" "$aside/docs/results/"; done
+if [ -n "$gpu" ]; then  # the folder's caches for other GPU models (restored with the folder's own path)
+  keep=$aside/$folder
+  for p in "$folder"/gpu-*; do
+    [ -d "$p" ] && [ "$p" != "$folder/gpu-$gpu" ] && mkdir -p "$keep" && mv "$p" "$keep/"
+  done
+  if [ -d "$folder/gpu-$gpu" ]; then for p in "$folder"/cache.tgz.*; do [ -e "$p" ] && mkdir -p "$keep" && mv "$p" "$keep/"; done; fi
+fi
+if [ "$core" = 1 ] && ls .whl/mujoco_core-*.whl >/dev/null 2>&1; then mkdir -p "$aside/whl" && mv .whl/mujoco_core-*.whl "$aside/whl/"; fi
+total=$(size)
+echo "slim_tree: docs/ holds only $folder; the tree carries $total bytes with the wheels (limit $(( 64 * 1024 * 1024 )))"
+[ "$total" -le $(( 64 * 1024 * 1024 )) ] || { echo "slim_tree: still over the 64 MiB a call carries"; exit 1; }
+exit 0

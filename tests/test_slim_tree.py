@@ -1,0 +1,92 @@
+"""experiments/slim_tree.sh: a device call's tree slimmed to one carried run's folder and restored,
+in a throwaway git repository."""
+import pathlib
+import shutil
+import subprocess
+
+SCRIPT = pathlib.Path(__file__).resolve().parents[1] / "experiments" / "slim_tree.sh"
+
+
+def _git(repo, *args):
+    return subprocess.run(["git", *args], cwd=repo, capture_output=True, text=True, check=True).stdout
+
+
+def _repo(tmp_path):
+    repo = tmp_path / "repo"
+    for rel, text in {"docs/guide.md": "guide", "docs/img/a.png": "png", "docs/results/run_inflight/ckpt.tgz.aa": "ckpt",
+                      "docs/results/other_inflight/cache.tgz.aa": "x" * 5000, "docs/results/r.json": "{}",
+                      "experiments/slim_tree.sh": SCRIPT.read_text(), "README.md": "readme"}.items():
+        (repo / rel).parent.mkdir(parents=True, exist_ok=True)
+        (repo / rel).write_text(text)
+    (repo / ".gitignore").write_text(".whl/\n")
+    _git(repo, "init", "-q")
+    _git(repo, "add", "-A")
+    _git(repo, "-c", "user.email=t@t", "-c", "user.name=t", "commit", "-qm", "init")
+    (repo / ".whl").mkdir()
+    for w in ("mujoco_core-4.0.0-cp312.whl", "mujoco_mjx-3.17.0-py3.whl", "orjson-3.13.0.whl"):
+        (repo / ".whl" / w).write_text(w)
+    return repo
+
+
+def _run(repo, *args):
+    return subprocess.run(["bash", "experiments/slim_tree.sh", *args], cwd=repo, capture_output=True, text=True, timeout=60)
+
+
+def _files(root):
+    return sorted(str(p.relative_to(root)) for p in root.rglob("*") if p.is_file() and ".git/" not in str(p.relative_to(root)) + "/")
+
+
+def test_slim_keeps_one_folder_and_restore_gives_the_tree_back(tmp_path):
+    repo = _repo(tmp_path)
+    before = _files(repo)
+    r = _run(repo, "--no-mujoco-core", "docs/results/run_inflight/")
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert sorted(str(p.relative_to(repo)) for p in (repo / "docs").rglob("*") if p.is_file()) == ["docs/results/run_inflight/ckpt.tgz.aa"]
+    assert sorted(p.name for p in (repo / ".whl").iterdir()) == ["mujoco_mjx-3.17.0-py3.whl", "orjson-3.13.0.whl"]
+    # what the call carries: README, .gitignore, the script, the folder and the two wheels left
+    carried = sum(len(p.read_text()) for p in (repo / "README.md", repo / ".gitignore", repo / "experiments/slim_tree.sh",
+                                              repo / "docs/results/run_inflight/ckpt.tgz.aa", *(repo / ".whl").iterdir()))
+    assert f"carries {carried} bytes" in r.stdout
+    assert ".aside" not in _git(repo, "status", "--porcelain", "--untracked-files=all")  # ignored, so not carried
+    assert _run(repo, "docs/results/run_inflight").returncode == 2  # twice: restore first
+    r = _run(repo, "--restore")
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert _files(repo) == before and not (repo / ".aside").exists()
+    assert _git(repo, "status", "--porcelain") == ""
+
+
+def test_refuses_uncommitted_docs_and_a_folder_outside_results(tmp_path):
+    repo = _repo(tmp_path)
+    (repo / "docs" / "guide.md").write_text("edited")
+    r = _run(repo, "docs/results/run_inflight")
+    assert r.returncode == 2 and "uncommitted changes outside docs/results/run_inflight" in r.stdout
+    assert (repo / "docs" / "results" / "other_inflight").is_dir()  # nothing moved
+    (repo / "docs" / "guide.md").write_text("guide")
+    # changes inside the folder itself are the point (a piece's parts, adopted)
+    (repo / "docs" / "results" / "run_inflight" / "ckpt.tgz.aa").write_text("new ckpt")
+    assert _run(repo, "docs/results/run_inflight").returncode == 0
+    assert _run(repo, "--restore").returncode == 0
+    r = _run(repo, "docs/guide.md")
+    assert r.returncode == 2 and "must be a folder under docs/results/" in r.stdout
+    shutil.rmtree(repo / "docs" / "results" / "other_inflight")
+    assert _run(repo, "docs/results/missing").returncode == 2
+
+
+def test_gpu_model_sets_the_folders_other_caches_aside_and_restore_puts_them_back(tmp_path):
+    repo = _repo(tmp_path)
+    run = repo / "docs" / "results" / "run_inflight"
+    for rel in ("cache.tgz.aa", "gpu-h100/cache.tgz.aa", "gpu-h100/aot_report.json", "gpu-h200/cache.tgz.aa"):
+        (run / rel).parent.mkdir(parents=True, exist_ok=True)
+        (run / rel).write_text(rel)
+    _git(repo, "add", "-A")
+    _git(repo, "-c", "user.email=t@t", "-c", "user.name=t", "commit", "-qm", "caches")
+    before = _files(repo)
+    r = _run(repo, "--gpu", "h100", "docs/results/run_inflight")
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert sorted(str(p.relative_to(run)) for p in run.rglob("*") if p.is_file()) == [
+        "ckpt.tgz.aa", "gpu-h100/aot_report.json", "gpu-h100/cache.tgz.aa"]
+    (run / "gpu-h100" / "cache.tgz.aa").write_text("the piece's new cache")  # adopted
+    r = _run(repo, "--restore")
+    assert r.returncode == 0 and "exists in the tree too" not in r.stdout, r.stdout + r.stderr
+    assert _files(repo) == before and (run / "gpu-h100" / "cache.tgz.aa").read_text() == "the piece's new cache"
+    assert _run(repo, "--gpu", "v100", "docs/results/run_inflight").returncode == 2
