@@ -39,9 +39,7 @@ if [ -f "$from/run.log" ]; then
   tr '\r' '\n' < "$from/run.log" | grep -a -E 'compiled in|^step |stopped at|still compiling' | tail -3
 fi
 if git rev-parse --git-dir >/dev/null 2>&1; then
-  tree=$( (git ls-files -z; git ls-files -z --others --exclude-standard) | du -cb --files0-from=- 2>/dev/null | tail -1 | cut -f1)
-  whl=$(du -cb .whl 2>/dev/null | tail -1 | cut -f1)
-  total=$(( ${tree:-0} + ${whl:-0} ))
+  total=$(bash "$(dirname "$0")/carried_size.sh")
   echo "the tree carries $total bytes with the wheels (limit $(( 64 * 1024 * 1024 )))"
   [ "$total" -le $(( 64 * 1024 * 1024 )) ] || echo "adopt_piece: over the 64 MiB a device call carries: move a folder that is not being run out of the tree for the call"
 fi

@@ -8,44 +8,26 @@
 # Run from the repository root:
 #   bash experiments/slim_tree.sh [--no-mujoco-core] [--gpu MODEL] FOLDER   # before the call(s)
 #   bash experiments/slim_tree.sh --restore                   # after adopt_piece.sh
-# docs/ must have no uncommitted changes outside FOLDER, so that nothing but moves happens; commit
-# only FOLDER (`git add FOLDER`, never `git commit -a`) while the rest is aside.
+# docs/ must have no uncommitted changes outside FOLDER, so that nothing but moves happens. Commit the
+# piece after --restore (`git add FOLDER`, never `git commit -a`): committed while its caches for other
+# GPU models are aside, the folder would record them as deleted.
 set -u
-usage="usage: bash experiments/slim_tree.sh [--no-mujoco-core] FOLDER | --restore"
+usage="usage: bash experiments/slim_tree.sh [--no-mujoco-core] [--gpu MODEL] FOLDER | --restore"
 aside=.aside
-size() {  # what a call carries: tracked and untracked-unignored files, and the wheels
-  local tree whl
-  tree=$( (git ls-files -z; git ls-files -z --others --exclude-standard) | du -cb --files0-from=- 2>/dev/null | tail -1 | cut -f1)
-  whl=$(find .whl -type f -print0 2>/dev/null | du -cb --files0-from=- 2>/dev/null | tail -1 | cut -f1)
-  echo $(( ${tree:-0} + ${whl:-0} ))
-}
+size() { bash "$(dirname "$0")/carried_size.sh"; }  # what a call carries, with the wheels
 git rev-parse --git-dir >/dev/null 2>&1 && [ -d docs ] || { echo "slim_tree: run it from the repository root"; exit 2; }
 grep -qx "/$aside/" .git/info/exclude 2>/dev/null || echo "/$aside/" >> .git/info/exclude
 if [ "${1:-}" = --restore ]; then
   [ -d "$aside" ] || { echo "slim_tree: nothing is aside"; exit 0; }
-  # the carried folder's caches for other GPU models, back into it (a part the piece replaced is kept)
-  [ -d "$aside/docs/results" ] && for f in "$aside"/docs/results/*; do
-    [ -d "$f" ] && [ -d "docs/results/$(basename "$f")" ] || continue
-    for p in "$f"/*; do
-      q=docs/results/$(basename "$f")/$(basename "$p")
-      [ -e "$q" ] && { echo "slim_tree: $q exists in the tree too; left in $aside"; continue; }
-      mv "$p" "$q"
-    done
-  done
-  find "$aside" -depth -type d -empty -delete 2>/dev/null
-  if [ -d "$aside/docs" ]; then
-    (cd "$aside/docs" && find . -mindepth 1 -maxdepth 1 -print0) | while IFS= read -r -d '' p; do
-      [ "$p" = ./results ] && continue  # its entries, below
-      [ -e "docs/$p" ] && { echo "slim_tree: docs/${p#./} exists in the tree too; left in $aside"; continue; }
-      mv "$aside/docs/$p" "docs/$p"
-    done
-    [ -d "$aside/docs/results" ] && for p in "$aside"/docs/results/*; do
-      [ -e "$p" ] || continue
-      q=docs/results/$(basename "$p")
-      [ -e "$q" ] && { echo "slim_tree: $q exists in the tree too; left in $aside"; continue; }
-      mv "$p" "$q"
-    done
-  fi
+  # docs/ back; the carried folder's entries set aside (its caches for other GPU models) back into it.
+  # Nothing in the tree is overwritten: an entry there already (a part the piece replaced) wins.
+  back() {  # FROM TO
+    if [ -d "$1" ] && [ -d "$2" ]; then
+      local p; for p in "$1"/*; do [ -e "$p" ] && back "$p" "$2/$(basename "$p")"; done
+    elif [ -e "$2" ]; then echo "slim_tree: ${2#./} exists in the tree too; left in $aside"
+    else mv "$1" "$2"; fi
+  }
+  [ -d "$aside/docs" ] && back "$aside/docs" docs
   [ -d "$aside/whl" ] && mkdir -p .whl && mv "$aside"/whl/* .whl/ 2>/dev/null
   find "$aside" -depth -type d -empty -delete 2>/dev/null
   [ -d "$aside" ] && echo "slim_tree: $aside still holds: $(find "$aside" -type f | head -3 | tr '\n' ' ')" && exit 1

@@ -15,7 +15,8 @@ def _repo(tmp_path):
     repo = tmp_path / "repo"
     for rel, text in {"docs/guide.md": "guide", "docs/img/a.png": "png", "docs/results/run_inflight/ckpt.tgz.aa": "ckpt",
                       "docs/results/other_inflight/cache.tgz.aa": "x" * 5000, "docs/results/r.json": "{}",
-                      "experiments/slim_tree.sh": SCRIPT.read_text(), "README.md": "readme"}.items():
+                      "experiments/slim_tree.sh": SCRIPT.read_text(),
+                      "experiments/carried_size.sh": SCRIPT.with_name("carried_size.sh").read_text(), "README.md": "readme"}.items():
         (repo / rel).parent.mkdir(parents=True, exist_ok=True)
         (repo / rel).write_text(text)
     (repo / ".gitignore").write_text(".whl/\n")
@@ -43,8 +44,9 @@ def test_slim_keeps_one_folder_and_restore_gives_the_tree_back(tmp_path):
     assert r.returncode == 0, r.stdout + r.stderr
     assert sorted(str(p.relative_to(repo)) for p in (repo / "docs").rglob("*") if p.is_file()) == ["docs/results/run_inflight/ckpt.tgz.aa"]
     assert sorted(p.name for p in (repo / ".whl").iterdir()) == ["mujoco_mjx-3.17.0-py3.whl", "orjson-3.13.0.whl"]
-    # what the call carries: README, .gitignore, the script, the folder and the two wheels left
+    # what the call carries: README, .gitignore, the scripts, the folder and the two wheels left
     carried = sum(len(p.read_text()) for p in (repo / "README.md", repo / ".gitignore", repo / "experiments/slim_tree.sh",
+                                              repo / "experiments/carried_size.sh",
                                               repo / "docs/results/run_inflight/ckpt.tgz.aa", *(repo / ".whl").iterdir()))
     assert f"carries {carried} bytes" in r.stdout
     assert ".aside" not in _git(repo, "status", "--porcelain", "--untracked-files=all")  # ignored, so not carried
@@ -89,4 +91,6 @@ def test_gpu_model_sets_the_folders_other_caches_aside_and_restore_puts_them_bac
     r = _run(repo, "--restore")
     assert r.returncode == 0 and "exists in the tree too" not in r.stdout, r.stdout + r.stderr
     assert _files(repo) == before and (run / "gpu-h100" / "cache.tgz.aa").read_text() == "the piece's new cache"
+    # committed after the restore, the piece changes only what it replaced (no cache recorded as deleted)
+    assert _git(repo, "status", "--porcelain", "--", "docs").split() == ["M", "docs/results/run_inflight/gpu-h100/cache.tgz.aa"]
     assert _run(repo, "--gpu", "v100", "docs/results/run_inflight").returncode == 2
