@@ -227,3 +227,42 @@ def test_velocity_passes_over_packed_manifolds_equal_the_passes_over_every_slot(
     short, crowded = run(2, "xla")
     np.testing.assert_array_equal(np.asarray(crowded), on > 2)
     assert not np.array_equal(np.asarray(short.normal_impulse), np.asarray(full.normal_impulse))
+
+
+def test_edge_constraints_of_several_polygons_are_each_polygons_own_in_polygon_order():
+    """Polygons are grouped by vertex count for one vmapped computation per group; the result must be
+    each solid polygon's own manifolds, in polygon order: a box, a triangle, a sensor and a box (groups
+    {0, 3} and {1}, so the contacts are put back in order) against edges and a box obstacle, equal to the
+    same model with every other polygon made a sensor."""
+    import dataclasses
+
+    from envs.physics2d.model import BodyState
+    from envs.physics2d.world import edge_constraints
+
+    box = ((-0.2, -0.1), (0.2, -0.1), (0.2, 0.1), (-0.2, 0.1))
+    tri = ((-0.15, -0.1), (0.15, -0.1), (0.0, 0.15))
+    polys = [physics2d.Polygon(0, box, 1.0, 0.5), physics2d.Polygon(1, tri, 1.0, 0.3),
+             physics2d.Polygon(2, box, 1.0, 0.2, sensor=True), physics2d.Polygon(3, box, 2.0, 0.8)]
+    cfg = physics2d.SolverConfig(dt=1 / 50, velocity_iterations=8, position_iterations=3, edge_contacts=2)
+    model = physics2d.make_model(4, polys, (), cfg)
+    f = lambda a: jnp.asarray(a, jnp.float32)  # noqa: E731
+    # bodies resting on (or just into) the ground at x = 0, 1, 2, 3; the last one on the obstacle
+    bodies = BodyState(com=f([[0.0, 0.095], [1.05, 0.09], [2.0, 0.09], [3.0, 0.39]]), angle=f([0.05, -0.1, 0.0, 0.02]),
+                       vel=f(np.zeros((4, 2))), omega=f(np.zeros(4)))
+    edges = f([[[-1.0, 0.0], [0.5, 0.0]], [[0.5, 0.0], [1.5, 0.0]], [[1.5, 0.0], [4.0, 0.0]], [[4.0, 0.0], [5.0, 0.0]]])
+    valid = jnp.asarray([True, True, True, False])
+    boxes, box_valid = f([[2.7, 3.3, 0.0, 0.3]]), jnp.asarray([True])
+    whole = edge_constraints(model, bodies, edges, valid, boxes, box_valid)
+    assert whole["on"].shape == (model.num_contacts,) == (3 * 2 * 2,)
+    per_point = [name for name in whole if name not in ("pairs", "box_pairs", "body", "friction")]
+    for j, k in enumerate(model.edge_polygons):
+        alone = [dataclasses.replace(p, sensor=p.sensor or i != k) for i, p in enumerate(polys)]
+        one = edge_constraints(physics2d.make_model(4, alone, (), cfg), bodies, edges, valid, boxes, box_valid)
+        assert bool(jnp.any(one["on"])), k  # each solid polygon touches something
+        for name in per_point:
+            np.testing.assert_array_equal(np.asarray(whole[name][4 * j:4 * j + 4]), np.asarray(one[name]), err_msg=f"{name} {k}")
+        assert whole["body"][4 * j:4 * j + 4] == one["body"] and whole["friction"][4 * j:4 * j + 4] == one["friction"]
+        for name in ("pairs", "box_pairs"):
+            np.testing.assert_array_equal(np.asarray(whole[name][k]), np.asarray(one[name][k]))
+    assert not np.asarray(whole["pairs"][2]).any() and not np.asarray(whole["box_pairs"][2]).any()  # the sensor
+    assert bool(whole["box_pairs"][3, 0]) and not np.asarray(whole["box_pairs"][:3]).any()

@@ -79,47 +79,68 @@ def edge_constraints(model: Model, bodies: BodyState, edges, valid, boxes=None, 
     ``face_b``, ``ref_normal``, ``ref_point``, ``clip`` (the manifold, world), ``key`` (E, 2) int32;
     plus ``pairs`` (num_polygons, S) bool: polygon k's manifold with edge s has points, and
     ``box_pairs`` (num_polygons, K) the same per box.
+
+    Polygons with the same vertex count are one vmapped computation (the walker's four leg boxes: one
+    set of GPU kernels and a quarter of the program instead of one copy per leg).
     """
     cfg = model.config
     k_edges = cfg.edge_contacts
     lc = np.asarray(model.local_com, np.float64)
     n_box = 0 if boxes is None else boxes.shape[0]
+    keys = fixture_keys(edges[:, 0, 0])
     if n_box:
-        box_keys = fixture_keys(boxes[:, 0], box=True)
-    parts, pairs, box_pairs = [], [], []
-    for k, poly in enumerate(model.polygons):
-        if k not in model.edge_polygons:
-            pairs.append(jnp.zeros((edges.shape[0],), bool))
-            box_pairs.append(jnp.zeros((n_box,), bool))
-            continue
-        i = poly.body
-        local = np.asarray(poly.vertices, np.float64) - lc[i]
-        verts = bodies.com[i] + rotate(bodies.angle[i], jnp.asarray(local, jnp.float32))
-        normals = rotate(bodies.angle[i], jnp.asarray(edg.polygon_normals(poly.vertices), jnp.float32))
-        _, centroid, _ = polygon_mass(np.asarray(poly.vertices, np.float64), 1.0)  # Box2D's m_centroid
-        centroid = bodies.com[i] + rotate(bodies.angle[i], jnp.asarray(centroid - lc[i], jnp.float32))
+        keys = jnp.concatenate([keys, fixture_keys(boxes[:, 0], box=True)])
+
+    def manifolds(verts, normals, centroid):  # one polygon against every edge and box
         m = edg.polygon_edges_manifolds(edges, valid, verts, normals, centroid, cfg.contact_radius)
-        pairs.append(m["on"][:, 0])
-        keys = fixture_keys(edges[:, 0, 0])
+        pairs, box_pairs = m["on"][:, 0], jnp.zeros((0,), bool)
         if n_box:
             mb = pg.polygon_obstacles_manifolds(boxes, box_valid, verts, normals, centroid, cfg.contact_radius)
-            box_pairs.append(mb["on"][:, 0])
+            box_pairs = mb["on"][:, 0]
             m = {name: jnp.concatenate([m[name], mb[name]]) for name in m}
-            keys = jnp.concatenate([keys, box_keys])
         sel = edg.select_edges(m, k_edges)  # leaves (K, 2, ...) per point or (K, ...) per manifold
         edge_key = jnp.sum(jnp.where(jnp.arange(keys.shape[0])[None] == sel["edge"][:, None], keys[None], 0), 1)
         two = lambda a: jnp.repeat(a, 2, axis=0)  # per manifold -> per point
-        parts.append(dict(
-            on=sel["on"].reshape(-1), normal=two(sel["normal"]), point=sel["point"].reshape(-1, 2),
-            face_b=two(sel["face_b"]), ref_normal=two(sel["ref_normal"]), ref_point=two(sel["ref_point"]),
-            clip=sel["clip"].reshape(-1, 2),
-            key=jnp.stack([two(edge_key), sel["id"].reshape(-1)], -1)))
-    out = {name: jnp.concatenate([q[name] for q in parts]) for name in parts[0]}
+        part = dict(on=sel["on"].reshape(-1), normal=two(sel["normal"]), point=sel["point"].reshape(-1, 2),
+                    face_b=two(sel["face_b"]), ref_normal=two(sel["ref_normal"]), ref_point=two(sel["ref_point"]),
+                    clip=sel["clip"].reshape(-1, 2), key=jnp.stack([two(edge_key), sel["id"].reshape(-1)], -1))
+        return pairs, box_pairs, part
+
+    by_count = {}
+    for k in model.edge_polygons:
+        by_count.setdefault(len(model.polygons[k].vertices), []).append(k)
+    order, pairs, box_pairs, parts = [], [], [], []
+    for ks in by_count.values():
+        polys = [model.polygons[k] for k in ks]
+        i = np.asarray([p.body for p in polys], np.int32)
+        local = jnp.asarray(np.stack([np.asarray(p.vertices, np.float64) - lc[p.body] for p in polys]), jnp.float32)
+        normals = jnp.asarray(np.stack([edg.polygon_normals(p.vertices) for p in polys]), jnp.float32)
+        centroid = jnp.asarray(np.stack([polygon_mass(np.asarray(p.vertices, np.float64), 1.0)[1] - lc[p.body]  # Box2D's m_centroid
+                                         for p in polys]), jnp.float32)
+        com, angle = bodies.com[i], bodies.angle[i]
+        p_g, bp_g, part_g = jax.vmap(manifolds)(com[:, None] + rotate(angle[:, None], local),
+                                               rotate(angle[:, None], normals), com + rotate(angle, centroid))
+        order += ks
+        pairs.append(p_g)
+        box_pairs.append(bp_g)
+        parts.append(part_g)
+    # back to polygon order: contacts follow edge_polygons, and pair rows of polygons without edge
+    # contacts are False
+    cat = lambda xs: jnp.concatenate(xs) if len(xs) > 1 else xs[0]  # noqa: E731
+    pairs, box_pairs = cat(pairs), cat(box_pairs)  # (solid polygons, S), (solid polygons, K), in ``order``
+    part = {name: cat([q[name] for q in parts]) for name in parts[0]}
+    perm = [order.index(k) for k in model.edge_polygons]
+    if perm != list(range(len(order))):
+        part = {name: leaf[np.asarray(perm)] for name, leaf in part.items()}
+    out = {name: leaf.reshape((-1,) + leaf.shape[2:]) for name, leaf in part.items()}  # (E, ...)
+    if order != list(range(len(model.polygons))):
+        row = {k: j for j, k in enumerate(order)}
+        pairs, box_pairs = (jnp.stack([x[row[k]] if k in row else jnp.zeros(x.shape[1:], bool)
+                                       for k in range(len(model.polygons))]) for x in (pairs, box_pairs))
     out["body"] = tuple(model.polygons[k].body for k in model.edge_polygons for _ in range(2 * k_edges))
     out["friction"] = tuple(float(np.sqrt(model.polygons[k].friction * cfg.ground_friction))  # Box2D mixing
                             for k in model.edge_polygons for _ in range(2 * k_edges))
-    out["pairs"] = jnp.stack(pairs)
-    out["box_pairs"] = jnp.stack(box_pairs) if n_box else jnp.zeros((len(model.polygons), 0), bool)
+    out["pairs"], out["box_pairs"] = pairs, box_pairs
     return out
 
 
