@@ -35,6 +35,18 @@ def point_segment_distance(p, a, b):
     return jnp.sqrt(dot(r, r))
 
 
+def _fold(fn, x, axes: int = 1):
+    """``fn``-reduce (``jnp.minimum`` or ``jnp.maximum``) ``x`` over its last ``axes`` axes as a chain of
+    elementwise ops: on a GPU XLA fuses it with its operands into one kernel, where a reduce over a
+    handful of vertices is a kernel of its own (the bisection steps below run eight in a row).
+    Exact either way: the min and max of floats do not depend on the order."""
+    x = x.reshape(x.shape[:x.ndim - axes] + (-1,))
+    out = x[..., 0]
+    for i in range(1, x.shape[-1]):
+        out = fn(out, x[..., i])
+    return out
+
+
 def _faces(v):
     """A convex shape's faces v_i -> v_{i+1} (a two-vertex shape has both orientations of its segment)."""
     return v, jnp.roll(v, -1, axis=-2)
@@ -48,7 +60,7 @@ def _max_face_separation(p, q):
     n = jnp.stack([e[..., 1], -e[..., 0]], -1)
     n = n / jnp.sqrt(jnp.maximum(dot(n, n), 1e-30))[..., None]
     s = dot(q[..., None, :, :] - a[..., :, None, :], n[..., :, None, :])  # (..., n, m)
-    return jnp.max(jnp.min(s, -1), -1)
+    return _fold(jnp.maximum, _fold(jnp.minimum, s))
 
 
 def convex_distance(p, q):
@@ -59,7 +71,7 @@ def convex_distance(p, q):
     qa, qb = _faces(q)
     d_pq = point_segment_distance(p[..., :, None, :], qa[..., None, :, :], qb[..., None, :, :])  # (..., n, m)
     d_qp = point_segment_distance(q[..., :, None, :], pa[..., None, :, :], pb[..., None, :, :])  # (..., m, n)
-    d = jnp.minimum(jnp.min(d_pq, (-2, -1)), jnp.min(d_qp, (-2, -1)))
+    d = jnp.minimum(_fold(jnp.minimum, d_pq, 2), _fold(jnp.minimum, d_qp, 2))
     return jnp.where(gap, d, 0.0)
 
 
