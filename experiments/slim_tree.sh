@@ -20,12 +20,24 @@ grep -qx "/$aside/" .git/info/exclude 2>/dev/null || echo "/$aside/" >> .git/inf
 if [ "${1:-}" = --restore ]; then
   [ -d "$aside" ] || { echo "slim_tree: nothing is aside"; exit 0; }
   # docs/ back; the carried folder's entries set aside (its caches for other GPU models) back into it.
-  # Nothing in the tree is overwritten: an entry there already (a part the piece replaced) wins.
+  # Nothing in the tree is overwritten: an entry there already (a part the piece replaced) wins, and
+  # a split archive's parts (NAME.tgz.aa, .ab, ...) go back only if the tree holds none of that set.
+  shopt -s dotglob
   back() {  # FROM TO
+    local p set
     if [ -d "$1" ] && [ -d "$2" ]; then
-      local p; for p in "$1"/*; do [ -e "$p" ] && back "$p" "$2/$(basename "$p")"; done
+      for p in "$1"/*; do [ -e "$p" ] && back "$p" "$2/$(basename "$p")"; done
     elif [ -e "$2" ]; then echo "slim_tree: ${2#./} exists in the tree too; left in $aside"
-    else mv "$1" "$2"; fi
+    else
+      case $(basename "$1") in
+        *.tgz.??) set=$(basename "$1" | sed 's/\.tgz\...$/.tgz./')  # the whole set moves, or none of it
+          if ls "$(dirname "$2")/$set"* >/dev/null 2>&1; then
+            echo "slim_tree: $(dirname "${2#./}") holds other parts of $set*; its set-aside parts left in $aside"; return
+          fi
+          mv "$(dirname "$1")/$set"* "$(dirname "$2")/";;
+        *) mv "$1" "$2";;
+      esac
+    fi
   }
   [ -d "$aside/docs" ] && back "$aside/docs" docs
   [ -d "$aside/whl" ] && mkdir -p .whl && mv "$aside"/whl/* .whl/ 2>/dev/null

@@ -266,3 +266,9 @@ def test_edge_constraints_of_several_polygons_are_each_polygons_own_in_polygon_o
             np.testing.assert_array_equal(np.asarray(whole[name][k]), np.asarray(one[name][k]))
     assert not np.asarray(whole["pairs"][2]).any() and not np.asarray(whole["box_pairs"][2]).any()  # the sensor
     assert bool(whole["box_pairs"][3, 0]) and not np.asarray(whole["box_pairs"][:3]).any()
+    # without boxes: the contacts of a box list none of which exists, and (polygons, 0) box pairs
+    bare = edge_constraints(model, bodies, edges, valid)
+    gone = edge_constraints(model, bodies, edges, valid, boxes, jnp.asarray([False]))
+    assert bare["box_pairs"].shape == (4, 0) and not bool(jnp.any(bare["on"][8:]))  # body 3 stands on the box
+    for name in per_point + ["pairs"]:
+        np.testing.assert_array_equal(np.asarray(bare[name]), np.asarray(gone[name]), err_msg=name)

@@ -94,3 +94,25 @@ def test_gpu_model_sets_the_folders_other_caches_aside_and_restore_puts_them_bac
     # committed after the restore, the piece changes only what it replaced (no cache recorded as deleted)
     assert _git(repo, "status", "--porcelain", "--", "docs").split() == ["M", "docs/results/run_inflight/gpu-h100/cache.tgz.aa"]
     assert _run(repo, "--gpu", "v100", "docs/results/run_inflight").returncode == 2
+
+
+def test_restore_keeps_a_split_archive_whole(tmp_path):
+    """A piece that ran on another GPU than the one named writes its one-part cache into the folder
+    itself, where the set-aside cache had two parts: restore must not put the old second part beside
+    the new first one (a corrupt mix), and leaves the old set aside, saying so."""
+    repo = _repo(tmp_path)
+    run = repo / "docs" / "results" / "run_inflight"
+    for rel in ("cache.tgz.aa", "cache.tgz.ab", "gpu-h100/cache.tgz.aa"):
+        (run / rel).parent.mkdir(parents=True, exist_ok=True)
+        (run / rel).write_text("old " + rel)
+    _git(repo, "add", "-A")
+    _git(repo, "-c", "user.email=t@t", "-c", "user.name=t", "commit", "-qm", "caches")
+    assert _run(repo, "--gpu", "h100", "docs/results/run_inflight").returncode == 0
+    assert not (run / "cache.tgz.aa").exists() and not (run / "cache.tgz.ab").exists()
+    (run / "cache.tgz.aa").write_text("new one-part cache")  # adopted from a piece on an H200
+    r = _run(repo, "--restore")
+    assert r.returncode == 1 and "holds other parts of cache.tgz." in r.stdout, r.stdout + r.stderr
+    assert sorted(p.name for p in run.glob("cache.tgz.*")) == ["cache.tgz.aa"]
+    assert (run / "cache.tgz.aa").read_text() == "new one-part cache"
+    assert sorted(p.name for p in (repo / ".aside" / "docs" / "results" / "run_inflight").iterdir()) == ["cache.tgz.aa", "cache.tgz.ab"]
+    assert (repo / "docs" / "guide.md").read_text() == "guide"  # the rest came back

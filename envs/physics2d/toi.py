@@ -38,8 +38,10 @@ def point_segment_distance(p, a, b):
 def _fold(fn, x, axes: int = 1):
     """``fn``-reduce (``jnp.minimum`` or ``jnp.maximum``) ``x`` over its last ``axes`` axes as a chain of
     elementwise ops: on a GPU XLA fuses it with its operands into one kernel, where a reduce over a
-    handful of vertices is a kernel of its own (the bisection steps below run eight in a row).
-    Exact either way: the min and max of floats do not depend on the order."""
+    handful of vertices is a kernel of its own (the bisection steps below run eight in a row). The
+    min and max of given floats do not depend on the order (NaN aside: none reach here); the operands
+    themselves may round differently when XLA fuses them differently, so a program's last bits can
+    change with it."""
     x = x.reshape(x.shape[:x.ndim - axes] + (-1,))
     out = x[..., 0]
     for i in range(1, x.shape[-1]):
