@@ -223,3 +223,21 @@ def test_time_of_impact_solve_with_the_steps_velocity_passes_follows_box2d():
         err = {it: np.abs(_shin_at_stump((x, y), (vx, vy), 10, angle=angle, omega=omega, toi_iterations=it)[0][:2]
                           - ref).max() for it in (box2d, 4)}
         assert err[box2d] < 2.5e-3 and err[4] > 8e-3, err
+
+
+def test_fold_is_the_reduce_on_a_cpu_and_an_elementwise_chain_for_a_gpu():
+    """``toi._fold``: the same minima and maxima as ``jnp.min``/``jnp.max`` over the last axes; lowered
+    for a CPU it is the reduce, lowered for a GPU a chain of elementwise ops with no reduce (which XLA
+    fuses into the surrounding kernel; checked on its lowering, which needs no GPU)."""
+    from envs.physics2d import toi
+
+    x = jnp.asarray(np.random.default_rng(0).normal(size=(5, 3, 4)), jnp.float32)
+    for fn, ref in ((jnp.minimum, jnp.min), (jnp.maximum, jnp.max)):
+        for axes in (1, 2):
+            want = np.asarray(ref(x, tuple(range(-axes, 0))))
+            np.testing.assert_array_equal(np.asarray(jax.jit(lambda y: toi._fold(fn, y, axes))(x)), want)
+            np.testing.assert_array_equal(np.asarray(toi._chain(fn, x.reshape(x.shape[:3 - axes] + (-1,)))), want)
+    lowered = {p: jax.jit(lambda y: toi._fold(jnp.minimum, y, 2)).trace(x).lower(lowering_platforms=(p,)).as_text()
+               for p in ("cpu", "cuda")}
+    assert "stablehlo.reduce" in lowered["cpu"] and "stablehlo.reduce" not in lowered["cuda"]
+    assert lowered["cuda"].count("stablehlo.minimum") == 11  # 12 values per row, 11 pairwise minima
