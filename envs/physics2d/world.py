@@ -106,11 +106,8 @@ def edge_constraints(model: Model, bodies: BodyState, edges, valid, boxes=None, 
                     clip=sel["clip"].reshape(-1, 2), key=jnp.stack([two(edge_key), sel["id"].reshape(-1)], -1))
         return pairs, box_pairs, part
 
-    by_count = {}
-    for k in model.edge_polygons:
-        by_count.setdefault(len(model.polygons[k].vertices), []).append(k)
     order, pairs, box_pairs, parts = [], [], [], []
-    for ks in by_count.values():
+    for ks in _by_vertex_count(model):
         polys = [model.polygons[k] for k in ks]
         i = np.asarray([p.body for p in polys], np.int32)
         local = jnp.asarray(np.stack([np.asarray(p.vertices, np.float64) - lc[p.body] for p in polys]), jnp.float32)
@@ -142,6 +139,15 @@ def edge_constraints(model: Model, bodies: BodyState, edges, valid, boxes=None, 
                             for k in model.edge_polygons for _ in range(2 * k_edges))
     out["pairs"], out["box_pairs"] = pairs, box_pairs
     return out
+
+
+def _by_vertex_count(model: Model) -> list[list[int]]:
+    """The solid polygons (``model.edge_polygons``) grouped by vertex count, each group in polygon order:
+    one vmapped computation per group gives fewer, larger GPU kernels than one copy per polygon."""
+    groups: dict[int, list[int]] = {}
+    for k in model.edge_polygons:
+        groups.setdefault(len(model.polygons[k].vertices), []).append(k)
+    return list(groups.values())
 
 
 def apply_impulse(model: Model, bodies: BodyState, body: int, impulse, point) -> BodyState:
@@ -531,10 +537,7 @@ def _toi_event(model: Model, sweep, end, shapes, ok, edges, valid, boxes, box_va
                                         candidates=cfg.toi_candidates, samples=cfg.toi_samples,
                                         bisections=cfg.toi_bisections, from_touching=cfg.toi_from_touching),
                       in_axes=(0, 0, 0, 0, 0, None, None))
-    by_count = {}  # polygons with the same vertex count in one vmapped search (fewer, larger GPU kernels)
-    for k in model.edge_polygons:
-        by_count.setdefault(len(model.polygons[k].vertices), []).append(k)
-    for ks in by_count.values():
+    for ks in _by_vertex_count(model):  # one vmapped search per group
         i = np.asarray([model.polygons[k].body for k in ks], np.int32)
         local = jnp.asarray(np.stack([np.asarray(model.polygons[k].vertices, np.float32) - lc[model.polygons[k].body]
                                       for k in ks]))
