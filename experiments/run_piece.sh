@@ -17,7 +17,8 @@
 # piece, packing included: the run stops PACK_S (45) seconds before it, which covers the checkpoint
 # the run writes when it stops (about 15 s for SHED on the 2-D walker) and the packing. Give it the
 # device call's limit_s less about 20 s: a call ended by its limit returns nothing of the piece. It exits with the run's exit code (75: stopped at
-# the time limit and saved; 0: finished, final evaluation included; 2: bad arguments). Copy those
+# the time limit and saved; 0: finished, final evaluation included; 2: bad arguments; 6: AOT_GATE=1
+# and the carried cache does not serve this host, nothing run). Copy those
 # back over FOLDER's parts (old parts removed first: the split may change) before the next piece.
 set -u
 usage="usage: OUT=DIR bash experiments/run_piece.sh FOLDER SECONDS"
@@ -43,9 +44,12 @@ fi
 export PYTHONUNBUFFERED=1 SHED_JAX_CACHE=$PWD/.cache/device
 [ -f "$dir/run.env" ] && set -a && . "$dir/run.env" && set +a
 # AOT_PROBE=1: first the parts of the run's cache key that only this GPU host knows, into
-# $OUT/aot_probe.json, so that a CPU host can compile the run's programs for it (experiments/aot_cache.py)
+# $OUT/aot_probe.json, so that a CPU host can compile the run's programs for it (experiments/aot_cache.py).
+# AOT_GATE=1 probes too, and runs nothing (exit 6) when the carried cache holds no initial state under
+# this host's key: its programs would compile again, which costs most of a call (SHED's chunk: 526 s).
 probe_tool=
-if [ "${AOT_PROBE:-0}" = 1 ]; then probe_tool=${TMPDIR:-/tmp}/aot_cache.$$.py; cp experiments/aot_cache.py "$probe_tool" || exit 4; fi
+case ${AOT_GATE:-0} in 0|1) ;; *) echo "run_piece: AOT_GATE must be 0 or 1, got '$AOT_GATE'"; exit 2;; esac
+if [ "${AOT_PROBE:-0}" = 1 ] || [ "${AOT_GATE:-0}" = 1 ]; then probe_tool=${TMPDIR:-/tmp}/aot_cache.$$.py; cp experiments/aot_cache.py "$probe_tool" || exit 4; fi
 # this host's GPU model (before the run's sources replace experiments/); RUN_PIECE_GPU= overrides it
 gpu=${RUN_PIECE_GPU-$(bash experiments/gpu_model.sh 2>/dev/null)}
 rm -rf shed_jax envs experiments && tar xzf "$dir/src.tgz" || exit 4
@@ -72,6 +76,15 @@ if [ -n "$gpu" ]; then
   if ls "$dir/gpu-$gpu"/cache.tgz.* >/dev/null 2>&1; then cache=$dir/gpu-$gpu; echo "run_piece: the cache for $gpu ($cache)"; fi
 fi
 if ls "$cache"/cache.tgz.* >/dev/null 2>&1; then cat "$cache"/cache.tgz.* | tar xzf -; fi
+probed_key() { python3 -c 'import json, sys; print(json.load(open(sys.argv[1]))["programs"]["jit_init_point"]["key"])' "$OUT/aot_probe.json" 2>/dev/null; }
+if [ -f "$OUT/aot_probe.json" ]; then  # does the carried cache serve this host?
+  key=$(probed_key)
+  if [ -n "$key" ] && [ -e ".cache/device/jax/$key-cache" ]; then echo "aot probe: the carried cache holds the initial state under this host's key"
+  else
+    echo "aot probe: the carried cache holds no initial state under this host's key ${key:0:40}: its programs will compile again"
+    if [ "${AOT_GATE:-0}" = 1 ]; then echo "run_piece: AOT_GATE=1, so no run (the folder is unchanged; aot_probe.json says this host's key parts)"; exit 6; fi
+  fi
+fi
 lim=$(( secs - ($(date +%s) - t0) - ${PACK_S:-45} ))
 [ "$lim" -gt 0 ] || { echo "run_piece: SECONDS=$secs leaves no time to run after set-up and packing"; exit 2; }
 # the run stops itself at lim and then writes its checkpoint (about 15-25 s); it is killed only if it
@@ -80,7 +93,7 @@ timeout -k 5 $(( lim + ${PACK_S:-45} - 12 )) python -m shed_jax run $what --keep
 rc=$?
 echo "rc $rc after $(( $(date +%s) - t0 )) s"
 if [ -f "$OUT/aot_probe.json" ]; then  # did the run itself compile (or find) the initial state under the probed key?
-  key=$(python3 -c 'import json, sys; print(json.load(open(sys.argv[1]))["programs"]["jit_init_point"]["key"])' "$OUT/aot_probe.json" 2>/dev/null)
+  key=$(probed_key)
   if [ -n "$key" ] && [ -e ".cache/device/jax/$key-cache" ]; then echo "aot probe: the run's initial state is in the cache under the probed key"
   else echo "aot probe: the cache holds no initial state under the probed key ${key:0:40}"; fi
 fi

@@ -203,6 +203,31 @@ def test_aot_probe_names_a_run_whose_initial_state_has_another_key(tmp_path, fol
     assert "the cache holds no initial state under the probed key jit_init_point-abc" in r.stdout
 
 
+@pytest.mark.parametrize("carried", [True, False])
+def test_aot_gate_runs_only_where_the_carried_cache_serves_this_host(tmp_path, folder, carried):
+    """AOT_GATE=1 probes, and starts the run only when the carried cache holds the initial state
+    under the key this host computes (the stub's probe says jit_init_point-abc)."""
+    _cache_archive(folder / "cache.tgz.aa", "jit_init_point-abc-cache" if carried else "jit_init_point-old-cache")
+    repo = _tree(tmp_path, folder)
+    shutil.copy(SCRIPT.with_name("aot_cache.py"), repo / "experiments" / "aot_cache.py")
+    r = _piece(tmp_path, repo, 1, AOT_GATE="1")
+    calls = (tmp_path / "stub.log").read_text().splitlines()
+    assert calls[0].split()[1] == "probe"
+    if carried:
+        assert r.returncode == 75, r.stdout + r.stderr
+        assert "holds the initial state under this host's key" in r.stdout and "--env lander" in calls[1]
+    else:
+        assert r.returncode == 6, r.stdout + r.stderr
+        assert "holds no initial state under this host's key jit_init_point-abc" in r.stdout
+        assert len(calls) == 1 and sorted(p.name for p in (tmp_path / "out1").iterdir()) == ["aot_probe.json", "aot_probe.log"]
+
+
+def test_aot_gate_takes_0_or_1(tmp_path, folder):
+    repo = _tree(tmp_path, folder)
+    r = _piece(tmp_path, repo, 1, AOT_GATE="yes")
+    assert r.returncode == 2 and r.stdout.strip() == "run_piece: AOT_GATE must be 0 or 1, got 'yes'"
+
+
 def test_without_aot_probe_nothing_is_probed(tmp_path, folder):
     repo = _tree(tmp_path, folder)
     r = _piece(tmp_path, repo, 1)
