@@ -225,19 +225,76 @@ def test_time_of_impact_solve_with_the_steps_velocity_passes_follows_box2d():
         assert err[box2d] < 2.5e-3 and err[4] > 8e-3, err
 
 
-def test_fold_is_the_reduce_on_a_cpu_and_an_elementwise_chain_for_a_gpu():
-    """``toi._fold``: the same minima and maxima as ``jnp.min``/``jnp.max`` over the last axes; lowered
-    for a CPU it is the reduce, lowered for a GPU a chain of elementwise ops with no reduce (which XLA
-    fuses into the surrounding kernel; checked on its lowering, which needs no GPU)."""
-    from envs.physics2d import toi
-
-    x = jnp.asarray(np.random.default_rng(0).normal(size=(5, 3, 4)), jnp.float32)
-    for fn, ref in ((jnp.minimum, jnp.min), (jnp.maximum, jnp.max)):
-        for axes in (1, 2):
-            want = np.asarray(ref(x, tuple(range(-axes, 0))))
-            np.testing.assert_array_equal(np.asarray(jax.jit(lambda y: toi._fold(fn, y, axes))(x)), want)
-            np.testing.assert_array_equal(np.asarray(toi._chain(fn, x.reshape(x.shape[:3 - axes] + (-1,)))), want)
-    lowered = {p: jax.jit(lambda y: toi._fold(jnp.minimum, y, 2)).trace(x).lower(lowering_platforms=(p,)).as_text()
+def test_sweep_distance_is_the_array_form_on_a_cpu_and_elementwise_for_a_gpu():
+    """``toi.sweep_distance``: its GPU form (every vertex and face a separate array) gives the array
+    form's distances (run here on the CPU: to float32 rounding, the arithmetic being the same), for
+    the search's sample grid and bisection shapes; lowered for a CPU it is the array form, lowered
+    for a GPU it has no reduce and no concatenate (which would each be a kernel of their own; checked
+    on the lowering, which needs no GPU)."""
+    rng = np.random.default_rng(0)
+    hx, hy = SHIN
+    local = jnp.asarray(box(hx, hy))
+    edges = rng.uniform(-0.6, 0.6, (5, 2, 2)).astype(np.float32)
+    boxes = np.stack([box(*rng.uniform(0.05, 0.3, 2), *rng.uniform(-0.5, 0.5, 2)) for _ in range(3)])
+    shapes = jnp.asarray(np.concatenate([toi.edge_shapes(edges), boxes]))  # 8 shapes, overlaps among them
+    c0, c1 = jnp.asarray([0.1, 0.4], jnp.float32), jnp.asarray([0.3, -0.2], jnp.float32)
+    a0, a1 = jnp.float32(0.3), jnp.float32(-0.4)
+    for t in (jnp.linspace(0.0, 1.0, 5)[:, None], jnp.asarray(rng.uniform(0, 1, 8), jnp.float32)):
+        args = (local, c0, a0, c1, a1, t, shapes)
+        want = np.asarray(jax.jit(toi._sweep_distance_arrays)(*args))
+        got = np.asarray(jax.jit(toi._sweep_distance_points)(*args))
+        assert got.shape == want.shape == np.broadcast_shapes(t.shape, (8,))
+        assert np.any(want == 0.0) and np.any(want > 0.004)  # both overlaps and gaps are compared
+        np.testing.assert_allclose(got, want, rtol=0, atol=2e-6)
+        np.testing.assert_array_equal(np.asarray(jax.jit(toi.sweep_distance)(*args)), want)
+    lowered = {p: jax.jit(toi.sweep_distance).trace(*args).lower(lowering_platforms=(p,)).as_text()
                for p in ("cpu", "cuda")}
-    assert "stablehlo.reduce" in lowered["cpu"] and "stablehlo.reduce" not in lowered["cuda"]
-    assert lowered["cuda"].count("stablehlo.minimum") == 11  # 12 values per row, 11 pairwise minima
+    assert "stablehlo.reduce" in lowered["cpu"]
+    assert "stablehlo.reduce" not in lowered["cuda"] and "stablehlo.concatenate" not in lowered["cuda"]
+
+
+def test_rounds_resolve_an_interval_as_bisections_would():
+    assert toi._rounds(8) == [16, 16] and toi._rounds(5) == [16, 2] and toi._rounds(1) == [2] and toi._rounds(0) == []
+    for b in range(13):
+        assert np.prod(toi._rounds(b), dtype=int) == 2 ** b
+
+
+def _bisected(local, c0, a0, c1, a1, shapes, samples=4, bisections=8):
+    """The search by plain bisection of the first sampled interval that ends below the target (the
+    method before the rounds): the reference for ``time_of_impact``'s crossing times."""
+    ts = jnp.linspace(0.0, 1.0, samples + 1, dtype=jnp.float32)
+    d = toi.sweep_distance(local, c0, a0, c1, a1, ts[:, None], shapes)
+    first = jnp.argmax(d[1:] < TARGET, 0)
+    lo, hi = ts[first], ts[first + 1]
+    for _ in range(bisections):
+        mid = 0.5 * (lo + hi)
+        up = toi.sweep_distance(local, c0, a0, c1, a1, mid, shapes) >= TARGET
+        lo, hi = jnp.where(up, mid, lo), jnp.where(up, hi, mid)
+    return lo
+
+
+def test_rounds_find_the_bisections_time_or_an_earlier_crossing():
+    """300 random sweeps of the shin towards an edge or a box: where the search reports an impact
+    it is at the time plain bisection finds, bit for bit, except where the distance dips under the
+    target more than once in the interval; there the rounds keep the earliest crossing (as Box2D's
+    conservative advancement does), so never a later time than bisection's."""
+    rng = np.random.default_rng(1)
+    local = jnp.asarray(box(*SHIN))
+    run = jax.jit(lambda *a: toi.time_of_impact(*a, TARGET, TOL))
+    ref = jax.jit(_bisected)
+    same = earlier = 0
+    for _ in range(300):
+        x1 = rng.uniform(0.2, 0.5)
+        q = np.array([(0.0, -0.5), (x1, -0.5), (x1, rng.uniform(-0.1, 0.1)), (0.0, 0.05)], np.float32)
+        a0 = rng.uniform(-0.6, 0.6)
+        c1 = np.array([rng.uniform(-0.2, 0.6), rng.uniform(0.3, 0.7)], np.float32)
+        c0 = c1 + np.array([rng.uniform(-0.3, 0.3), rng.uniform(0.0, 0.4)], np.float32)
+        c1 = c1 - np.array([0.0, rng.uniform(0.0, 0.4)], np.float32)
+        args = (local, jnp.asarray(c0), jnp.float32(a0), jnp.asarray(c1), jnp.float32(a0 + rng.uniform(-1.0, 1.0)),
+                jnp.asarray(q)[None])
+        alpha, touching = run(*args, jnp.ones((1,), bool))
+        if bool(touching[0]) and float(alpha[0]) > 0.0:
+            want = float(ref(*args)[0])
+            same += float(alpha[0]) == want
+            earlier += float(alpha[0]) < want
+    assert same + earlier >= 100 and earlier <= 0.05 * (same + earlier), (same, earlier)

@@ -9,10 +9,14 @@ falls to ``target = max(linear_slop, radius - 3 linear_slop)`` (0.005 m for two 
   * otherwise the first time the distance reaches ``target`` (``e_touching`` at t), or none in the
     step (``e_separated``).
 Instead of Box2D's separating-axis root finder (data-dependent loops) the distance is sampled at
-``samples`` equal fractions of the step and the first interval that falls below the target is
-bisected ``bisections`` times, keeping the time at which the distance is still at least the target
-(Box2D's answer lies within ``tolerance`` of that distance; 4 + 8 resolve a step to 1/1024, under
-1 mm at a walker's leg speeds). A pass that dips under the target between two samples and comes
+``samples`` equal fractions of the step, and the first interval that falls below the target is
+resolved to 2^-``bisections`` of its length, keeping the time at which the distance is still at
+least the target (Box2D's answer lies within ``tolerance`` of that distance; 4 + 8 resolve a step to
+1/1024, under 1 mm at a walker's leg speeds). It is resolved in rounds of up to ``ROUND_PARTS``
+equal parts, each round keeping the first part that ends below the target: the earliest crossing at
+that resolution, the cell bisection would find wherever the distance falls through the interval
+once (the same times, bit for bit, with a power-of-two ``samples``), in two dependent rounds instead
+of eight (on a GPU each is a few kernels). A pass that dips under the target between two samples and comes
 back out is missed (Box2D's conservative advancement catches it): about 1 in 200 random sweeps
 against pybox2d (tests/test_physics2d_toi.py). The distance is the exact Euclidean distance between the convex
 cores (0 when the separating-axis test finds no gap), the quantity Box2D's GJK returns. A sweep is
@@ -24,7 +28,7 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
-from envs.physics2d.vec import dot, rotate
+from envs.physics2d.vec import V2, dot, rotate
 
 
 def point_segment_distance(p, a, b):
@@ -34,29 +38,6 @@ def point_segment_distance(p, a, b):
     t = jnp.clip(dot(p - a, d) / jnp.where(dd > 0.0, dd, 1.0), 0.0, 1.0)
     r = p - a - t[..., None] * d
     return jnp.sqrt(dot(r, r))
-
-
-def _fold(fn, x, axes: int = 1):
-    """``fn``-reduce (``jnp.minimum`` or ``jnp.maximum``) ``x`` over its last ``axes`` axes. On a GPU as a
-    chain of elementwise ops, which XLA fuses with their operands into one kernel, where a reduce over
-    a handful of vertices is a kernel of its own (the bisection steps below run eight in a row); on a
-    CPU as the reduce, which XLA:CPU compiles faster (the 2-D walker's step at the suite's flags: 22 s
-    against 32 s). The min and max of given floats do not depend on the order (NaN aside: none reach
-    here), but the operands may round differently when XLA fuses them differently, so a GPU program's
-    last bits can change with the chain."""
-    x = x.reshape(x.shape[:x.ndim - axes] + (-1,))
-    return lax.platform_dependent(x, cpu=lambda y: _REDUCE[fn](y, -1), default=lambda y: _chain(fn, y))
-
-
-def _chain(fn, x):
-    """``fn`` over the last axis of ``x`` as a chain of elementwise ops."""
-    out = x[..., 0]
-    for i in range(1, x.shape[-1]):
-        out = fn(out, x[..., i])
-    return out
-
-
-_REDUCE = {jnp.minimum: jnp.min, jnp.maximum: jnp.max}
 
 
 def _faces(v):
@@ -72,7 +53,7 @@ def _max_face_separation(p, q):
     n = jnp.stack([e[..., 1], -e[..., 0]], -1)
     n = n / jnp.sqrt(jnp.maximum(dot(n, n), 1e-30))[..., None]
     s = dot(q[..., None, :, :] - a[..., :, None, :], n[..., :, None, :])  # (..., n, m)
-    return _fold(jnp.maximum, _fold(jnp.minimum, s))
+    return jnp.max(jnp.min(s, -1), -1)
 
 
 def convex_distance(p, q):
@@ -83,7 +64,7 @@ def convex_distance(p, q):
     qa, qb = _faces(q)
     d_pq = point_segment_distance(p[..., :, None, :], qa[..., None, :, :], qb[..., None, :, :])  # (..., n, m)
     d_qp = point_segment_distance(q[..., :, None, :], pa[..., None, :, :], pb[..., None, :, :])  # (..., m, n)
-    d = jnp.minimum(_fold(jnp.minimum, d_pq, 2), _fold(jnp.minimum, d_qp, 2))
+    d = jnp.minimum(jnp.min(d_pq, (-2, -1)), jnp.min(d_qp, (-2, -1)))
     return jnp.where(gap, d, 0.0)
 
 
@@ -96,6 +77,76 @@ def sweep_vertices(local, c0, a0, c1, a1, t):
     return c[..., None, :] + rotate(a[..., None], local)
 
 
+def sweep_distance(local, c0, a0, c1, a1, t, shapes):
+    """``convex_distance(sweep_vertices(local, c0, a0, c1, a1, t), shapes)``: the distance from the
+    polygon at sweep fractions ``t`` (leading axes broadcast against ``shapes``' (S,)) to each of
+    ``shapes`` (S, m, 2).
+
+    Lowered for a CPU it is those two functions on (..., n, 2) arrays. Lowered for a GPU it is the
+    same arithmetic on every vertex and face as separate arrays (``V2``), all elementwise, which XLA
+    fuses with its surroundings: in the array form the vertex stack, the faces' roll and the minima
+    over a few vertices are each a kernel, about five per evaluation, and the search's evaluations
+    depend on each other. XLA:CPU compiles long elementwise code slowly (minima as elementwise chains
+    made the 2-D walker's step compile in 32 s instead of 22 s), and a CPU has no kernel launches to
+    save. Where XLA fuses multiply-adds differently the two forms differ in the last bits."""
+    return lax.platform_dependent(local, c0, a0, c1, a1, t, shapes,
+                                  cpu=_sweep_distance_arrays, default=_sweep_distance_points)
+
+
+def _sweep_distance_arrays(local, c0, a0, c1, a1, t, shapes):
+    return convex_distance(sweep_vertices(local, c0, a0, c1, a1, t), shapes)
+
+
+def _sweep_distance_points(local, c0, a0, c1, a1, t, shapes):
+    t = jnp.asarray(t)
+    cx, cy = c0[0] + t * (c1[0] - c0[0]), c0[1] + t * (c1[1] - c0[1])
+    a = a0 + t * (a1 - a0)
+    cos, sin = jnp.cos(a), jnp.sin(a)
+    p = [V2(cx + (cos * local[i, 0] - sin * local[i, 1]), cy + (sin * local[i, 0] + cos * local[i, 1]))
+         for i in range(local.shape[0])]
+    q = [V2(shapes[:, j, 0], shapes[:, j, 1]) for j in range(shapes.shape[1])]
+    gap = jnp.maximum(_max_face_separation_points(p, q), _max_face_separation_points(q, p)) > 0.0
+    d = jnp.minimum(_min_vertex_face_distance(p, q), _min_vertex_face_distance(q, p))
+    return jnp.where(gap, d, 0.0)
+
+
+def _faces_points(v: list) -> list:
+    """``_faces`` for a vertex list: (v_i, v_{i+1})."""
+    return [(v[i], v[(i + 1) % len(v)]) for i in range(len(v))]
+
+
+def _max_face_separation_points(p: list, q: list):
+    """``_max_face_separation`` for vertex lists (``V2`` each)."""
+    best = None
+    for a, b in _faces_points(p):
+        e = b - a
+        nx, ny = e.y, -e.x
+        norm = jnp.sqrt(jnp.maximum(nx * nx + ny * ny, 1e-30))
+        nx, ny = nx / norm, ny / norm
+        worst = None
+        for v in q:
+            s = (v.x - a.x) * nx + (v.y - a.y) * ny
+            worst = s if worst is None else jnp.minimum(worst, s)
+        best = worst if best is None else jnp.maximum(best, worst)
+    return best
+
+
+def _min_vertex_face_distance(p: list, q: list):
+    """The least ``point_segment_distance`` from a vertex of ``p`` to a face of ``q`` (vertex lists)."""
+    out = None
+    for a, b in _faces_points(q):
+        d = b - a
+        dd = d.dot(d)
+        den = jnp.where(dd > 0.0, dd, 1.0)
+        for v in p:
+            r = v - a
+            t = jnp.clip(r.dot(d) / den, 0.0, 1.0)
+            r = r - d * t
+            dist = jnp.sqrt(r.dot(r))
+            out = dist if out is None else jnp.minimum(out, dist)
+    return out
+
+
 def time_of_impact(local, c0, a0, c1, a1, shapes, valid, target: float, tolerance: float,
                    samples: int = 4, bisections: int = 8, from_touching: bool = True):
     """The time of impact of one moving polygon with each static shape.
@@ -106,8 +157,7 @@ def time_of_impact(local, c0, a0, c1, a1, shapes, valid, target: float, toleranc
     (alpha 1 where not touching). ``from_touching=False`` drops the touching-at-the-start result.
     """
     ts = jnp.linspace(0.0, 1.0, samples + 1, dtype=jnp.float32)
-    verts = sweep_vertices(local, c0, a0, c1, a1, ts)  # (N + 1, n, 2)
-    d = convex_distance(verts[:, None], shapes[None])  # (N + 1, S)
+    d = sweep_distance(local, c0, a0, c1, a1, ts[:, None], shapes)  # (N + 1, S)
     d0 = d[0]
     start = valid & (d0 > 0.0) & (d0 < target + tolerance)
     below = d[1:] < target
@@ -115,18 +165,27 @@ def time_of_impact(local, c0, a0, c1, a1, shapes, valid, target: float, toleranc
     first = jnp.argmax(below, 0)  # the first sample interval that ends below the target
     lo, hi = ts[first], ts[first + 1]
 
-    def bisect(_, bounds):
-        lo, hi = bounds
-        mid = 0.5 * (lo + hi)
-        dm = convex_distance(sweep_vertices(local, c0, a0, c1, a1, mid), shapes)
-        up = dm >= target
-        return jnp.where(up, mid, lo), jnp.where(up, hi, mid)
-
-    lo, hi = jax.lax.fori_loop(0, bisections, bisect, (lo, hi), unroll=True)
+    for k in _rounds(bisections):  # the interval in k equal parts, the first one that ends below the target
+        w = (hi - lo) / k  # exact when samples is a power of two: every bound is then a dyadic fraction
+        t = lo + jnp.arange(1, k, dtype=jnp.float32)[:, None] * w  # (k - 1, S)
+        below = sweep_distance(local, c0, a0, c1, a1, t, shapes) < target
+        j = jnp.where(jnp.any(below, 0), jnp.argmax(below, 0) + 1, k)  # hi ends the last part
+        lo, hi = lo + (j - 1) * w, jnp.where(j == k, hi, lo + j * w)
     if not from_touching:
         start = jnp.zeros_like(start)
     touching = start | cross
     return jnp.where(start, 0.0, jnp.where(cross, lo, 1.0)), touching
+
+
+#: sub-intervals per refinement round of the time-of-impact search (a power of two)
+ROUND_PARTS = 16
+
+
+def _rounds(bisections: int) -> list[int]:
+    """The parts of each refinement round that resolve an interval as ``bisections`` halvings would:
+    ``ROUND_PARTS`` at a time, the rest in the last round (8 -> [16, 16], 5 -> [16, 2])."""
+    step = ROUND_PARTS.bit_length() - 1
+    return [2 ** min(step, bisections - b) for b in range(0, bisections, step)]
 
 
 def edge_shapes(edges):
