@@ -399,6 +399,10 @@ def chunk_sizes(chunk: int, done: int, total: int) -> list[int]:
     return sizes
 
 
+#: the programs ``compile_batch`` compiles, as JAX names them: the initial state and the chunk
+RUN_PROGRAMS = ("jit_init_point", "jit_chunk")
+
+
 def say(text: str) -> None:
     print(text, flush=True)
 
@@ -427,8 +431,19 @@ def compile_batch(batch: Batch, placed: Placed, done: int, state=None, say: Call
             state = init(*sharding.put_batch(placed.inputs, placed.mesh))
         return state, {n: lower_from_clean_caches(run_chunk, state, n, done).compile() for n in sizes}
 
-    state, compiled = in_worker(lambda: compile_all(state), heartbeat=HEARTBEAT_S)
-    say(f"[shed_jax] compiled in {time.time() - t0:.1f} s")
+    cached = []
+
+    def looked_up(program: str, hit: bool, key: str) -> None:  # in the compile worker
+        if program in RUN_PROGRAMS:
+            if hit:
+                cached.append(program)
+            else:  # at once: the compile that follows may take minutes
+                say(f"[shed_jax] {program} is not in the compilation cache (key {key[:48]}...): compiling it")
+
+    with runtime.cache_lookups(looked_up):
+        state, compiled = in_worker(lambda: compile_all(state), heartbeat=HEARTBEAT_S)
+    read = f" ({', '.join(cached)} read from the compilation cache)" if cached else ""
+    say(f"[shed_jax] compiled in {time.time() - t0:.1f} s{read}")
     return state, compiled
 
 

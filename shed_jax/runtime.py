@@ -15,10 +15,13 @@
 """
 from __future__ import annotations
 
+import contextlib
+import logging
 import os
 import pathlib
 import sys
 from collections import Counter
+from typing import Callable
 
 CACHE_VARIABLE = "SHED_JAX_CACHE"
 
@@ -123,6 +126,42 @@ def call_site_free_locations() -> bool:
     if "JAX_INCLUDE_FULL_TRACEBACKS_IN_LOCATIONS" not in os.environ:
         jax.config.update("jax_include_full_tracebacks_in_locations", False)
     return not jax.config.jax_include_full_tracebacks_in_locations
+
+
+# JAX logs each persistent-cache lookup at debug level, as "<prefix> '<program>' with key <key>"
+_COMPILER_LOG = "jax._src.compiler"
+_LOOKUP_PREFIXES = {"Persistent compilation cache hit for": True, "PERSISTENT COMPILATION CACHE MISS for": False}
+
+
+@contextlib.contextmanager
+def cache_lookups(on_lookup: Callable[[str, bool, str], None]):
+    """While the block runs, ``on_lookup(program, hit, key)`` for each lookup JAX makes in its
+    persistent compilation cache (in any thread), e.g. ``("jit_chunk", False, "jit_chunk-4f0c...")``.
+
+    Why: a program that should have been read from a carried cache but is compiled again costs
+    minutes; without this, only the time it takes says so. JAX reports lookups only in its debug log
+    (``jax._src.compiler``): the block lowers that logger's level to DEBUG and reads the two lookup
+    lines in a filter, which passes on nothing that the logger's level before the block would not
+    have passed."""
+    logger = logging.getLogger(_COMPILER_LOG)
+    level, floor = logger.level, logger.getEffectiveLevel()
+
+    class Lookups(logging.Filter):
+        def filter(self, record: logging.LogRecord) -> bool:
+            msg = record.msg if isinstance(record.msg, str) else ""
+            for prefix, hit in _LOOKUP_PREFIXES.items():
+                if msg.startswith(prefix) and isinstance(record.args, tuple) and len(record.args) == 2:
+                    on_lookup(str(record.args[0]), hit, str(record.args[1]))
+            return record.levelno >= floor
+
+    lookups = Lookups()
+    logger.addFilter(lookups)
+    logger.setLevel(logging.DEBUG)
+    try:
+        yield
+    finally:
+        logger.removeFilter(lookups)
+        logger.setLevel(level)
 
 
 def pad_kernels_to(worlds: int) -> int:

@@ -86,6 +86,11 @@ def test_progress_says_compiling_and_each_post_run_stage(finished):
     compiled = index("[shed_jax] compiled in ")
     assert compiling < compiled < index("step     1/4") < index("step     4/4")
     assert float(lines[compiled].split("compiled in ")[1].split(" s")[0]) >= 0
+    from shed_jax.driver import RUN_PROGRAMS
+    for program in RUN_PROGRAMS:  # each looked up in the persistent cache: compiled (said at once) or read (named)
+        missed = any(f"[shed_jax] {program} is not in the compilation cache (key {program}-" in line
+                     for line in lines[compiling:compiled])
+        assert missed != (program in lines[compiled]), out
     done = index("[shed_jax] training done (4/4 budget steps); writing the plots and summary.json")
     final = index("[shed_jax] final evaluation on 'test': 2 level(s) x 2 seed(s) x 3 episode(s)")
     gif = index("[shed_jax] rendering a GIF of seed 0's final student")

@@ -176,3 +176,35 @@ def test_without_jax_a_command_help_is_the_missing_line_not_a_traceback():
         assert out.returncode == rc, out.stderr
         assert "Traceback" not in out.stderr and "missing package(s): jax-gone;" in out.stderr
     assert "demo" in out.stdout and " run " not in out.stdout  # the top-level help lists what can run
+
+
+def test_cache_lookups_report_a_miss_then_a_hit_and_leak_no_debug_lines(tmp_path):
+    """``runtime.cache_lookups``: a program compiled into an empty persistent cache is a miss, the same
+    program after the in-memory caches are cleared a hit under the same key; JAX's debug lines reach no
+    handler, and the logger's level is put back."""
+    code = """
+import logging, jax, jax.numpy as jnp
+from shed_jax import runtime
+leaked = []
+class Catch(logging.Handler):
+    def emit(self, record):
+        if record.name == "jax._src.compiler":
+            leaked.append(record.levelname)
+logging.getLogger().addHandler(Catch())
+def chunk(x):
+    return jnp.sin(x) * 3.0
+x = jnp.ones(3)
+seen = []
+with runtime.cache_lookups(lambda *a: seen.append(a)):
+    jax.jit(chunk)(x).block_until_ready()
+    jax.clear_caches()
+    jax.jit(chunk)(x).block_until_ready()
+print([(p, hit, key.startswith("jit_chunk-")) for p, hit, key in seen if p == "jit_chunk"])
+print(len({key for p, _, key in seen if p == "jit_chunk"}), leaked, logging.getLogger("jax._src.compiler").level)
+"""
+    r = _python(code, JAX_PLATFORMS="cpu", JAX_COMPILATION_CACHE_DIR=str(tmp_path),
+                JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0", JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES="-1")
+    assert r.returncode == 0, r.stderr
+    lines = r.stdout.splitlines()
+    assert lines[-2] == "[('jit_chunk', False, True), ('jit_chunk', True, True)]"
+    assert lines[-1] == "1 [] 0"
