@@ -17,8 +17,9 @@
 # piece, packing included: the run stops PACK_S (45) seconds before it, which covers the checkpoint
 # the run writes when it stops (about 15 s for SHED on the 2-D walker) and the packing. Give it the
 # device call's limit_s less about 20 s: a call ended by its limit returns nothing of the piece. It exits with the run's exit code (75: stopped at
-# the time limit and saved; 0: finished, final evaluation included; 2: bad arguments; 6: AOT_GATE=1
-# and the carried cache does not serve this host, nothing run). Copy those
+# the time limit and saved; 0: finished, final evaluation included; 2: bad arguments; 6 and 7:
+# AOT_GATE=1 and the carried cache does not serve this host, nothing run or the run stopped before
+# compiling its chunk). Copy those
 # back over FOLDER's parts (old parts removed first: the split may change) before the next piece.
 set -u
 usage="usage: OUT=DIR bash experiments/run_piece.sh FOLDER SECONDS"
@@ -89,8 +90,28 @@ lim=$(( secs - ($(date +%s) - t0) - ${PACK_S:-45} ))
 [ "$lim" -gt 0 ] || { echo "run_piece: SECONDS=$secs leaves no time to run after set-up and packing"; exit 2; }
 # the run stops itself at lim and then writes its checkpoint (about 15-25 s); it is killed only if it
 # has not exited 12 s before the packing must begin
-timeout -k 5 $(( lim + ${PACK_S:-45} - 12 )) python -m shed_jax run $what --keep 1 --no-gif --time-limit $lim > "$OUT/run.log" 2>&1
+# AOT_GATE=1 also stops the run as soon as its chunk proves not to be in the carried cache (the run's
+# own line, or JAX's, which JAX_EXPLAIN_CACHE_MISSES turns on for sources older than that line;
+# it is not part of any cache key): nothing is packed and the folder stays as it was (exit 7)
+[ "${AOT_GATE:-0}" = 1 ] && export JAX_EXPLAIN_CACHE_MISSES=1
+timeout -k 5 $(( lim + ${PACK_S:-45} - 12 )) python -m shed_jax run $what --keep 1 --no-gif --time-limit $lim > "$OUT/run.log" 2>&1 &
+pid=$!
+missed=0
+if [ "${AOT_GATE:-0}" = 1 ]; then
+  while kill -0 "$pid" 2>/dev/null; do
+    if grep -aqE "jit_chunk is not in the compilation cache|CACHE MISS for 'jit_chunk'" "$OUT/run.log"; then
+      missed=1; kill -TERM "$pid"; break
+    fi
+    grep -aq "compiled in" "$OUT/run.log" && break
+    sleep 2
+  done
+fi
+wait "$pid"
 rc=$?
+if [ "$missed" = 1 ]; then
+  echo "run_piece: AOT_GATE=1 and the chunk is not in the carried cache: the run was stopped before compiling it (the folder is unchanged; run.log says the key)"
+  exit 7
+fi
 echo "rc $rc after $(( $(date +%s) - t0 )) s"
 if [ -f "$OUT/aot_probe.json" ]; then  # did the run itself compile (or find) the initial state under the probed key?
   key=$(probed_key)

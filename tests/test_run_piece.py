@@ -25,6 +25,9 @@ mkdir -p .cache/device/jax
 echo cached > .cache/device/jax/entry
 echo kernels > .cache/device/jax/xla_gpu_kernel_cache_file
 [ -n "${STUB_NO_RUN:-}" ] && exit 1  # a compile cut off: no run directory, the cache alone
+if [ -n "${STUB_MISS:-}" ]; then  # the chunk is not in the cache: the run says so, then compiles for long
+  echo "$STUB_MISS"; echo "killed" > "$STUB_LOG.term"; sleep 60; rm "$STUB_LOG.term"; exit 0
+fi
 mkdir -p runs/x
 echo "piece $PIECE" > runs/x/state
 exit 75
@@ -220,6 +223,21 @@ def test_aot_gate_runs_only_where_the_carried_cache_serves_this_host(tmp_path, f
         assert r.returncode == 6, r.stdout + r.stderr
         assert "holds no initial state under this host's key jit_init_point-abc" in r.stdout
         assert len(calls) == 1 and sorted(p.name for p in (tmp_path / "out1").iterdir()) == ["aot_probe.json", "aot_probe.log"]
+
+
+@pytest.mark.parametrize("line", ["[shed_jax] jit_chunk is not in the compilation cache (key jit_chunk-ab...): compiling it",
+                                  "W1205 jax._src.compiler PERSISTENT COMPILATION CACHE MISS for 'jit_chunk' with key 'jit_chunk-ab'"])
+def test_aot_gate_stops_a_run_whose_chunk_is_not_in_the_carried_cache(tmp_path, folder, line):
+    """With AOT_GATE=1 a run that starts to compile its chunk (the run's own line, or JAX's for older
+    sources) is stopped at once: exit 7 within seconds, not the compile's minutes, and nothing packed."""
+    _cache_archive(folder / "cache.tgz.aa", "jit_init_point-abc-cache")
+    repo = _tree(tmp_path, folder)
+    shutil.copy(SCRIPT.with_name("aot_cache.py"), repo / "experiments" / "aot_cache.py")
+    r = _piece(tmp_path, repo, 1, AOT_GATE="1", STUB_MISS=line)
+    assert r.returncode == 7, r.stdout + r.stderr
+    assert "the chunk is not in the carried cache: the run was stopped before compiling it" in r.stdout
+    assert (tmp_path / "stub.log.term").exists()  # the stub was killed in its compile, not left to finish
+    assert not list((tmp_path / "out1").glob("*.tgz.*"))
 
 
 def test_aot_gate_takes_0_or_1(tmp_path, folder):
