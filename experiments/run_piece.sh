@@ -91,9 +91,11 @@ lim=$(( secs - ($(date +%s) - t0) - ${PACK_S:-45} ))
 # the run stops itself at lim and then writes its checkpoint (about 15-25 s); it is killed only if it
 # has not exited 12 s before the packing must begin
 # AOT_GATE=1 also stops the run as soon as its chunk proves not to be in the carried cache (the run's
-# own line, or JAX's, which JAX_EXPLAIN_CACHE_MISSES turns on for sources older than that line;
-# it is not part of any cache key): nothing is packed and the folder stays as it was (exit 7)
-[ "${AOT_GATE:-0}" = 1 ] && export JAX_EXPLAIN_CACHE_MISSES=1
+# own line, or for sources older than that line JAX's, which JAX_EXPLAIN_CACHE_MISSES turns on; it is
+# not part of any cache key, but it logs every trace): nothing is packed, the folder stays as it was (exit 7)
+if [ "${AOT_GATE:-0}" = 1 ] && ! grep -qs "is not in the compilation cache" shed_jax/driver.py; then
+  export JAX_EXPLAIN_CACHE_MISSES=1
+fi
 timeout -k 5 $(( lim + ${PACK_S:-45} - 12 )) python -m shed_jax run $what --keep 1 --no-gif --time-limit $lim > "$OUT/run.log" 2>&1 &
 pid=$!
 missed=0

@@ -435,7 +435,7 @@ def compile_batch(batch: Batch, placed: Placed, done: int, state=None, say: Call
 
     def looked_up(program: str, hit: bool, key: str) -> None:  # in the compile worker
         if program in RUN_PROGRAMS:
-            if hit:
+            if hit and program not in cached:
                 cached.append(program)
             else:  # at once: the compile that follows may take minutes
                 say(f"[shed_jax] {program} is not in the compilation cache (key {key[:48]}...): compiling it")

@@ -20,6 +20,7 @@ import logging
 import os
 import pathlib
 import sys
+import threading
 from collections import Counter
 from typing import Callable
 
@@ -133,6 +134,32 @@ _COMPILER_LOG = "jax._src.compiler"
 _LOOKUP_PREFIXES = {"Persistent compilation cache hit for": True, "PERSISTENT COMPILATION CACHE MISS for": False}
 
 
+class _CacheLookups(logging.Filter):
+    """The one filter on JAX's compiler logger while any ``cache_lookups`` block runs: calls every
+    block's callback for each lookup line, and passes on only what the logger's level before the
+    first block would have passed."""
+
+    def __init__(self, floor: int):
+        super().__init__()
+        self.floor = floor
+        self.callbacks: list = []
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        msg = record.msg if isinstance(record.msg, str) else ""
+        for prefix, hit in _LOOKUP_PREFIXES.items():
+            if msg.startswith(prefix) and isinstance(record.args, tuple) and len(record.args) == 2:
+                for callback in list(self.callbacks):
+                    try:
+                        callback(str(record.args[0]), hit, str(record.args[1]))
+                    except Exception:  # noqa: BLE001 - a report must never fail JAX's compile
+                        pass
+        return record.levelno >= self.floor
+
+
+_lookups_lock = threading.Lock()
+_lookups: list = []  # [the installed filter, the logger's level before it] while blocks run
+
+
 @contextlib.contextmanager
 def cache_lookups(on_lookup: Callable[[str, bool, str], None]):
     """While the block runs, ``on_lookup(program, hit, key)`` for each lookup JAX makes in its
@@ -140,28 +167,27 @@ def cache_lookups(on_lookup: Callable[[str, bool, str], None]):
 
     Why: a program that should have been read from a carried cache but is compiled again costs
     minutes; without this, only the time it takes says so. JAX reports lookups only in its debug log
-    (``jax._src.compiler``): the block lowers that logger's level to DEBUG and reads the two lookup
-    lines in a filter, which passes on nothing that the logger's level before the block would not
-    have passed."""
+    (``jax._src.compiler``): while blocks run, that logger's level is DEBUG and one filter reads the
+    two lookup lines, passing on nothing that the logger's level before would not have passed; the
+    last block to end puts the level back. Blocks may overlap, in any order and thread; an exception
+    in ``on_lookup`` is dropped, so a report cannot fail a compile."""
     logger = logging.getLogger(_COMPILER_LOG)
-    level, floor = logger.level, logger.getEffectiveLevel()
-
-    class Lookups(logging.Filter):
-        def filter(self, record: logging.LogRecord) -> bool:
-            msg = record.msg if isinstance(record.msg, str) else ""
-            for prefix, hit in _LOOKUP_PREFIXES.items():
-                if msg.startswith(prefix) and isinstance(record.args, tuple) and len(record.args) == 2:
-                    on_lookup(str(record.args[0]), hit, str(record.args[1]))
-            return record.levelno >= floor
-
-    lookups = Lookups()
-    logger.addFilter(lookups)
-    logger.setLevel(logging.DEBUG)
+    with _lookups_lock:
+        if not _lookups:
+            _lookups[:] = [_CacheLookups(logger.getEffectiveLevel()), logger.level]
+            logger.addFilter(_lookups[0])
+            logger.setLevel(logging.DEBUG)
+        _lookups[0].callbacks.append(on_lookup)
     try:
         yield
     finally:
-        logger.removeFilter(lookups)
-        logger.setLevel(level)
+        with _lookups_lock:
+            lookups, level = _lookups
+            lookups.callbacks.remove(on_lookup)
+            if not lookups.callbacks:
+                logger.removeFilter(lookups)
+                logger.setLevel(level)
+                _lookups.clear()
 
 
 def pad_kernels_to(worlds: int) -> int:

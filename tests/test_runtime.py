@@ -180,8 +180,9 @@ def test_without_jax_a_command_help_is_the_missing_line_not_a_traceback():
 
 def test_cache_lookups_report_a_miss_then_a_hit_and_leak_no_debug_lines(tmp_path):
     """``runtime.cache_lookups``: a program compiled into an empty persistent cache is a miss, the same
-    program after the in-memory caches are cleared a hit under the same key; JAX's debug lines reach no
-    handler, and the logger's level is put back."""
+    program after the in-memory caches are cleared a hit under the same key, also with a nested block
+    whose callback raises (the compile goes on); JAX's debug lines reach no handler, and the logger's
+    level is put back when the outer block ends."""
     code = """
 import logging, jax, jax.numpy as jnp
 from shed_jax import runtime
@@ -195,10 +196,14 @@ def chunk(x):
     return jnp.sin(x) * 3.0
 x = jnp.ones(3)
 seen = []
+def broken(*a):
+    raise BrokenPipeError("a report that fails")
 with runtime.cache_lookups(lambda *a: seen.append(a)):
     jax.jit(chunk)(x).block_until_ready()
     jax.clear_caches()
-    jax.jit(chunk)(x).block_until_ready()
+    with runtime.cache_lookups(broken):
+        jax.jit(chunk)(x).block_until_ready()
+    assert logging.getLogger("jax._src.compiler").level == logging.DEBUG  # the outer block still runs
 print([(p, hit, key.startswith("jit_chunk-")) for p, hit, key in seen if p == "jit_chunk"])
 print(len({key for p, _, key in seen if p == "jit_chunk"}), leaked, logging.getLogger("jax._src.compiler").level)
 """
