@@ -255,8 +255,11 @@ def test_sweep_distance_is_the_array_form_on_a_cpu_and_elementwise_for_a_gpu():
 
 def test_rounds_resolve_an_interval_as_bisections_would():
     assert toi._rounds(8) == [16, 16] and toi._rounds(5) == [16, 2] and toi._rounds(1) == [2] and toi._rounds(0) == []
+    assert toi._rounds(8, 2) == [2] * 8 and toi._rounds(8, 4) == [4] * 4
     for b in range(13):
         assert np.prod(toi._rounds(b), dtype=int) == 2 ** b
+    with pytest.raises(ValueError, match="parts per round must be a power of two >= 2, got 12"):
+        toi._rounds(8, 12)
 
 
 def _bisected(local, c0, a0, c1, a1, shapes, samples=4, bisections=8):
@@ -274,14 +277,16 @@ def _bisected(local, c0, a0, c1, a1, shapes, samples=4, bisections=8):
 
 
 def test_rounds_find_the_bisections_time_or_an_earlier_crossing():
-    """300 random sweeps of the shin towards an edge or a box: where the search reports an impact
-    it is at the time plain bisection finds, bit for bit, except where the distance dips under the
-    target more than once in the interval; there the rounds keep the earliest crossing (as Box2D's
-    conservative advancement does), so never a later time than bisection's."""
+    """300 random sweeps of the shin towards an edge or a box: where the search in rounds of 16 parts
+    (a GPU's) reports an impact it is at the time plain bisection finds, bit for bit, except where the
+    distance dips under the target more than once in the interval; there the rounds keep the earliest
+    crossing (as Box2D's conservative advancement does), so never a later time than bisection's. On
+    a CPU the search is bisection itself."""
     rng = np.random.default_rng(1)
     local = jnp.asarray(box(*SHIN))
-    run = jax.jit(lambda *a: toi.time_of_impact(*a, TARGET, TOL))
+    run = jax.jit(lambda *a: toi.time_of_impact(*a, TARGET, TOL, parts=16))  # a GPU's rounds
     ref = jax.jit(_bisected)
+    cpu_default = jax.jit(lambda *a: toi.time_of_impact(*a, TARGET, TOL))  # on a CPU: bisection
     same = earlier = later = 0
     for _ in range(300):
         x1 = rng.uniform(0.2, 0.5)
@@ -295,6 +300,7 @@ def test_rounds_find_the_bisections_time_or_an_earlier_crossing():
         alpha, touching = run(*args, jnp.ones((1,), bool))
         if bool(touching[0]) and float(alpha[0]) > 0.0:
             want = float(ref(*args)[0])
+            assert float(cpu_default(*args, jnp.ones((1,), bool))[0][0]) == want
             same += float(alpha[0]) == want
             earlier += float(alpha[0]) < want
             later += float(alpha[0]) > want

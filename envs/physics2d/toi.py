@@ -16,7 +16,9 @@ least the target (Box2D's answer lies within ``tolerance`` of that distance; 4 +
 equal parts, each round keeping the first part that ends below the target: the earliest crossing at
 that resolution, the cell bisection would find wherever the distance falls through the interval
 once (the same times, bit for bit, with a power-of-two ``samples``), in two dependent rounds instead
-of eight (on a GPU each is a few kernels). A pass that dips under the target between two samples and comes
+of eight (on a GPU each is a few kernels). Lowered for a CPU the rounds are halvings: bisection,
+which evaluates the distance 8 times instead of 30, and where the distance crosses the target twice
+may keep the later crossing. A pass that dips under the target between two samples and comes
 back out is missed (Box2D's conservative advancement catches it): about 1 in 200 random sweeps
 against pybox2d (tests/test_physics2d_toi.py). The distance is the exact Euclidean distance between the convex
 cores (0 when the separating-axis test finds no gap), the quantity Box2D's GJK returns. A sweep is
@@ -148,13 +150,16 @@ def _min_vertex_face_distance(p: list, q: list):
 
 
 def time_of_impact(local, c0, a0, c1, a1, shapes, valid, target: float, tolerance: float,
-                   samples: int = 4, bisections: int = 8, from_touching: bool = True):
+                   samples: int = 4, bisections: int = 8, from_touching: bool = True, parts: int | None = None):
     """The time of impact of one moving polygon with each static shape.
 
     ``local`` (n, 2) the polygon's vertices from its centre of mass (counter-clockwise); the sweep
     (c0 (2,), a0) -> (c1 (2,), a1) over one step; ``shapes`` (S, m, 2) static convex shapes, ``valid``
     (S,) bool. Returns (alpha (S,) in [0, 1], touching (S,) bool): Box2D's ``e_touching`` and its t
     (alpha 1 where not touching). ``from_touching=False`` drops the touching-at-the-start result.
+    ``parts``: sub-intervals per refinement round (a power of two); None: ``ROUND_PARTS`` lowered for
+    a GPU, where a round is a few kernel launches, and 2 (bisection) lowered for a CPU, where the
+    rounds' extra distance evaluations are time (a 2-D walker step took 72 % longer with 16).
     """
     ts = jnp.linspace(0.0, 1.0, samples + 1, dtype=jnp.float32)
     d = sweep_distance(local, c0, a0, c1, a1, ts[:, None], shapes)  # (N + 1, S)
@@ -165,12 +170,21 @@ def time_of_impact(local, c0, a0, c1, a1, shapes, valid, target: float, toleranc
     first = jnp.argmax(below, 0)  # the first sample interval that ends below the target
     lo, hi = ts[first], ts[first + 1]
 
-    for k in _rounds(bisections):  # the interval in k equal parts, the first one that ends below the target
-        w = (hi - lo) / k  # exact when samples is a power of two: every bound is then a dyadic fraction
-        t = lo + jnp.arange(1, k, dtype=jnp.float32)[:, None] * w  # (k - 1, S)
-        below = sweep_distance(local, c0, a0, c1, a1, t, shapes) < target
-        j = jnp.where(jnp.any(below, 0), jnp.argmax(below, 0) + 1, k)  # hi ends the last part
-        lo, hi = lo + (j - 1) * w, jnp.where(j == k, hi, lo + j * w)
+    def refine(parts):
+        def run(lo, hi):
+            for k in _rounds(bisections, parts):  # the interval in k equal parts, the first that ends below the target
+                w = (hi - lo) / k  # exact when samples is a power of two: every bound is then a dyadic fraction
+                t = lo + jnp.arange(1, k, dtype=jnp.float32)[:, None] * w  # (k - 1, S)
+                below = sweep_distance(local, c0, a0, c1, a1, t, shapes) < target
+                j = jnp.where(jnp.any(below, 0), jnp.argmax(below, 0) + 1, k)  # hi ends the last part
+                lo, hi = lo + (j - 1) * w, jnp.where(j == k, hi, lo + j * w)
+            return lo, hi
+        return run
+
+    if parts is None:
+        lo, hi = lax.platform_dependent(lo, hi, cpu=refine(2), default=refine(ROUND_PARTS))
+    else:
+        lo, hi = refine(parts)(lo, hi)
     if not from_touching:
         start = jnp.zeros_like(start)
     touching = start | cross
@@ -181,10 +195,12 @@ def time_of_impact(local, c0, a0, c1, a1, shapes, valid, target: float, toleranc
 ROUND_PARTS = 16
 
 
-def _rounds(bisections: int) -> list[int]:
+def _rounds(bisections: int, parts: int = ROUND_PARTS) -> list[int]:
     """The parts of each refinement round that resolve an interval as ``bisections`` halvings would:
-    ``ROUND_PARTS`` at a time, the rest in the last round (8 -> [16, 16], 5 -> [16, 2])."""
-    step = ROUND_PARTS.bit_length() - 1
+    ``parts`` at a time, the rest in the last round (8, 16 -> [16, 16]; 5, 16 -> [16, 2]; 2 parts: bisection)."""
+    if parts < 2 or parts & (parts - 1):
+        raise ValueError(f"time of impact: parts per round must be a power of two >= 2, got {parts}")
+    step = parts.bit_length() - 1
     return [2 ** min(step, bisections - b) for b in range(0, bisections, step)]
 
 
