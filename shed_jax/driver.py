@@ -403,6 +403,23 @@ def chunk_sizes(chunk: int, done: int, total: int) -> list[int]:
 RUN_PROGRAMS = ("jit_init_point", "jit_chunk")
 
 
+def cache_report(say: Callable):
+    """``(looked_up, cached)``: ``looked_up(program, hit, key)`` for ``runtime.cache_lookups`` says at
+    once when one of ``RUN_PROGRAMS`` is not in the compilation cache (the compile that follows may
+    take minutes) and lists in ``cached`` those read from it, each once."""
+    cached: list[str] = []
+
+    def looked_up(program: str, hit: bool, key: str) -> None:
+        if program not in RUN_PROGRAMS:
+            return
+        if not hit:
+            say(f"[shed_jax] {program} is not in the compilation cache (key {key[:48]}...): compiling it")
+        elif program not in cached:
+            cached.append(program)
+
+    return looked_up, cached
+
+
 def say(text: str) -> None:
     print(text, flush=True)
 
@@ -431,15 +448,7 @@ def compile_batch(batch: Batch, placed: Placed, done: int, state=None, say: Call
             state = init(*sharding.put_batch(placed.inputs, placed.mesh))
         return state, {n: lower_from_clean_caches(run_chunk, state, n, done).compile() for n in sizes}
 
-    cached = []
-
-    def looked_up(program: str, hit: bool, key: str) -> None:  # in the compile worker
-        if program in RUN_PROGRAMS:
-            if hit and program not in cached:
-                cached.append(program)
-            else:  # at once: the compile that follows may take minutes
-                say(f"[shed_jax] {program} is not in the compilation cache (key {key[:48]}...): compiling it")
-
+    looked_up, cached = cache_report(say)
     with runtime.cache_lookups(looked_up):
         state, compiled = in_worker(lambda: compile_all(state), heartbeat=HEARTBEAT_S)
     read = f" ({', '.join(cached)} read from the compilation cache)" if cached else ""

@@ -213,3 +213,18 @@ print(len({key for p, _, key in seen if p == "jit_chunk"}), leaked, logging.getL
     lines = r.stdout.splitlines()
     assert lines[-2] == "[('jit_chunk', False, True), ('jit_chunk', True, True)]"
     assert lines[-1] == "1 [] 0"
+
+
+def test_cache_report_says_each_miss_and_names_each_program_read_once():
+    """``driver.cache_report``: a miss of one of the run's programs is said at once; a program read
+    twice (two chunk lengths) is named once and never reported as a miss; other programs are ignored."""
+    from shed_jax import driver
+
+    said = []
+    looked_up, cached = driver.cache_report(said.append)
+    looked_up("jit_chunk", True, "jit_chunk-aa")
+    looked_up("jit_chunk", True, "jit_chunk-bb")
+    looked_up("jit_stack", False, "jit_stack-cc")
+    looked_up("jit_init_point", False, "jit_init_point-dd")
+    assert cached == ["jit_chunk"]
+    assert said == ["[shed_jax] jit_init_point is not in the compilation cache (key jit_init_point-dd...): compiling it"]
