@@ -50,7 +50,11 @@ export PYTHONUNBUFFERED=1 SHED_JAX_CACHE=$PWD/.cache/device
 # this host's key: its programs would compile again, which costs most of a call (SHED's chunk: 526 s).
 probe_tool=
 case ${AOT_GATE:-0} in 0|1) ;; *) echo "run_piece: AOT_GATE must be 0 or 1, got '$AOT_GATE'"; exit 2;; esac
-if [ "${AOT_PROBE:-0}" = 1 ] || [ "${AOT_GATE:-0}" = 1 ]; then probe_tool=${TMPDIR:-/tmp}/aot_cache.$$.py; cp experiments/aot_cache.py "$probe_tool" || exit 4; fi
+if [ "${AOT_PROBE:-0}" = 1 ] || [ "${AOT_GATE:-0}" = 1 ]; then
+  probe_tool=${TMPDIR:-/tmp}/aot_cache.$$.py
+  trap 'rm -f "$probe_tool"' EXIT  # the copy outlives the sources it came from, not the script
+  cp experiments/aot_cache.py "$probe_tool" || exit 4
+fi
 # this host's GPU model (before the run's sources replace experiments/); RUN_PIECE_GPU= overrides it
 gpu=${RUN_PIECE_GPU-$(bash experiments/gpu_model.sh 2>/dev/null)}
 rm -rf shed_jax envs experiments && tar xzf "$dir/src.tgz" || exit 4

@@ -51,7 +51,8 @@ def _piece(root, repo, piece, seconds="100", out=True, **extra):
     (bin_ / "python").write_text(STUB)
     (bin_ / "python").chmod(0o755)
     env = {**os.environ, "PATH": f"{bin_}:{os.environ['PATH']}", "STUB_LOG": str(root / "stub.log"), "PIECE": str(piece),
-           "RUN_PIECE_GPU": "", **extra}  # no GPU model unless a test names one
+           "RUN_PIECE_GPU": "", "TMPDIR": str(root / "tmp"), **extra}  # no GPU model unless a test names one
+    (root / "tmp").mkdir(exist_ok=True)
     if out:
         env["OUT"] = str(root / f"out{piece}")
         (root / f"out{piece}").mkdir()
@@ -196,6 +197,7 @@ def test_aot_probe_runs_before_the_run_and_its_key_is_checked_after(tmp_path, fo
     assert calls[0].split()[0].endswith(".py") and "--env lander" in calls[1]  # the probe first, then the run
     assert (tmp_path / "out1" / "aot_probe.json").exists() and "probed" in r.stdout
     assert "the run's initial state is in the cache under the probed key" in r.stdout
+    assert not list((tmp_path / "tmp").iterdir())  # the probe tool's copy is gone with the script
 
 
 def test_aot_probe_names_a_run_whose_initial_state_has_another_key(tmp_path, folder):
@@ -223,6 +225,7 @@ def test_aot_gate_runs_only_where_the_carried_cache_serves_this_host(tmp_path, f
         assert r.returncode == 6, r.stdout + r.stderr
         assert "holds no initial state under this host's key jit_init_point-abc" in r.stdout
         assert len(calls) == 1 and sorted(p.name for p in (tmp_path / "out1").iterdir()) == ["aot_probe.json", "aot_probe.log"]
+    assert not list((tmp_path / "tmp").iterdir())  # removed on every exit, the gate's included
 
 
 @pytest.mark.parametrize("line", ["[shed_jax] jit_chunk is not in the compilation cache (key jit_chunk-ab...): compiling it",
