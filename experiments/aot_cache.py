@@ -21,11 +21,19 @@ fingerprint of the GPU's topology. So the work has two steps:
 
 Both steps must run the run's own sources at the path the GPU host runs them from (kernel IR holds
 source locations); ``experiments/aot_fill.sh`` does that on the CPU host with a private mount.
+
+A filled cache served one H100 host and missed on the next (2026-12-05): hosts with one GPU model can
+differ in the two host parts (the driver's version is in the topology). ``fill --portable`` files
+the programs under *portable keys* instead (``PORTABLE_PARTS`` and the device kind: no host part),
+renaming entries already there under the probed host's keys, and ``run -m shed_jax run ...`` (which
+``run_piece.sh`` uses when the carried cache holds such entries) runs the run with the same keys, so
+one cache serves every host with that GPU model.
 This file uses JAX internals (``jax._src.cache_key``, ``jax._src.compilation_cache``) of jax 0.11:
 that is why it is a tool beside the runs, not part of ``shed_jax``.
 
     python experiments/aot_cache.py probe RUN_ARGS OUT.json          # on the GPU
-    python experiments/aot_cache.py fill RUN_ARGS PROBE.json [--chunks] [--out REPORT.json]
+    python experiments/aot_cache.py fill RUN_ARGS PROBE.json [--chunks] [--portable] [--out REPORT.json]
+    python experiments/aot_cache.py run -m shed_jax run ARGS...       # on the GPU, portable keys
 """
 from __future__ import annotations
 
@@ -79,6 +87,41 @@ def _without_program_shape(options):
     return o
 
 
+# The key parts that follow the program, the software and its settings. The other two follow the GPU
+# host: "backend version" (the CUDA runtime's version) and "accelerator_config" (the fingerprint of the
+# GPU topology, which holds the driver's version, the clocks and the memory size). Two hosts with one
+# GPU model can differ in those and still run each other's executables; a portable key names an entry
+# by the parts below and the device kinds, so that a carried cache serves every such host.
+PORTABLE_PARTS = ("computation", "jax_lib version", "XLA flags", "compile_options", "compression", "custom_hook")
+PORTABLE_TAG = "portable"
+
+
+def portable_key(name: str, parts: dict, device_kinds) -> str:
+    """``NAME-portable-HEX``: SHA-256 over ``PORTABLE_PARTS``' digests (``key_parts``) and the device
+    kinds (e.g. "NVIDIA H100 80GB HBM3"), in order."""
+    h = hashlib.sha256()
+    for p in PORTABLE_PARTS:
+        h.update(parts[p].encode() + b"\0")
+    for kind in device_kinds:
+        h.update(kind.encode() + b"\0")
+    return f"{name}-{PORTABLE_TAG}-{h.hexdigest()}"
+
+
+def is_portable(key: str) -> bool:
+    return key.split("-")[1:2] == [PORTABLE_TAG]
+
+
+def _rename_entry(folder: str, old: str, new: str) -> bool:
+    """JAX's cache files of key ``old`` (``-cache`` and, where there is one, ``-atime``) renamed to ``new``."""
+    src = os.path.join(folder, f"{old}-cache")
+    if not os.path.exists(src):
+        return False
+    os.replace(src, os.path.join(folder, f"{new}-cache"))
+    if os.path.exists(os.path.join(folder, f"{old}-atime")):
+        os.replace(os.path.join(folder, f"{old}-atime"), os.path.join(folder, f"{new}-atime"))
+    return True
+
+
 class _Captured(Exception):
     """Raised from the key hook in ``probe``: the key is known, the compile is not wanted."""
 
@@ -122,12 +165,19 @@ class _Backend:
 
 
 def hook_keys(seen: dict, platform_version: str | None = None, compression: str | None = None,
-              stop_at: str | None = None, present_in: str | None = None) -> None:
+              stop_at: str | None = None, present_in: str | None = None, portable: bool = False,
+              say=None) -> None:
     """Wrap ``compilation_cache.get_cache_key``: record each program's key and key parts in ``seen``
-    (by module name), with the given platform version and compression name in the key (the GPU host's);
-    raise :class:`_Captured` once the program named ``stop_at`` has its key, or once a GPU program's
-    entry is already in the cache folder ``present_in`` (e.g. compiled by the GPU host itself: this
-    host could not load it to check it, and would replace it with its own)."""
+    (by module name; a GPU program's ``portable_key`` too), with the given platform version and
+    compression name in the key (the GPU host's); raise :class:`_Captured` once the program named
+    ``stop_at`` has its key, or once a GPU program's entry is already in the cache folder ``present_in``
+    (e.g. compiled by the GPU host itself: this host could not load it to check it, and would replace
+    it with its own).
+
+    ``portable=True``: GPU programs are filed under their ``portable_key``; with ``present_in``, an
+    entry there under JAX's key is renamed to the portable one (``seen[name]["rekeyed"]``). ``say``
+    (a function of one line) hears each GPU program's portable key and this host's two host parts."""
+    import numpy as np
     from jax._src import cache_key as ck
     from jax._src import compilation_cache as cc
 
@@ -141,13 +191,24 @@ def hook_keys(seen: dict, platform_version: str | None = None, compression: str 
                 backend = _Backend(backend, platform_version)
         key = ck.get(module, devices, options, backend, comp, ignore_custom_partitioning)
         name = key.split("-")[0]
-        seen[name] = {"key": key, "parts": key_parts(module, devices, options, backend, comp)}
+        parts = key_parts(module, devices, options, backend, comp)
+        seen[name] = {"key": key, "parts": parts}
+        gpu = backend.platform == "gpu"
+        if gpu:
+            seen[name]["portable_key"] = portable_key(name, parts, [d.device_kind for d in np.asarray(devices).flat])
+            if say:
+                say(f"aot_cache: {name} under its portable key {seen[name]['portable_key'][:56]}... (this host's "
+                    f"backend version {parts['backend version'][:12]}, accelerator_config {parts['accelerator_config'][:12]})")
+        filed = seen[name]["portable_key"] if (gpu and portable) else key
         if name == stop_at:
             raise _Captured(name)
-        if present_in and backend.platform == "gpu" and os.path.exists(os.path.join(present_in, f"{key}-cache")):
-            seen[name]["present"] = True
-            raise _Captured(name)
-        return key
+        if present_in and gpu:
+            if filed != key and _rename_entry(present_in, key, filed):
+                seen[name]["rekeyed"] = True
+            if os.path.exists(os.path.join(present_in, f"{filed}-cache")):
+                seen[name]["present"] = True
+                raise _Captured(name)
+        return filed
 
     cc.get_cache_key = get_cache_key
 
@@ -258,7 +319,7 @@ def probe(args_file: str, out: str) -> int:
     return 0
 
 
-def fill(args_file: str, probe_file: str, chunks: bool, out: str | None) -> int:
+def fill(args_file: str, probe_file: str, chunks: bool, out: str | None, portable: bool = False) -> int:
     import jax
     from jax.experimental import topologies
 
@@ -285,9 +346,10 @@ def fill(args_file: str, probe_file: str, chunks: bool, out: str | None) -> int:
     topo = topologies.TopologyDescription.deserialize(base64.b64decode(rec["topology"]))
     device = topo.devices[0]
     seen: dict = {}
-    hook_keys(seen, platform_version=rec["platform_version"], compression=rec["compression"], present_in=cache)
+    hook_keys(seen, platform_version=rec["platform_version"], compression=rec["compression"], present_in=cache,
+              portable=portable)
     init, ins, run_chunk, sizes, state = build(args_file, device)
-    report = {"date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "host": _cpu_model(),
+    report = {"date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "host": _cpu_model(), "portable": portable,
               "cpus": os.cpu_count(), "jax": jax.__version__, "target": rec["device_kind"],
               "device": f"{_cpu_model()} ({os.cpu_count()} CPUs), compiling for {rec['device_kind']} (deviceless)",
               "command": " ".join(sys.argv), "probe": probe_file, "programs": {}}
@@ -308,9 +370,11 @@ def fill(args_file: str, probe_file: str, chunks: bool, out: str | None) -> int:
             _write_text(lowered, "aot_fill_init.mlir.gz")
         try:
             lowered.compile()
-        except _Captured:  # its entry is in the cache already (hook_keys' present_in)
-            report["programs"][label] = {"already_in_cache": True}
-            print(f"aot_cache fill: {label} is in the cache already; left as it is", flush=True)
+        except _Captured as c:  # its entry is in the cache already (hook_keys' present_in)
+            rekeyed = bool(seen[c.args[0]].get("rekeyed"))
+            report["programs"][label] = {"already_in_cache": True, "rekeyed": rekeyed}
+            print(f"aot_cache fill: {label} is in the cache already; "
+                  + ("renamed to its portable key" if rekeyed else "left as it is"), flush=True)
             return
         report["programs"][label] = {"compile_s": round(time.time() - t, 1)}
         print(f"aot_cache fill: {label} compiled in {time.time() - t:.1f} s", flush=True)
@@ -349,7 +413,26 @@ def fill(args_file: str, probe_file: str, chunks: bool, out: str | None) -> int:
     return 0
 
 
+def run_portable(argv: list[str]) -> int:
+    """``-m MODULE ARGS...`` run as ``python -m MODULE ARGS...`` runs it, from this folder, but with its
+    GPU programs filed in (and read from) the compilation cache under their portable keys; one line on
+    stderr per GPU program names its key and this host's two host parts."""
+    if len(argv) < 2 or argv[0] != "-m":
+        print("usage: python aot_cache.py run -m MODULE [ARGS...]", file=sys.stderr)
+        return 2
+    import runpy
+
+    sys.path.insert(0, os.getcwd())  # as ``python -m`` puts it
+    hook_keys({}, portable=True, say=lambda line: print(line, file=sys.stderr, flush=True))
+    sys.argv = [argv[1], *argv[2:]]
+    runpy.run_module(argv[1], run_name="__main__", alter_sys=True)
+    return 0
+
+
 def main(argv=None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv[:1] == ["run"]:  # its arguments are the module's, not this parser's
+        return run_portable(argv[1:])
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     sub = ap.add_subparsers(dest="cmd", required=True)
     p = sub.add_parser("probe", help="on the GPU: the run's initial-state key parts, platform and topology")
@@ -360,10 +443,13 @@ def main(argv=None) -> int:
     f.add_argument("probe")
     f.add_argument("--chunks", action="store_true", help="the chunks too (minutes each), not only the initial state")
     f.add_argument("--out", default=None, help="a JSON report: compile times, keys, differing key parts")
+    f.add_argument("--portable", action="store_true",
+                   help="file the GPU programs under portable keys (entries under the probed host's keys renamed)")
+    sub.add_parser("run", help="-m MODULE ARGS...: run a module as python -m does, its GPU programs under portable keys")
     a = ap.parse_args(argv)
     if a.cmd == "probe":
         return probe(a.args_file, a.out)
-    return fill(a.args_file, a.probe, a.chunks, a.out)
+    return fill(a.args_file, a.probe, a.chunks, a.out, a.portable)
 
 
 if __name__ == "__main__":

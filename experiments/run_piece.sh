@@ -48,12 +48,15 @@ export PYTHONUNBUFFERED=1 SHED_JAX_CACHE=$PWD/.cache/device
 # $OUT/aot_probe.json, so that a CPU host can compile the run's programs for it (experiments/aot_cache.py).
 # AOT_GATE=1 probes too, and runs nothing (exit 6) when the carried cache holds no initial state under
 # this host's key: its programs would compile again, which costs most of a call (SHED's chunk: 526 s).
-probe_tool=
+probe=0 tool=
 case ${AOT_GATE:-0} in 0|1) ;; *) echo "run_piece: AOT_GATE must be 0 or 1, got '$AOT_GATE'"; exit 2;; esac
-if [ "${AOT_PROBE:-0}" = 1 ] || [ "${AOT_GATE:-0}" = 1 ]; then
-  probe_tool=${TMPDIR:-/tmp}/aot_cache.$$.py
-  trap 'rm -f "$probe_tool"' EXIT  # the copy outlives the sources it came from, not the script
-  cp experiments/aot_cache.py "$probe_tool" || exit 4
+if [ "${AOT_PROBE:-0}" = 1 ] || [ "${AOT_GATE:-0}" = 1 ]; then probe=1; fi
+# this tree's aot_cache.py (the probe, and the portable keys' runner below), kept before the run's
+# sources replace experiments/
+if [ -f experiments/aot_cache.py ] || [ "$probe" = 1 ]; then
+  tool=${TMPDIR:-/tmp}/aot_cache.$$.py
+  trap 'rm -f "$tool"' EXIT  # the copy outlives the sources it came from, not the script
+  cp experiments/aot_cache.py "$tool" || exit 4
 fi
 # this host's GPU model (before the run's sources replace experiments/); RUN_PIECE_GPU= overrides it
 gpu=${RUN_PIECE_GPU-$(bash experiments/gpu_model.sh 2>/dev/null)}
@@ -62,8 +65,8 @@ rm -rf shed_jax envs experiments && tar xzf "$dir/src.tgz" || exit 4
 # an earlier piece left it, would be packed with this piece's; it starts from the folder's parts alone
 rm -rf .cache/device "$run"
 mkdir -p runs .cache
-if [ -n "$probe_tool" ]; then
-  python "$probe_tool" probe "$dir/run.args" "$OUT/aot_probe.json" > "$OUT/aot_probe.log" 2>&1 || echo "run_piece: the probe failed (aot_probe.log)"
+if [ "$probe" = 1 ]; then
+  python "$tool" probe "$dir/run.args" "$OUT/aot_probe.json" > "$OUT/aot_probe.log" 2>&1 || echo "run_piece: the probe failed (aot_probe.log)"
   tail -1 "$OUT/aot_probe.log"
 fi
 if ls "$dir"/ckpt.tgz.* >/dev/null 2>&1; then
@@ -81,7 +84,14 @@ if [ -n "$gpu" ]; then
   if ls "$dir/gpu-$gpu"/cache.tgz.* >/dev/null 2>&1; then cache=$dir/gpu-$gpu; echo "run_piece: the cache for $gpu ($cache)"; fi
 fi
 if ls "$cache"/cache.tgz.* >/dev/null 2>&1; then cat "$cache"/cache.tgz.* | tar xzf -; fi
-probed_key() { python3 -c 'import json, sys; print(json.load(open(sys.argv[1]))["programs"]["jit_init_point"]["key"])' "$OUT/aot_probe.json" 2>/dev/null; }
+# A cache filled with portable keys (aot_cache.py fill --portable: no part of the GPU host's driver or
+# topology in them) serves every host with its GPU model; the run then files its programs the same way.
+portable=0
+if ls .cache/device/jax/*-portable-*-cache >/dev/null 2>&1; then
+  [ -n "$tool" ] || { echo "run_piece: the carried cache holds portable keys, and this tree has no experiments/aot_cache.py to run with them"; exit 4; }
+  portable=1; echo "run_piece: the carried cache holds portable keys: the run reads and files its GPU programs under them"
+fi
+probed_key() { python3 -c 'import json, sys; p = json.load(open(sys.argv[1]))["programs"]["jit_init_point"]; print(p["portable_key" if sys.argv[2] == "1" else "key"])' "$OUT/aot_probe.json" "$portable" 2>/dev/null; }
 if [ -f "$OUT/aot_probe.json" ]; then  # does the carried cache serve this host?
   key=$(probed_key)
   if [ -n "$key" ] && [ -e ".cache/device/jax/$key-cache" ]; then echo "aot probe: the carried cache holds the initial state under this host's key"
@@ -100,7 +110,9 @@ lim=$(( secs - ($(date +%s) - t0) - ${PACK_S:-45} ))
 if [ "${AOT_GATE:-0}" = 1 ] && ! grep -qs "is not in the compilation cache" shed_jax/driver.py; then
   export JAX_EXPLAIN_CACHE_MISSES=1
 fi
-timeout -k 5 $(( lim + ${PACK_S:-45} - 12 )) python -m shed_jax run $what --keep 1 --no-gif --time-limit $lim > "$OUT/run.log" 2>&1 &
+runner=(python -m shed_jax)
+[ "$portable" = 1 ] && runner=(python "$tool" run -m shed_jax)
+timeout -k 5 $(( lim + ${PACK_S:-45} - 12 )) "${runner[@]}" run $what --keep 1 --no-gif --time-limit $lim > "$OUT/run.log" 2>&1 &
 pid=$!
 missed=0
 if [ "${AOT_GATE:-0}" = 1 ]; then

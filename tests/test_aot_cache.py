@@ -135,3 +135,88 @@ def test_program_free_options_match_across_programs_of_other_arities(hooked):
     assert a["compile_options"] != b["compile_options"]
     assert a[aot_cache.PROGRAM_FREE_OPTIONS] == b[aot_cache.PROGRAM_FREE_OPTIONS]
     assert [k for k in a if a[k] != b[k]] == list(aot_cache.PROGRAM_PARTS)
+
+
+class _Gpu:  # a GPU host's backend as the key sees it (its platform and the CUDA runtime's version)
+    platform = "gpu"
+
+    def __init__(self, version):
+        self.platform_version = version
+
+
+def test_portable_keys_leave_out_the_gpu_hosts_parts(hooked):
+    """Two GPU hosts that differ in the CUDA runtime's version get two JAX keys and one portable key;
+    the portable key still moves with the program and the device kind, and not with the topology."""
+    from jax._src import compilation_cache as cc
+
+    seen, calls = hooked
+    jax.block_until_ready(jax.jit(lambda x: jnp.exp(x) * 7.0)(jnp.ones(5)))
+    module, devices, options, _, _ = calls[-1]
+    aot_cache.hook_keys(seen, portable=True)
+    keys = []
+    for version in ("PJRT C API\ncuda 13000", "PJRT C API\ncuda 13010"):
+        filed = cc.get_cache_key(module, devices, options, _Gpu(version))
+        name = filed.split("-")[0]
+        assert filed == seen[name]["portable_key"] and aot_cache.is_portable(filed)
+        keys.append((seen[name]["key"], filed, seen[name]["parts"]))
+    (jax_a, port_a, parts_a), (jax_b, port_b, parts_b) = keys
+    assert jax_a != jax_b and port_a == port_b
+    assert [k for k in parts_a if parts_a[k] != parts_b[k]] == ["backend version"]
+    kinds = [d.device_kind for d in devices.flat]
+    assert aot_cache.portable_key(name, parts_a, kinds) == port_a
+    assert aot_cache.portable_key(name, dict(parts_a, accelerator_config="0" * 64), kinds) == port_a
+    assert aot_cache.portable_key(name, parts_a, ["NVIDIA H100 PCIe"]) != port_a
+    assert aot_cache.portable_key(name, dict(parts_a, computation="0" * 64), kinds) != port_a
+    assert not aot_cache.is_portable(jax_a)
+    # a CPU program (the host's own eager operations, a CPU run) keeps JAX's key
+    salt = float(np.random.default_rng().integers(1 << 30))
+
+    def aot_cache_cpu_program(x):
+        return jnp.exp(x) * salt
+
+    jax.block_until_ready(jax.jit(aot_cache_cpu_program)(jnp.ones(5)))
+    rec = seen["jit_aot_cache_cpu_program"]
+    assert "portable_key" not in rec and not aot_cache.is_portable(rec["key"])
+
+
+def test_a_portable_fill_renames_an_entry_filed_under_the_probed_hosts_key(hooked, tmp_path):
+    """``fill --portable`` over a cache filled for one host (JAX's keys) renames its entries to the
+    portable keys instead of compiling them again; an entry already portable is left as it is."""
+    from jax._src import compilation_cache as cc
+
+    seen, calls = hooked
+    jax.block_until_ready(jax.jit(lambda x: jnp.log1p(x) + 11.0)(jnp.ones(7)))
+    module, devices, options, _, _ = calls[-1]
+    gpu = _Gpu("PJRT C API\ncuda 13000")
+    jax_key = cc.get_cache_key(module, devices, options, gpu)  # the plain hook: JAX's key
+    (tmp_path / f"{jax_key}-cache").write_bytes(b"an executable")
+    (tmp_path / f"{jax_key}-atime").write_bytes(b"1")
+    aot_cache.hook_keys(seen, portable=True, present_in=str(tmp_path))
+    with pytest.raises(aot_cache._Captured) as c:
+        cc.get_cache_key(module, devices, options, gpu)
+    rec = seen[c.value.args[0]]
+    assert rec["rekeyed"] and rec["present"] and rec["key"] == jax_key
+    assert sorted(p.name for p in tmp_path.iterdir()) == [f"{rec['portable_key']}-atime", f"{rec['portable_key']}-cache"]
+    assert (tmp_path / f"{rec['portable_key']}-cache").read_bytes() == b"an executable"
+    with pytest.raises(aot_cache._Captured) as c:  # found under its portable key the next time
+        cc.get_cache_key(module, devices, options, gpu)
+    assert seen[c.value.args[0]].get("present") and not seen[c.value.args[0]].get("rekeyed")
+
+
+def test_run_runs_a_module_as_python_m_does(tmp_path):
+    """``aot_cache.py run -m MODULE ARGS``: the module from the working folder, as ``__main__``, with
+    its arguments, and its exit status."""
+    import subprocess
+    import sys
+
+    (tmp_path / "some_tool").mkdir()
+    (tmp_path / "some_tool" / "__init__.py").write_text("")
+    (tmp_path / "some_tool" / "__main__.py").write_text(
+        "import sys\nprint('main', __name__, sys.argv[1:])\nsys.exit(3)\n")
+    r = subprocess.run([sys.executable, str(aot_cache.__file__), "run", "-m", "some_tool", "a", "--b", "c"],
+                       cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 3, r.stderr
+    assert r.stdout.strip() == "main __main__ ['a', '--b', 'c']"
+    r = subprocess.run([sys.executable, str(aot_cache.__file__), "run", "some_tool"], cwd=tmp_path,
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and "usage: python aot_cache.py run -m MODULE" in r.stderr

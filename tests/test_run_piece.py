@@ -15,7 +15,7 @@ ADOPT = SCRIPT.with_name("adopt_piece.sh")
 STUB = """#!/bin/bash
 echo "$@" >> "$STUB_LOG"
 if [ "${2:-}" = probe ]; then  # experiments/aot_cache.py probe ARGS OUT.json
-  echo '{"programs": {"jit_init_point": {"key": "jit_init_point-abc"}}}' > "$4"; echo probed; exit 0
+  echo '{"programs": {"jit_init_point": {"key": "jit_init_point-abc", "portable_key": "jit_init_point-portable-def"}}}' > "$4"; echo probed; exit 0
 fi
 [ -n "${STUB_KEY:-}" ] && mkdir -p .cache/device/jax && touch ".cache/device/jax/$STUB_KEY-cache"
 [ -n "${PIECE_SETTING:-}" ] && echo "setting $PIECE_SETTING" >> "$STUB_LOG"
@@ -318,3 +318,30 @@ def test_only_the_newest_committed_checkpoint_and_the_folders_own_cache_go_back(
     assert steps == {"80"}
     with tarfile.open(tmp_path / "out1" / "cache.tgz.aa") as tar:
         assert sorted(tar.getnames()) == [".cache/device", ".cache/device/jax", ".cache/device/jax/entry"]
+
+
+@pytest.mark.parametrize("gate", ["0", "1"])
+def test_a_cache_with_portable_keys_runs_the_run_under_them(tmp_path, folder, gate):
+    """A carried cache filled with portable keys (``aot_cache.py fill --portable``) is read through
+    ``aot_cache.py run``, which files the run's GPU programs under the same keys, and AOT_GATE looks
+    for the initial state under the probed portable key, not this host's own."""
+    _cache_archive(folder / "cache.tgz.aa", "jit_init_point-portable-def-cache")
+    repo = _tree(tmp_path, folder)
+    shutil.copy(SCRIPT.with_name("aot_cache.py"), repo / "experiments" / "aot_cache.py")
+    r = _piece(tmp_path, repo, 1, AOT_GATE=gate)
+    assert r.returncode == 75, r.stdout + r.stderr
+    assert "the carried cache holds portable keys" in r.stdout
+    run = (tmp_path / "stub.log").read_text().splitlines()[-1].split()
+    assert run[0].endswith(".py") and run[1:5] == ["run", "-m", "shed_jax", "run"] and "--env" in run
+    if gate == "1":
+        assert "holds the initial state under this host's key" in r.stdout
+    assert not list((tmp_path / "tmp").iterdir())
+
+
+def test_a_cache_without_portable_keys_runs_as_python_m(tmp_path, folder):
+    _cache_archive(folder / "cache.tgz.aa", "jit_init_point-abc-cache")
+    repo = _tree(tmp_path, folder)
+    shutil.copy(SCRIPT.with_name("aot_cache.py"), repo / "experiments" / "aot_cache.py")
+    r = _piece(tmp_path, repo, 1)
+    assert r.returncode == 75 and "holds portable keys" not in r.stdout, r.stdout + r.stderr
+    assert (tmp_path / "stub.log").read_text().splitlines()[-1].split()[:3] == ["-m", "shed_jax", "run"]
