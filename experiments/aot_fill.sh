@@ -44,6 +44,11 @@ unshare -m --propagation private env "${envs[@]}" bash -c \
   "$work" "$root" "$py" "$@"
 rc=$?
 mkdir -p "$dest"
+# an earlier fill's report stays beside it, named by its date (aot_report_YYYY-MM-DD_HHMM.json)
+if [ -f "$work/aot_report.json" ] && [ -f "$dest/aot_report.json" ]; then
+  when=$(python3 -c 'import json, sys; print(json.load(open(sys.argv[1]))["date"].replace(" UTC", "").replace(" ", "_").replace(":", ""))' "$dest/aot_report.json" 2>/dev/null)
+  mv "$dest/aot_report.json" "$dest/aot_report_${when:-earlier}.json"
+fi
 cp "$work/aot_report.json" "$dest/aot_report.json" 2>/dev/null
 # a key that differs: the program's text beside the report, to diff with the probe's aot_probe_init.mlir.gz
 [ "$rc" = 1 ] && cp "$work/aot_fill_init.mlir.gz" "$dest/" 2>/dev/null
