@@ -176,12 +176,14 @@ def hook_keys(seen: dict, platform_version: str | None = None, compression: str 
 
     ``portable=True``: GPU programs are filed under their ``portable_key``; with ``present_in``, an
     entry there under JAX's key is renamed to the portable one (``seen[name]["rekeyed"]``). ``say``
-    (a function of one line) hears each GPU program's portable key and this host's two host parts."""
+    (a function of one line) hears the portable key and this host's two host parts of the first GPU
+    program of each name."""
     import numpy as np
     from jax._src import cache_key as ck
     from jax._src import compilation_cache as cc
 
     default_compression = "zstandard" if cc.zstandard is not None else "zlib"
+    told: set = set()
 
     def get_cache_key(module, devices, options, backend, ignore_custom_partitioning=False):
         comp = default_compression
@@ -196,7 +198,8 @@ def hook_keys(seen: dict, platform_version: str | None = None, compression: str 
         gpu = backend.platform == "gpu"
         if gpu:
             seen[name]["portable_key"] = portable_key(name, parts, [d.device_kind for d in np.asarray(devices).flat])
-            if say:
+            if say and name not in told:  # once per program name (eager operations come in hundreds)
+                told.add(name)
                 say(f"aot_cache: {name} under its portable key {seen[name]['portable_key'][:56]}... (this host's "
                     f"backend version {parts['backend version'][:12]}, accelerator_config {parts['accelerator_config'][:12]})")
         filed = seen[name]["portable_key"] if (gpu and portable) else key

@@ -152,7 +152,8 @@ def test_portable_keys_leave_out_the_gpu_hosts_parts(hooked):
     seen, calls = hooked
     jax.block_until_ready(jax.jit(lambda x: jnp.exp(x) * 7.0)(jnp.ones(5)))
     module, devices, options, _, _ = calls[-1]
-    aot_cache.hook_keys(seen, portable=True)
+    said: list = []
+    aot_cache.hook_keys(seen, portable=True, say=said.append)
     keys = []
     for version in ("PJRT C API\ncuda 13000", "PJRT C API\ncuda 13010"):
         filed = cc.get_cache_key(module, devices, options, _Gpu(version))
@@ -161,6 +162,7 @@ def test_portable_keys_leave_out_the_gpu_hosts_parts(hooked):
         keys.append((seen[name]["key"], filed, seen[name]["parts"]))
     (jax_a, port_a, parts_a), (jax_b, port_b, parts_b) = keys
     assert jax_a != jax_b and port_a == port_b
+    assert len(said) == 1 and said[0].startswith(f"aot_cache: {name} under its portable key {port_a[:56]}")
     assert [k for k in parts_a if parts_a[k] != parts_b[k]] == ["backend version"]
     kinds = [d.device_kind for d in devices.flat]
     assert aot_cache.portable_key(name, parts_a, kinds) == port_a
