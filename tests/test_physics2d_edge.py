@@ -143,6 +143,28 @@ def test_sliding_shin_across_junctions_follows_box2d():
     assert np.abs(out[0][:5] - ref[:5]).max() > 5e-3
 
 
+@pytest.mark.parametrize("touching", [[1, 4, 5, 6], [2], []])
+def test_select_edges_keeps_the_first_touching_edges_in_order_exactly(touching):
+    """The first ``count`` edges with points, in edge order, every leaf exactly as it was (the sign of
+    a zero included), an empty slot zero / False with edge -1; a later touching edge is dropped."""
+    S, count = 8, 3
+    rng = np.random.default_rng(len(touching))
+    on = np.zeros((S, 2), bool)
+    on[touching, 0] = True
+    on[touching[::2], 1] = True
+    clip = rng.normal(size=(S, 2, 2)).astype(np.float32)
+    clip[:, 0, 1] = -0.0
+    m = dict(on=jnp.asarray(on), clip=jnp.asarray(clip), face_b=jnp.asarray(rng.random(S) < 0.5),
+             id=jnp.asarray(rng.integers(-9, 1 << 20, S), jnp.int32))
+    got = jax.jit(E.select_edges, static_argnums=1)(m, count)
+    want_edges = touching[:count] + [-1] * (count - len(touching[:count]))
+    np.testing.assert_array_equal(np.asarray(got["edge"]), want_edges)
+    for k, e in enumerate(want_edges):
+        for name, leaf in m.items():
+            ref = np.asarray(leaf)[e] if e >= 0 else np.zeros_like(np.asarray(leaf)[0])
+            assert np.asarray(got[name][k]).tobytes() == ref.tobytes(), (name, k)
+
+
 def test_box_at_rest_on_an_edge_shares_its_weight_between_two_points():
     """Box2D's block solver: a box resting flat on one edge carries m g dt in its two normal impulses,
     half each; the other edge slots stay empty."""

@@ -162,20 +162,18 @@ def polygon_edges_manifolds(edges, valid, vertices, normals, centroid, radius):
 
 def select_edges(m, count: int):
     """The first ``count`` edges (in edge order) whose manifolds have points, as (count, ...) leaves plus
-    ``edge`` (count,) int32 (their indices; -1 for an empty slot). Edges past ``count`` are dropped."""
+    ``edge`` (count,) int32 (their indices; -1 for an empty slot, whose leaves are zero / False). Edges
+    past ``count`` are dropped. Each leaf is read at its slot's edge (one gather per leaf), not summed
+    over a one-hot mask: on a GPU a mask's sums are a reduce kernel per leaf shape and slot."""
     has = m["on"][:, 0]
     rank = jnp.cumsum(has.astype(jnp.int32)) - 1
-    s = has.shape[0]
+    pick = has[None, :] & (rank[None, :] == jnp.arange(count)[:, None])  # (count, S), rows one-hot or empty
+    found = jnp.any(pick, 1)
+    edge = jnp.where(found, jnp.argmax(pick, 1), -1).astype(jnp.int32)
+    at = jnp.maximum(edge, 0)
     out = {}
-    for k in range(count):
-        pick = has & (rank == k)  # (S,) one-hot or empty
-        out_k = {}
-        for name, leaf in m.items():
-            mask = pick.reshape((s,) + (1,) * (leaf.ndim - 1))
-            if leaf.dtype == jnp.bool_:
-                out_k[name] = jnp.any(mask & leaf, 0)
-            else:
-                out_k[name] = jnp.sum(jnp.where(mask, leaf, jnp.zeros_like(leaf)), 0)
-        out_k["edge"] = jnp.where(jnp.any(pick), jnp.argmax(pick), -1).astype(jnp.int32)
-        out[k] = out_k
-    return {name: jnp.stack([out[k][name] for k in range(count)]) for name in out[0]}
+    for name, leaf in m.items():
+        mask = found.reshape((count,) + (1,) * (leaf.ndim - 1))
+        out[name] = jnp.where(mask, leaf[at], jnp.zeros((), leaf.dtype))
+    out["edge"] = edge
+    return out
