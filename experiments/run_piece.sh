@@ -95,6 +95,9 @@ probed_key() { python3 -c 'import json, sys; p = json.load(open(sys.argv[1]))["p
 if [ -f "$OUT/aot_probe.json" ]; then  # does the carried cache serve this host?
   key=$(probed_key)
   if [ -n "$key" ] && [ -e ".cache/device/jax/$key-cache" ]; then echo "aot probe: the carried cache holds the initial state under this host's key"
+    # the probe's log and program text serve only to diff a key that differs; a call returns at most 8
+    # files (2026-12-06: these two and the parts left out the run's log)
+    rm -f "$OUT/aot_probe.log" "$OUT/aot_probe_init.mlir.gz"
   else
     echo "aot probe: the carried cache holds no initial state under this host's key ${key:0:40}: its programs will compile again"
     if [ "${AOT_GATE:-0}" = 1 ]; then echo "run_piece: AOT_GATE=1, so no run (the folder is unchanged; aot_probe.json says this host's key parts)"; exit 6; fi

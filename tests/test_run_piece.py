@@ -221,6 +221,8 @@ def test_aot_gate_runs_only_where_the_carried_cache_serves_this_host(tmp_path, f
     if carried:
         assert r.returncode == 75, r.stdout + r.stderr
         assert "holds the initial state under this host's key" in r.stdout and "--env lander" in calls[1]
+        # only the probe's key parts come back with the run's files (a call returns 8 files at most)
+        assert {p.name for p in (tmp_path / "out1").iterdir()} == {"aot_probe.json", "run.log", "cache.tgz.aa", "ckpt.tgz.aa"}
     else:
         assert r.returncode == 6, r.stdout + r.stderr
         assert "holds no initial state under this host's key jit_init_point-abc" in r.stdout
