@@ -20,7 +20,12 @@ for k in "${kinds[@]}"; do
   cat "$from"/$k.tgz.* | gzip -t 2>/dev/null || { echo "adopt_piece: $from/$k.tgz.* is not a whole gzip archive; $dir left as it was"; exit 3; }
 done
 # the cache goes back where the piece took it from: FOLDER/gpu-MODEL/ when the folder has one for
-# the GPU the piece ran on (its $OUT/gpu), else FOLDER itself
+# the GPU the piece ran on (its $OUT/gpu), else FOLDER itself. Without FROM/gpu (a call returns 8
+# files and may leave it out) the model is unknown, and a folder with caches per model is not guessed at
+if [ ! -f "$from/gpu" ] && ls -d "$dir"/gpu-*/ >/dev/null 2>&1; then
+  echo "adopt_piece: $from has no gpu file, and $dir keeps a cache per GPU model: write the model that ran the piece (e.g. echo h100 > $from/gpu; its device line says which) and run again; $dir left as it was"
+  exit 2
+fi
 cdir=$dir
 if [ -f "$from/gpu" ] && [ -d "$dir/gpu-$(cat "$from/gpu")" ]; then cdir=$dir/gpu-$(cat "$from/gpu"); fi
 for k in "${kinds[@]}"; do

@@ -347,3 +347,21 @@ def test_a_cache_without_portable_keys_runs_as_python_m(tmp_path, folder):
     r = _piece(tmp_path, repo, 1)
     assert r.returncode == 75 and "holds portable keys" not in r.stdout, r.stdout + r.stderr
     assert (tmp_path / "stub.log").read_text().splitlines()[-1].split()[:3] == ["-m", "shed_jax", "run"]
+
+
+def test_adopt_refuses_to_guess_the_gpu_of_a_folder_with_a_cache_per_model(tmp_path, folder):
+    """A piece whose ``gpu`` file did not come back: with caches per GPU model in the folder, its cache
+    could be put in the wrong one, so nothing is taken until the model is written."""
+    _cache_archive(folder / "gpu-h100" / "cache.tgz.aa", "filled_for_h100")
+    repo = _tree(tmp_path, folder)
+    assert _piece(tmp_path, repo, 1, RUN_PIECE_GPU="h100").returncode == 75
+    out = tmp_path / "out1"
+    (out / "gpu").unlink()
+    before = {p: p.read_bytes() for p in folder.rglob("*") if p.is_file()}
+    r = _adopt(folder, out, tmp_path)
+    assert r.returncode == 2 and "has no gpu file" in r.stdout, r.stdout
+    assert {p: p.read_bytes() for p in folder.rglob("*") if p.is_file()} == before
+    (out / "gpu").write_text("h100\n")
+    r = _adopt(folder, out, tmp_path)
+    assert r.returncode == 0 and "ran on h100" in r.stdout, r.stdout
+    assert (folder / "gpu-h100" / "cache.tgz.aa").read_bytes() == (out / "cache.tgz.aa").read_bytes()
