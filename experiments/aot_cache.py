@@ -448,6 +448,7 @@ def main(argv=None) -> int:
     f.add_argument("--out", default=None, help="a JSON report: compile times, keys, differing key parts")
     f.add_argument("--portable", action="store_true",
                    help="file the GPU programs under portable keys (entries under the probed host's keys renamed)")
+    # listed for --help only: main() hands "run" and its arguments to run_portable before parsing
     sub.add_parser("run", help="-m MODULE ARGS...: run a module as python -m does, its GPU programs under portable keys")
     a = ap.parse_args(argv)
     if a.cmd == "probe":

@@ -9,6 +9,13 @@ import jax.numpy as jnp
 from experiments import aot_cache
 
 
+class _Gpu:  # a GPU host's backend as the key sees it (its platform and the CUDA runtime's version)
+    platform = "gpu"
+
+    def __init__(self, version):
+        self.platform_version = version
+
+
 @pytest.fixture
 def hooked(monkeypatch):
     """``hook_keys`` installed for one test; the key function's arguments captured as well."""
@@ -84,16 +91,14 @@ def test_a_gpu_program_already_in_the_cache_is_not_compiled_again(hooked, tmp_pa
     jax.block_until_ready(jax.jit(lambda x: jnp.tanh(x) * 5.0)(jnp.ones(6)))
     module, devices, options, backend, _ = calls[-1]
 
-    class Gpu:  # the key of a GPU host's program, computed here
-        platform, platform_version = "gpu", "PJRT C API\ncuda 13.0.0"
-
+    gpu = _Gpu("PJRT C API\ncuda 13.0.0")  # the key of a GPU host's program, computed here
     aot_cache.hook_keys(seen, present_in=str(tmp_path))
-    key = cc.get_cache_key(module, devices, options, Gpu())
+    key = cc.get_cache_key(module, devices, options, gpu)
     name = key.split("-")[0]
     assert "present" not in seen[name]
     (tmp_path / f"{key}-cache").write_bytes(b"an executable")
     with pytest.raises(aot_cache._Captured):
-        cc.get_cache_key(module, devices, options, Gpu())
+        cc.get_cache_key(module, devices, options, gpu)
     assert seen[name]["present"] and seen[name]["key"] == key
 
 
@@ -135,13 +140,6 @@ def test_program_free_options_match_across_programs_of_other_arities(hooked):
     assert a["compile_options"] != b["compile_options"]
     assert a[aot_cache.PROGRAM_FREE_OPTIONS] == b[aot_cache.PROGRAM_FREE_OPTIONS]
     assert [k for k in a if a[k] != b[k]] == list(aot_cache.PROGRAM_PARTS)
-
-
-class _Gpu:  # a GPU host's backend as the key sees it (its platform and the CUDA runtime's version)
-    platform = "gpu"
-
-    def __init__(self, version):
-        self.platform_version = version
 
 
 def test_portable_keys_leave_out_the_gpu_hosts_parts(hooked):
