@@ -2,7 +2,8 @@
 # Keep a device call's carried tree under its 64 MiB: everything under docs/ but one carried run's
 # folder goes to .aside/ (git-ignored, so it is not carried, and it stays in the checkout), and so,
 # with --no-mujoco-core, does MuJoCo's 9.7 MB compiled wheel (a 2-D walker run imports no MuJoCo; the
-# mujoco and mujoco_mjx wheels stay, because `python -m shed_jax` checks that they are installed).
+# mujoco and mujoco_mjx wheels stay, because `python -m shed_jax` checks that they are installed, but
+# mujoco_mjx's is carried without its 6.5 MB of test data).
 # With --gpu MODEL (a call that names its kind, e.g. nvidia-h100-x1 -> h100), the folder's caches for
 # other GPU models go aside too: FOLDER/cache.tgz.* when FOLDER/gpu-MODEL/ exists, and other gpu-*/.
 # Run from the repository root:
@@ -73,6 +74,25 @@ if [ -n "$gpu" ]; then  # the folder's caches for other GPU models (restored wit
   if [ -d "$folder/gpu-$gpu" ]; then for p in "$folder"/cache.tgz.*; do [ -e "$p" ] && mkdir -p "$keep" && mv "$p" "$keep/"; done; fi
 fi
 if [ "$core" = 1 ] && ls .whl/mujoco_core-*.whl >/dev/null 2>&1; then mkdir -p "$aside/whl" && mv .whl/mujoco_core-*.whl "$aside/whl/"; fi
+# and MJX's wheel goes aside for a copy without its 6.5 MB of test data (mujoco/mjx/test_data/ and
+# their RECORD lines): the package still installs and is found, and --restore moves the original back
+# over the copy
+for w in .whl/mujoco_mjx-*.whl; do
+  [ "$core" = 1 ] && [ -f "$w" ] || continue
+  mkdir -p "$aside/whl" && mv "$w" "$aside/whl/" || exit 1
+  python3 - "$aside/whl/$(basename "$w")" "$w" <<'PY' || { mv "$aside/whl/$(basename "$w")" "$w"; echo "slim_tree: could not copy $w without its test data"; exit 1; }
+import sys, zipfile
+skip = "mujoco/mjx/test_data/"
+with zipfile.ZipFile(sys.argv[1]) as src, zipfile.ZipFile(sys.argv[2], "w", zipfile.ZIP_DEFLATED) as dst:
+    for info in src.infolist():
+        if info.filename.startswith(skip):
+            continue
+        data = src.read(info)
+        if info.filename.endswith(".dist-info/RECORD"):
+            data = b"".join(l for l in data.splitlines(True) if not l.startswith(skip.encode()))
+        dst.writestr(info, data)
+PY
+done
 total=$(size)
 echo "slim_tree: docs/ holds only $folder; the tree carries $total bytes with the wheels (limit $(( 64 * 1024 * 1024 )))"
 [ "$total" -le $(( 64 * 1024 * 1024 )) ] || { echo "slim_tree: still over the 64 MiB a call carries"; exit 1; }

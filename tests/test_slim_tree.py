@@ -3,6 +3,7 @@ in a throwaway git repository."""
 import pathlib
 import shutil
 import subprocess
+import zipfile
 
 SCRIPT = pathlib.Path(__file__).resolve().parents[1] / "experiments" / "slim_tree.sh"
 
@@ -24,9 +25,18 @@ def _repo(tmp_path):
     _git(repo, "add", "-A")
     _git(repo, "-c", "user.email=t@t", "-c", "user.name=t", "commit", "-qm", "init")
     (repo / ".whl").mkdir()
-    for w in ("mujoco_core-4.0.0-cp312.whl", "mujoco_mjx-3.17.0-py3.whl", "orjson-3.13.0.whl"):
+    for w in ("mujoco_core-4.0.0-cp312.whl", "orjson-3.13.0.whl"):
         (repo / ".whl" / w).write_text(w)
+    with zipfile.ZipFile(repo / ".whl" / MJX, "w") as z:  # MJX's wheel in small: its package, test data, RECORD
+        z.writestr("mujoco/mjx/__init__.py", "from mujoco.mjx._src import x\n")
+        z.writestr("mujoco/mjx/_src/x.py", "x = 1\n")
+        z.writestr("mujoco/mjx/test_data/humanoid.xml", "<mujoco>" + "m" * 4000 + "</mujoco>")
+        z.writestr("mujoco_mjx-3.17.0.dist-info/RECORD", "mujoco/mjx/__init__.py,sha256=a,31\nmujoco/mjx/_src/x.py,sha256=b,6\n"
+                   "mujoco/mjx/test_data/humanoid.xml,sha256=c,4017\nmujoco_mjx-3.17.0.dist-info/RECORD,,\n")
     return repo
+
+
+MJX = "mujoco_mjx-3.17.0-py3-none-any.whl"
 
 
 def _run(repo, *args):
@@ -40,20 +50,29 @@ def _files(root):
 def test_slim_keeps_one_folder_and_restore_gives_the_tree_back(tmp_path):
     repo = _repo(tmp_path)
     before = _files(repo)
+    mjx = (repo / ".whl" / MJX).read_bytes()
     r = _run(repo, "--no-mujoco-core", "docs/results/run_inflight/")
     assert r.returncode == 0, r.stdout + r.stderr
     assert sorted(str(p.relative_to(repo)) for p in (repo / "docs").rglob("*") if p.is_file()) == ["docs/results/run_inflight/ckpt.tgz.aa"]
-    assert sorted(p.name for p in (repo / ".whl").iterdir()) == ["mujoco_mjx-3.17.0-py3.whl", "orjson-3.13.0.whl"]
+    assert sorted(p.name for p in (repo / ".whl").iterdir()) == [MJX, "orjson-3.13.0.whl"]
+    # MJX's wheel is carried without its test data, which its RECORD no longer lists
+    with zipfile.ZipFile(repo / ".whl" / MJX) as z:
+        assert sorted(z.namelist()) == ["mujoco/mjx/__init__.py", "mujoco/mjx/_src/x.py", "mujoco_mjx-3.17.0.dist-info/RECORD"]
+        assert z.read("mujoco/mjx/_src/x.py") == b"x = 1\n"
+        assert z.read("mujoco_mjx-3.17.0.dist-info/RECORD").decode().splitlines() == [
+            "mujoco/mjx/__init__.py,sha256=a,31", "mujoco/mjx/_src/x.py,sha256=b,6", "mujoco_mjx-3.17.0.dist-info/RECORD,,"]
+    assert (repo / ".whl" / MJX).stat().st_size < len(mjx) - 3000
     # what the call carries: README, .gitignore, the scripts, the folder and the two wheels left
-    carried = sum(len(p.read_text()) for p in (repo / "README.md", repo / ".gitignore", repo / "experiments/slim_tree.sh",
-                                              repo / "experiments/carried_size.sh",
-                                              repo / "docs/results/run_inflight/ckpt.tgz.aa", *(repo / ".whl").iterdir()))
+    carried = sum(p.stat().st_size for p in (repo / "README.md", repo / ".gitignore", repo / "experiments/slim_tree.sh",
+                                             repo / "experiments/carried_size.sh",
+                                             repo / "docs/results/run_inflight/ckpt.tgz.aa", *(repo / ".whl").iterdir()))
     assert f"carries {carried} bytes" in r.stdout
     assert ".aside" not in _git(repo, "status", "--porcelain", "--untracked-files=all")  # ignored, so not carried
     assert _run(repo, "docs/results/run_inflight").returncode == 2  # twice: restore first
     r = _run(repo, "--restore")
     assert r.returncode == 0, r.stdout + r.stderr
     assert _files(repo) == before and not (repo / ".aside").exists()
+    assert (repo / ".whl" / MJX).read_bytes() == mjx  # the original wheel, over the copy
     assert _git(repo, "status", "--porcelain") == ""
 
 
