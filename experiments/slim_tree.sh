@@ -1,19 +1,21 @@
 #!/bin/bash
 # Keep a device call's carried tree under its 64 MiB: everything under docs/ but one carried run's
-# folder goes to .aside/ (git-ignored, so it is not carried, and it stays in the checkout), and so,
-# with --no-mujoco-core, does MuJoCo's 9.7 MB compiled wheel (a 2-D walker run imports no MuJoCo; the
-# mujoco and mujoco_mjx wheels stay, because `python -m shed_jax` checks that they are installed, but
-# mujoco_mjx's is carried without its 6.5 MB of test data).
+# folder, and tests/ (a run needs none of it), go to .aside/ (git-ignored, so not carried; it stays in
+# the checkout). With --bipedal-wheels, .whl/ keeps what a 2-D walker run needs: MuJoCo's 9.7 MB
+# compiled wheel and Brax's own dependencies (trimesh, jaxopt, ml_collections, tensorboardX: 1.1 MB)
+# go aside, as the 2-D walker imports neither MuJoCo nor Brax; the mujoco, mujoco_mjx and brax wheels
+# stay, because `python -m shed_jax` checks that they are installed, mujoco_mjx's without its 6.5 MB
+# of test data.
 # With --gpu MODEL (a call that names its kind, e.g. nvidia-h100-x1 -> h100), the folder's caches for
 # other GPU models go aside too: FOLDER/cache.tgz.* when FOLDER/gpu-MODEL/ exists, and other gpu-*/.
 # Run from the repository root:
-#   bash experiments/slim_tree.sh [--no-mujoco-core] [--gpu MODEL] FOLDER   # before the call(s)
+#   bash experiments/slim_tree.sh [--bipedal-wheels] [--gpu MODEL] FOLDER   # before the call(s)
 #   bash experiments/slim_tree.sh --restore                   # after adopt_piece.sh
 # docs/ must have no uncommitted changes outside FOLDER, so that nothing but moves happens. Commit the
 # piece after --restore (`git add FOLDER`, never `git commit -a`): committed while its caches for other
 # GPU models are aside, the folder would record them as deleted.
 set -u
-usage="usage: bash experiments/slim_tree.sh [--no-mujoco-core] [--gpu MODEL] FOLDER | --restore"
+usage="usage: bash experiments/slim_tree.sh [--bipedal-wheels] [--gpu MODEL] FOLDER | --restore"
 aside=.aside
 size() { bash "$(dirname "$0")/carried_size.sh"; }  # what a call carries, with the wheels
 git rev-parse --git-dir >/dev/null 2>&1 && [ -d docs ] || { echo "slim_tree: run it from the repository root"; exit 2; }
@@ -41,6 +43,7 @@ if [ "${1:-}" = --restore ]; then
     fi
   }
   [ -d "$aside/docs" ] && back "$aside/docs" docs
+  if [ -d "$aside/tests" ]; then if [ -e tests ]; then back "$aside/tests" tests; else mv "$aside/tests" tests; fi; fi
   [ -d "$aside/whl" ] && mkdir -p .whl && mv "$aside"/whl/* .whl/ 2>/dev/null
   find "$aside" -depth -type d -empty -delete 2>/dev/null
   [ -d "$aside" ] && echo "slim_tree: $aside still holds: $(find "$aside" -type f | head -3 | tr '\n' ' ')" && exit 1
@@ -50,7 +53,7 @@ fi
 core=0 gpu=
 while [ $# -gt 1 ]; do
   case $1 in
-    --no-mujoco-core) core=1; shift;;
+    --bipedal-wheels) core=1; shift;;
     --gpu) gpu=${2:-}; shift 2;;
     *) break;;
   esac
@@ -66,6 +69,7 @@ dirty=$(git status --porcelain -- docs ":(exclude)$folder" | head -3)
 mkdir -p "$aside/docs/results"
 for p in docs/*; do [ "$p" = docs/results ] || mv "$p" "$aside/docs/"; done
 for p in docs/results/*; do [ "$p" = "$folder" ] || mv "$p" "$aside/docs/results/"; done
+[ -d tests ] && mv tests "$aside/tests"
 if [ -n "$gpu" ]; then  # the folder's caches for other GPU models (restored with the folder's own path)
   keep=$aside/$folder
   for p in "$folder"/gpu-*; do
@@ -73,7 +77,11 @@ if [ -n "$gpu" ]; then  # the folder's caches for other GPU models (restored wit
   done
   if [ -d "$folder/gpu-$gpu" ]; then for p in "$folder"/cache.tgz.*; do [ -e "$p" ] && mkdir -p "$keep" && mv "$p" "$keep/"; done; fi
 fi
-if [ "$core" = 1 ] && ls .whl/mujoco_core-*.whl >/dev/null 2>&1; then mkdir -p "$aside/whl" && mv .whl/mujoco_core-*.whl "$aside/whl/"; fi
+if [ "$core" = 1 ]; then
+  for w in .whl/mujoco_core-*.whl .whl/trimesh-*.whl .whl/jaxopt-*.whl .whl/ml_collections-*.whl .whl/tensorboardx-*.whl; do
+    [ -f "$w" ] && mkdir -p "$aside/whl" && mv "$w" "$aside/whl/"
+  done
+fi
 # and MJX's wheel goes aside for a copy without its 6.5 MB of test data (mujoco/mjx/test_data/ and
 # their RECORD lines): the package still installs and is found, and --restore moves the original back
 # over the copy

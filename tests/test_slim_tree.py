@@ -17,7 +17,8 @@ def _repo(tmp_path):
     for rel, text in {"docs/guide.md": "guide", "docs/img/a.png": "png", "docs/results/run_inflight/ckpt.tgz.aa": "ckpt",
                       "docs/results/other_inflight/cache.tgz.aa": "x" * 5000, "docs/results/r.json": "{}",
                       "experiments/slim_tree.sh": SCRIPT.read_text(),
-                      "experiments/carried_size.sh": SCRIPT.with_name("carried_size.sh").read_text(), "README.md": "readme"}.items():
+                      "experiments/carried_size.sh": SCRIPT.with_name("carried_size.sh").read_text(), "README.md": "readme",
+                      "tests/test_x.py": "def test_x(): pass\n"}.items():
         (repo / rel).parent.mkdir(parents=True, exist_ok=True)
         (repo / rel).write_text(text)
     (repo / ".gitignore").write_text(".whl/\n")
@@ -25,7 +26,8 @@ def _repo(tmp_path):
     _git(repo, "add", "-A")
     _git(repo, "-c", "user.email=t@t", "-c", "user.name=t", "commit", "-qm", "init")
     (repo / ".whl").mkdir()
-    for w in ("mujoco_core-4.0.0-cp312.whl", "orjson-3.13.0.whl"):
+    for w in ("mujoco_core-4.0.0-cp312.whl", "orjson-3.13.0.whl", "brax-0.14.2-py3-none-any.whl", "trimesh-5.2.0-py3-none-any.whl",
+              "jaxopt-0.8.5-py3-none-any.whl", "ml_collections-1.1.0-py3-none-any.whl", "tensorboardx-2.6.5-py3-none-any.whl"):
         (repo / ".whl" / w).write_text(w)
     with zipfile.ZipFile(repo / ".whl" / MJX, "w") as z:  # MJX's wheel in small: its package, test data, RECORD
         z.writestr("mujoco/mjx/__init__.py", "from mujoco.mjx._src import x\n")
@@ -51,10 +53,12 @@ def test_slim_keeps_one_folder_and_restore_gives_the_tree_back(tmp_path):
     repo = _repo(tmp_path)
     before = _files(repo)
     mjx = (repo / ".whl" / MJX).read_bytes()
-    r = _run(repo, "--no-mujoco-core", "docs/results/run_inflight/")
+    r = _run(repo, "--bipedal-wheels", "docs/results/run_inflight/")
     assert r.returncode == 0, r.stdout + r.stderr
     assert sorted(str(p.relative_to(repo)) for p in (repo / "docs").rglob("*") if p.is_file()) == ["docs/results/run_inflight/ckpt.tgz.aa"]
-    assert sorted(p.name for p in (repo / ".whl").iterdir()) == [MJX, "orjson-3.13.0.whl"]
+    assert not (repo / "tests").exists()
+    # the wheels a 2-D walker run needs: those `python -m shed_jax` checks for, and orjson
+    assert sorted(p.name for p in (repo / ".whl").iterdir()) == ["brax-0.14.2-py3-none-any.whl", MJX, "orjson-3.13.0.whl"]
     # MJX's wheel is carried without its test data, which its RECORD no longer lists
     with zipfile.ZipFile(repo / ".whl" / MJX) as z:
         assert sorted(z.namelist()) == ["mujoco/mjx/__init__.py", "mujoco/mjx/_src/x.py", "mujoco_mjx-3.17.0.dist-info/RECORD"]
@@ -62,7 +66,7 @@ def test_slim_keeps_one_folder_and_restore_gives_the_tree_back(tmp_path):
         assert z.read("mujoco_mjx-3.17.0.dist-info/RECORD").decode().splitlines() == [
             "mujoco/mjx/__init__.py,sha256=a,31", "mujoco/mjx/_src/x.py,sha256=b,6", "mujoco_mjx-3.17.0.dist-info/RECORD,,"]
     assert (repo / ".whl" / MJX).stat().st_size < len(mjx) - 3000
-    # what the call carries: README, .gitignore, the scripts, the folder and the two wheels left
+    # what the call carries: README, .gitignore, the scripts, the folder and the wheels left
     carried = sum(p.stat().st_size for p in (repo / "README.md", repo / ".gitignore", repo / "experiments/slim_tree.sh",
                                              repo / "experiments/carried_size.sh",
                                              repo / "docs/results/run_inflight/ckpt.tgz.aa", *(repo / ".whl").iterdir()))
