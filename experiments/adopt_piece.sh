@@ -3,7 +3,8 @@
 # Run from the repository root:
 #   bash experiments/adopt_piece.sh FOLDER FROM
 # FROM is where the piece's files came back (the device call's files_at): cache.tgz.*, run.log, gpu and,
-# when the run saved, ckpt.tgz.*; with AOT_PROBE=1, aot_probe.json (copied too). Every archive is checked whole (gzip -t) before FOLDER is touched;
+# when the run saved, ckpt.tgz.*; with AOT_PROBE=1 or AOT_GATE=1, aot_probe.json where the carried cache did
+# not serve the host (copied too; where it did, the probe is at the end of run.log). Every archive is checked whole (gzip -t) before FOLDER is touched;
 # then FOLDER's old parts of each returned archive are removed (the split may change) and the new ones
 # copied in. A piece without a checkpoint (its compile cut off, or its call ended before it saved)
 # leaves FOLDER's checkpoint as it was. Prints the run log's compile and last progress lines (for the

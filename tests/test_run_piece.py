@@ -221,8 +221,12 @@ def test_aot_gate_runs_only_where_the_carried_cache_serves_this_host(tmp_path, f
     if carried:
         assert r.returncode == 75, r.stdout + r.stderr
         assert "holds the initial state under this host's key" in r.stdout and "--env lander" in calls[1]
-        # only the probe's key parts come back with the run's files (a call returns 8 files at most)
-        assert {p.name for p in (tmp_path / "out1").iterdir()} == {"aot_probe.json", "run.log", "cache.tgz.aa", "ckpt.tgz.aa"}
+        # the probe's key parts come back at the end of the run's log, not as files of their own (a
+        # call returns 8 files at most)
+        assert {p.name for p in (tmp_path / "out1").iterdir()} == {"run.log", "cache.tgz.aa", "ckpt.tgz.aa"}
+        log = (tmp_path / "out1" / "run.log").read_text()
+        assert log.endswith('"portable_key": "jit_init_point-portable-def"}}}\n') and "the carried cache served them" in log
+        assert "the run's initial state is in the cache under the probed key" in r.stdout
     else:
         assert r.returncode == 6, r.stdout + r.stderr
         assert "holds no initial state under this host's key jit_init_point-abc" in r.stdout
@@ -243,6 +247,7 @@ def test_aot_gate_stops_a_run_whose_chunk_is_not_in_the_carried_cache(tmp_path, 
     assert "the chunk is not in the carried cache: the run was stopped before compiling it" in r.stdout
     assert (tmp_path / "stub.log.term").exists()  # the stub was killed in its compile, not left to finish
     assert not list((tmp_path / "out1").glob("*.tgz.*"))
+    assert (tmp_path / "out1" / "aot_probe.json").exists()  # this host's key parts, to find what differed
 
 
 def test_aot_gate_takes_0_or_1(tmp_path, folder):
