@@ -14,7 +14,8 @@ fingerprint of the GPU's topology. So the work has two steps:
    run's initial-state program as ``shed_jax run`` does, compute its cache key without compiling,
    and write every part of the key, the platform version and the serialized topology to a JSON file.
 2. ``fill`` (on a CPU host with the GPU's jax, jaxlib and CUDA plugin versions installed): the same
-   programs (the initial state and the chunks) for the probed topology, the key computed with the
+   programs (the initial state; with ``--chunks`` the chunks and the final evaluation's programs,
+   which a run compiles beside its first chunks) for the probed topology, the key computed with the
    probed platform version, compiled into the cache; the initial state's key parts are compared with
    the probe's before any chunk is compiled, and every difference is named, so a fill that the GPU
    would miss says so (and stops).
@@ -216,13 +217,9 @@ def hook_keys(seen: dict, platform_version: str | None = None, compression: str 
     cc.get_cache_key = get_cache_key
 
 
-def build(args_file: str, device):
-    """The run of ``args_file`` (``shed_jax run`` flags) as the driver builds it for one ``device``:
-    ``(init, abstract inputs, chunk, chunk lengths, abstract state)``, the kernels padded as a run pads them."""
-    import jax
-
-    from shed_jax import driver, rundir, runtime, sharding
-    from shed_jax import experiment as xp
+def _options(args_file: str):
+    """``args_file``'s ``shed_jax run`` flags as the run reads them (checked)."""
+    from shed_jax import driver
     from shed_jax.cli import errors
     import shed_jax.cli.run as cli_run
 
@@ -230,6 +227,48 @@ def build(args_file: str, device):
     cli_run.add_arguments(parser)
     opts = driver.RunOptions.from_args(parser.parse_args(shlex.split(open(args_file).read())))
     opts.check()
+    return opts
+
+
+def final_evals(args_file: str, state) -> list:
+    """The run's final evaluation programs as a GPU run compiles them while it trains
+    (``driver.FinalEvalCompile``: one per ``--final-eval`` level set, for point 0's students of the
+    abstract ``state`` that ``build`` gives, and ``experiment.seed_keys(0, seeds)``), as ``[(level set,
+    lower)]``; empty where the run compiles none early. Call it under ``_as_gpu_host``, after ``build``
+    (which sets the kernels' padding)."""
+    import jax
+    import jax.numpy as jnp
+
+    from shed_jax import driver, rundir
+    from shed_jax import experiment as xp
+    from shed_jax.evaluation import evaluation_program, final_level_sets
+
+    opts = _options(args_file).with_output(None)  # a new run's output settings: the env's level sets, 10 episodes
+    plan = rundir.plan_fresh(opts, "gpu")
+    parts = xp.build_checked(plan.exp, True)
+    final_sets = final_level_sets(opts.final_eval, plan.exp, parts[0], parts[3])
+    if not final_sets or not driver.compile_early(opts.compile_final_eval):
+        return []
+    seeds = plan.num_seeds
+    students = jax.tree.map(lambda x: jax.ShapeDtypeStruct((seeds,) + x.shape[1:], x.dtype, sharding=x.sharding),
+                            state.student)  # Batch.rows(students, 0): the first point's seeds, sharding kept
+    keys = jax.ShapeDtypeStruct((seeds, 2), jnp.uint32)  # seed_keys: an uncommitted array
+    student = driver.make_batch(plan.exp, parts, [({}, {})], num_seeds=seeds, root_seed=plan.root_seed,
+                                chunk=plan.chunk).student
+    return [(name, lambda levels=levels: evaluation_program(student, levels, opts.final_eval_episodes,
+                                                            plan.exp.loop.test_max_steps)
+             .lower(students, keys)) for levels, _, name in final_sets]
+
+
+def build(args_file: str, device):
+    """The run of ``args_file`` (``shed_jax run`` flags) as the driver builds it for one ``device``:
+    ``(init, abstract inputs, chunk, chunk lengths, abstract state)``, the kernels padded as a run pads them."""
+    import jax
+
+    from shed_jax import driver, rundir, runtime, sharding
+    from shed_jax import experiment as xp
+
+    opts = _options(args_file)
     plan = rundir.plan_fresh(opts, "gpu")
     batch = driver.make_batch(plan.exp, xp.build_checked(plan.exp, True), [({}, {})], num_seeds=plan.num_seeds,
                               root_seed=plan.root_seed, chunk=plan.chunk)
@@ -412,6 +451,10 @@ def fill(args_file: str, probe_file: str, chunks: bool, out: str | None, portabl
 
         for n in sizes:
             compile_one(f"chunk of {n}", lambda n=n: driver.lower_from_clean_caches(run_chunk, state, n, 0))
+        with _as_gpu_host(device):
+            evals = final_evals(args_file, state)
+        for name, lower in evals:  # the run compiles these beside its first chunks, and a piece rarely finishes them
+            compile_one(f"final evaluation ({name})", lower)
     write_report(init_key_matches=ours.get("key") == theirs.get("key"), init_parts_differing=[])
     return 0
 
@@ -444,7 +487,8 @@ def main(argv=None) -> int:
     f = sub.add_parser("fill", help="on a CPU host: compile the run's programs for the probed GPU into the cache")
     f.add_argument("args_file")
     f.add_argument("probe")
-    f.add_argument("--chunks", action="store_true", help="the chunks too (minutes each), not only the initial state")
+    f.add_argument("--chunks", action="store_true",
+                   help="the chunks and the final evaluation too (minutes each), not only the initial state")
     f.add_argument("--out", default=None, help="a JSON report: compile times, keys, differing key parts")
     f.add_argument("--portable", action="store_true",
                    help="file the GPU programs under portable keys (entries under the probed host's keys renamed)")

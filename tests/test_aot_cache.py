@@ -220,3 +220,36 @@ def test_run_runs_a_module_as_python_m_does(tmp_path):
     r = subprocess.run([sys.executable, str(aot_cache.__file__), "run", "some_tool"], cwd=tmp_path,
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 2 and "usage: python aot_cache.py run -m MODULE" in r.stderr
+
+
+def test_the_final_evaluation_is_lowered_as_a_run_lowers_it_while_training(tmp_path):
+    """``final_evals`` rebuilds, from the run's flags and ``build``'s abstract state, the program that
+    ``driver.FinalEvalCompile`` lowers from a run's first students and ``seed_keys``: the same text, so
+    a fill files it under the key the run looks up."""
+    from shed_jax import driver, sharding
+    from shed_jax import experiment as xp
+    from shed_jax.evaluation import evaluation_program, final_level_sets
+
+    args = tmp_path / "run.args"
+    args.write_text(f"--env lander --method dr --preset quick --seeds 2 --final-eval test --compile-final-eval early --out {tmp_path / 'run'}")
+    device = jax.devices()[0]
+    init, ins, _, _, state = aot_cache.build(str(args), device)
+    evals = aot_cache.final_evals(str(args), state)
+    assert [name for name, _ in evals] == ["test"]
+    ours = evals[0][1]().as_text()
+
+    # the run's way: concrete students of point 0 (rows 0..S-1 of the batch), concrete keys
+    opts = aot_cache._options(str(args)).with_output(None)
+    exp = xp.experiment_from_args(opts, "cpu")
+    parts = xp.build_checked(exp, True)
+    batch = driver.make_batch(exp, parts, [({}, {})], num_seeds=2, root_seed=xp.DEFAULT_ROOT_SEED)
+    placed = driver.place(batch, sharding.batch_mesh([device]))
+    real = init(*placed.inputs)  # as a run places its state: split over the batch mesh
+    (levels, _, name), = final_level_sets(opts.final_eval, exp, parts[0], parts[3])
+    theirs = evaluation_program(batch.student, levels, opts.final_eval_episodes, exp.loop.test_max_steps).lower(
+        batch.rows(real.student, 0), xp.seed_keys(0, 2)).as_text()
+    assert name == "test" and ours == theirs
+
+    # a run that compiles its final evaluation only after training has nothing to fill early
+    args.write_text(f"--env lander --method dr --preset quick --seeds 2 --final-eval test --compile-final-eval late --out {tmp_path / 'run'}")
+    assert aot_cache.final_evals(str(args), state) == []
