@@ -230,12 +230,14 @@ def _options(args_file: str):
     return opts
 
 
-def final_evals(args_file: str, state) -> list:
+def final_evals(args_file: str, state, device) -> list:
     """The run's final evaluation programs as a GPU run compiles them while it trains
     (``driver.FinalEvalCompile``: one per ``--final-eval`` level set, for point 0's students of the
     abstract ``state`` that ``build`` gives, and ``experiment.seed_keys(0, seeds)``), as ``[(level set,
-    lower)]``; empty where the run compiles none early. Call it under ``_as_gpu_host``, after ``build``
-    (which sets the kernels' padding)."""
+    lower)]``; empty where the run compiles none early on ``device``'s platform. Call it after ``build``
+    (which sets the kernels' padding) and each ``lower`` under ``_as_gpu_host``; the levels and the
+    student are made here, on this host's default device (eager operations on a compile-only device
+    cannot run)."""
     import jax
     import jax.numpy as jnp
 
@@ -247,7 +249,9 @@ def final_evals(args_file: str, state) -> list:
     plan = rundir.plan_fresh(opts, "gpu")
     parts = xp.build_checked(plan.exp, True)
     final_sets = final_level_sets(opts.final_eval, plan.exp, parts[0], parts[3])
-    if not final_sets or not driver.compile_early(opts.compile_final_eval):
+    with _as_gpu_host(device) if device.platform != "cpu" else contextlib.nullcontext():
+        early = driver.compile_early(opts.compile_final_eval)  # "auto" is early on a GPU
+    if not final_sets or not early:
         return []
     seeds = plan.num_seeds
     students = jax.tree.map(lambda x: jax.ShapeDtypeStruct((seeds,) + x.shape[1:], x.dtype, sharding=x.sharding),
@@ -451,9 +455,7 @@ def fill(args_file: str, probe_file: str, chunks: bool, out: str | None, portabl
 
         for n in sizes:
             compile_one(f"chunk of {n}", lambda n=n: driver.lower_from_clean_caches(run_chunk, state, n, 0))
-        with _as_gpu_host(device):
-            evals = final_evals(args_file, state)
-        for name, lower in evals:  # the run compiles these beside its first chunks, and a piece rarely finishes them
+        for name, lower in final_evals(args_file, state, device):  # the run compiles these beside its first chunks, and a piece rarely finishes them
             compile_one(f"final evaluation ({name})", lower)
     write_report(init_key_matches=ours.get("key") == theirs.get("key"), init_parts_differing=[])
     return 0

@@ -53,7 +53,11 @@ cp "$work/aot_report.json" "$dest/aot_report.json" 2>/dev/null
 # a key that differs: the program's text beside the report, to diff with the probe's aot_probe_init.mlir.gz
 [ "$rc" = 1 ] && cp "$work/aot_fill_init.mlir.gz" "$dest/" 2>/dev/null
 if [ "$rc" = 0 ] && [ -d "$work/.cache/device" ]; then  # a fill that the GPU would miss is not kept
-  (cd "$work" && tar czf - .cache/device | split -b 15M - "$work/cache.tgz.") || exit 6
+  # once the run has a checkpoint, XLA's kernel cache file (tens of MB) is left out, as run_piece.sh
+  # packs it: it serves only compiles of programs not in the cache
+  skip=()
+  ls "$dir"/ckpt.tgz.* >/dev/null 2>&1 && skip=(--exclude=xla_gpu_kernel_cache_file)
+  (cd "$work" && tar czf - "${skip[@]}" .cache/device | split -b 15M - "$work/cache.tgz.") || exit 6
   rm -f "$dest"/cache.tgz.*
   cp "$work"/cache.tgz.* "$dest"/
   ls -l "$dest"/cache.tgz.*

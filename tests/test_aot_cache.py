@@ -234,7 +234,7 @@ def test_the_final_evaluation_is_lowered_as_a_run_lowers_it_while_training(tmp_p
     args.write_text(f"--env lander --method dr --preset quick --seeds 2 --final-eval test --compile-final-eval early --out {tmp_path / 'run'}")
     device = jax.devices()[0]
     init, ins, _, _, state = aot_cache.build(str(args), device)
-    evals = aot_cache.final_evals(str(args), state)
+    evals = aot_cache.final_evals(str(args), state, device)
     assert [name for name, _ in evals] == ["test"]
     ours = evals[0][1]().as_text()
 
@@ -252,4 +252,4 @@ def test_the_final_evaluation_is_lowered_as_a_run_lowers_it_while_training(tmp_p
 
     # a run that compiles its final evaluation only after training has nothing to fill early
     args.write_text(f"--env lander --method dr --preset quick --seeds 2 --final-eval test --compile-final-eval late --out {tmp_path / 'run'}")
-    assert aot_cache.final_evals(str(args), state) == []
+    assert aot_cache.final_evals(str(args), state, device) == []
