@@ -45,7 +45,8 @@ fi
 export PYTHONUNBUFFERED=1 SHED_JAX_CACHE=$PWD/.cache/device
 [ -f "$dir/run.env" ] && set -a && . "$dir/run.env" && set +a
 # AOT_PROBE=1: first the parts of the run's cache key that only this GPU host knows, into
-# $OUT/aot_probe.json, so that a CPU host can compile the run's programs for it (experiments/aot_cache.py).
+# $OUT/aot_probe.json, so that a CPU host can compile the run's programs for it (experiments/aot_cache.py);
+# where the carried cache served the host, the probe goes back at the end of run.log instead.
 # AOT_GATE=1 probes too, and runs nothing (exit 6) when the carried cache holds no initial state under
 # this host's key: its programs would compile again, which costs most of a call (SHED's chunk: 526 s).
 probe=0 tool=
@@ -55,7 +56,7 @@ if [ "${AOT_PROBE:-0}" = 1 ] || [ "${AOT_GATE:-0}" = 1 ]; then probe=1; fi
 # sources replace experiments/
 if [ -f experiments/aot_cache.py ] || [ "$probe" = 1 ]; then
   tool=${TMPDIR:-/tmp}/aot_cache.$$.py
-  trap 'rm -f "$tool" "${served_probe:-}"' EXIT  # the copy outlives the sources it came from, not the script
+  trap 'rm -f "$tool"' EXIT  # the copy outlives the sources it came from, not the script
   cp experiments/aot_cache.py "$tool" || exit 4
 fi
 # this host's GPU model (before the run's sources replace experiments/); RUN_PIECE_GPU= overrides it
@@ -92,16 +93,16 @@ if ls .cache/device/jax/*-portable-*-cache >/dev/null 2>&1; then
   portable=1; echo "run_piece: the carried cache holds portable keys: the run reads and files its GPU programs under them"
 fi
 probe_json=$OUT/aot_probe.json
+served=0
 probed_key() { python3 -c 'import json, sys; p = json.load(open(sys.argv[1]))["programs"]["jit_init_point"]; print(p["portable_key" if sys.argv[2] == "1" else "key"])' "$probe_json" "$portable" 2>/dev/null; }
 if [ -f "$probe_json" ]; then  # does the carried cache serve this host?
   key=$(probed_key)
   if [ -n "$key" ] && [ -e ".cache/device/jax/$key-cache" ]; then echo "aot probe: the carried cache holds the initial state under this host's key"
     # the probe's log and program text serve only to diff a key that differs, and its key parts go
-    # back at the end of run.log: a call returns at most 8 files (2026-12-06: these and the parts
-    # left out the run's log), and shed-x's checkpoint alone is four
+    # to the end of run.log once the run has ended: a call returns at most 8 files (2026-12-06: these
+    # and the parts left out the run's log), and shed-x's checkpoint alone is four
     rm -f "$OUT/aot_probe.log" "$OUT/aot_probe_init.mlir.gz"
-    served_probe=${TMPDIR:-/tmp}/aot_probe.$$.json
-    mv "$probe_json" "$served_probe" && probe_json=$served_probe
+    served=1
   else
     echo "aot probe: the carried cache holds no initial state under this host's key ${key:0:40}: its programs will compile again"
     if [ "${AOT_GATE:-0}" = 1 ]; then echo "run_piece: AOT_GATE=1, so no run (the folder is unchanged; aot_probe.json says this host's key parts)"; exit 6; fi
@@ -134,7 +135,6 @@ fi
 wait "$pid"
 rc=$?
 if [ "$missed" = 1 ]; then
-  [ -n "${served_probe:-}" ] && mv "$served_probe" "$OUT/aot_probe.json"  # this host's key parts, to compare
   echo "run_piece: AOT_GATE=1 and the chunk is not in the carried cache: the run was stopped before compiling it (the folder is unchanged; run.log says the key)"
   exit 7
 fi
@@ -167,8 +167,9 @@ skip=()
 [ -d "$run" ] && skip=(--exclude=xla_gpu_kernel_cache_file)
 if [ -d .cache/device ]; then tar czf - "${skip[@]}" .cache/device | split -b 15M - "$OUT/cache.tgz."; fi
 last=$(tail -c 2000 "$OUT/run.log" | tr '\r' '\n' | grep -a -v '^ *$' | tail -4)
-if [ -n "${served_probe:-}" ] && [ -f "$served_probe" ]; then
-  { echo; echo "[run_piece] aot_probe.json, this host's key parts (the carried cache served them):"; cat "$served_probe"; } >> "$OUT/run.log"
+if [ "${served:-0}" = 1 ] && [ -f "$probe_json" ]; then
+  { echo; echo "[run_piece] aot_probe.json, this host's key parts (the carried cache served them):"; cat "$probe_json"; } >> "$OUT/run.log"
+  rm -f "$probe_json"
 fi
 echo "$last"
 exit $rc

@@ -12,8 +12,9 @@
 #   bash experiments/slim_tree.sh [--bipedal-wheels] [--gpu MODEL] FOLDER   # before the call(s)
 #   bash experiments/slim_tree.sh --restore                   # after adopt_piece.sh
 # docs/ must have no uncommitted changes outside FOLDER, so that nothing but moves happens. Commit the
-# piece after --restore (`git add FOLDER`, never `git commit -a`): committed while its caches for other
-# GPU models are aside, the folder would record them as deleted.
+# piece after --restore (`git add FOLDER`, never `git commit -a` or `git add -A`): while the tree is
+# slim, git sees the rest of docs/, tests/ and the folder's caches for other GPU models as deleted
+# (and the suite cannot run).
 set -u
 usage="usage: bash experiments/slim_tree.sh [--bipedal-wheels] [--gpu MODEL] FOLDER | --restore"
 aside=.aside

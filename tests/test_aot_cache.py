@@ -234,7 +234,7 @@ def test_the_final_evaluation_is_lowered_as_a_run_lowers_it_while_training(tmp_p
     args.write_text(f"--env lander --method dr --preset quick --seeds 2 --final-eval test --compile-final-eval early --out {tmp_path / 'run'}")
     device = jax.devices()[0]
     init, ins, _, _, state = aot_cache.build(str(args), device)
-    evals = aot_cache.final_evals(str(args), state, device)
+    evals = aot_cache.final_evals(str(args), state)
     assert [name for name, _ in evals] == ["test"]
     ours = evals[0][1]().as_text()
 
@@ -250,6 +250,8 @@ def test_the_final_evaluation_is_lowered_as_a_run_lowers_it_while_training(tmp_p
         batch.rows(real.student, 0), xp.seed_keys(0, 2)).as_text()
     assert name == "test" and ours == theirs
 
-    # a run that compiles its final evaluation only after training has nothing to fill early
+    # compiled after training (a resumed run forgets the flag) the program is the same; no level set, no program
     args.write_text(f"--env lander --method dr --preset quick --seeds 2 --final-eval test --compile-final-eval late --out {tmp_path / 'run'}")
-    assert aot_cache.final_evals(str(args), state, device) == []
+    assert aot_cache.final_evals(str(args), state)[0][1]().as_text() == ours
+    args.write_text(f"--env lander --method dr --preset quick --seeds 2 --final-eval none --out {tmp_path / 'run'}")
+    assert aot_cache.final_evals(str(args), state) == []
