@@ -149,15 +149,18 @@ def test_fixture_window_is_gymnasiums_edges_and_every_box_in_reach():
     def windows(t, profile):
         def at(c):
             ground, col = env.ground_window(profile, (c + BACK_COLUMNS) * C.TERRAIN_STEP + 0.1)
-            reach = t.box_valid & (t.boxes[:, 1] >= ground[0, 0]) & (t.boxes[:, 0] <= ground[-1, 0])
-            return (col,) + env.fixture_window(t, ground, col) + (jnp.sum(reach),)
+            # a box that meets the window at one end (x0 == its last x, x1 == its first: common, as
+            # both lie on terrain columns) may go either way: XLA may round this copy of the window's
+            # ends otherwise than fixture_window's
+            reach = lambda m: jnp.sum(t.box_valid & (t.boxes[:, 1] >= ground[0, 0] + m) & (t.boxes[:, 0] <= ground[-1, 0] - m))
+            return (col,) + env.fixture_window(t, ground, col) + (reach(1e-4), reach(-1e-4))
         return jax.vmap(at)(jnp.asarray(cols))
 
     out = jax.tree_util.tree_map(np.asarray, jax.vmap(windows)(terrains, profiles))
-    col, edges, valid, boxes, box_ok, index, n_reach = out
+    col, edges, valid, boxes, box_ok, index, n_inside, n_reach = out
     assert n_reach.max() <= o.window_boxes, n_reach.max()
-    assert n_reach.max() >= 3  # the windows do reach obstacles
-    np.testing.assert_array_equal(box_ok.sum(-1), n_reach)
+    assert n_inside.max() >= 3  # the windows do reach obstacles
+    assert np.all(box_ok.sum(-1) >= n_inside) and np.all(box_ok.sum(-1) <= n_reach)
     tx, ty = np.asarray(terrains.x), np.asarray(terrains.y)
     tb = np.asarray(terrains.boxes)
     for lv in range(0, 64, 7):

@@ -216,10 +216,11 @@ class BipedalWalker(WalkerInterface, Environment):
         lo, hi = ground[0, 0], ground[-1, 0]
         reach = terrain.box_valid & (terrain.boxes[:, 1] >= lo) & (terrain.boxes[:, 0] <= hi)
         rank = jnp.cumsum(reach.astype(jnp.int32)) - 1
-        k = o.window_boxes
-        slot = jnp.where(reach & (rank < k), rank, k)  # (max_boxes,) window slot, k = not taken
-        index = jnp.full((k + 1,), 0, jnp.int32).at[slot].set(jnp.arange(reach.shape[0], dtype=jnp.int32))[:k]
-        box_ok = jnp.zeros((k + 1,), bool).at[slot].set(True)[:k]
+        # slot s takes the box of rank s (rows one-hot, or empty: index 0, not ok); compares and a
+        # reduction, not scatters, which on a GPU are a kernel each plus a buffer's fill and copy
+        pick = reach[None, :] & (rank[None, :] == jnp.arange(o.window_boxes)[:, None])  # (window_boxes, max_boxes)
+        box_ok = jnp.any(pick, 1)
+        index = jnp.argmax(pick, 1).astype(jnp.int32)
         return edges, valid, terrain.boxes[index], box_ok, index
 
     # ------------------------------------------------------------------ observation / reward
@@ -282,7 +283,8 @@ class BipedalWalker(WalkerInterface, Environment):
         box_pairs = state.leg_box_pairs
         if polygons:  # the same rule per (lower leg, obstacle box); boxes out of the window end their contact
             lower = info["box_touching"][jnp.asarray([M.POLYGON[b] for b in M.LOWER])] & box_ok[None]
-            box_pairs = jnp.zeros_like(box_pairs).at[:, box_index].max(lower)
+            # per box: any window slot holding it touched (empty slots' lower is False)
+            box_pairs = jnp.any(lower[:, :, None] & (box_index[:, None] == jnp.arange(box_pairs.shape[1]))[None], 1)
             began = began | jnp.any(box_pairs & ~state.leg_box_pairs, axis=1)
             ended = ended | jnp.any(~box_pairs & state.leg_box_pairs, axis=1)
         leg_contact = jnp.where(ended, False, jnp.where(began, True, state.leg_contact))
