@@ -243,7 +243,7 @@ def final_evals(args_file: str, state) -> list:
     import jax
     import jax.numpy as jnp
 
-    from shed_jax import driver, rundir
+    from shed_jax import rundir
     from shed_jax import experiment as xp
     from shed_jax.evaluation import evaluation_program, final_level_sets
 
@@ -257,8 +257,7 @@ def final_evals(args_file: str, state) -> list:
     students = jax.tree.map(lambda x: jax.ShapeDtypeStruct((seeds,) + x.shape[1:], x.dtype, sharding=x.sharding),
                             state.student)  # Batch.rows(students, 0): the first point's seeds, sharding kept
     keys = jax.ShapeDtypeStruct((seeds, 2), jnp.uint32)  # seed_keys: an uncommitted array
-    student = driver.make_batch(plan.exp, parts, [({}, {})], num_seeds=seeds, root_seed=plan.root_seed,
-                                chunk=plan.chunk).student
+    student = parts[1]  # the batch's student (driver.make_batch keeps the parts' own)
     return [(name, lambda levels=levels: evaluation_program(student, levels, opts.final_eval_episodes,
                                                             plan.exp.loop.test_max_steps)
              .lower(students, keys)) for levels, _, name in final_sets]

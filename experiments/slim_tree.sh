@@ -82,14 +82,13 @@ if [ "$core" = 1 ]; then
   for w in .whl/mujoco_core-*.whl .whl/trimesh-*.whl .whl/jaxopt-*.whl .whl/ml_collections-*.whl .whl/tensorboardx-*.whl; do
     [ -f "$w" ] && mkdir -p "$aside/whl" && mv "$w" "$aside/whl/"
   done
-fi
-# and MJX's wheel goes aside for a copy without its 6.5 MB of test data (mujoco/mjx/test_data/ and
-# their RECORD lines): the package still installs and is found, and --restore moves the original back
-# over the copy
-for w in .whl/mujoco_mjx-*.whl; do
-  [ "$core" = 1 ] && [ -f "$w" ] || continue
-  mkdir -p "$aside/whl" && mv "$w" "$aside/whl/" || exit 1
-  python3 - "$aside/whl/$(basename "$w")" "$w" <<'PY' || { mv "$aside/whl/$(basename "$w")" "$w"; echo "slim_tree: could not copy $w without its test data"; exit 1; }
+  # and MJX's wheel goes aside for a copy without its 6.5 MB of test data (mujoco/mjx/test_data/ and
+  # their RECORD lines): the package still installs and is found, and --restore moves the original
+  # back over the copy
+  for w in .whl/mujoco_mjx-*.whl; do
+    [ -f "$w" ] || continue
+    mkdir -p "$aside/whl" && mv "$w" "$aside/whl/" || exit 1
+    python3 - "$aside/whl/$(basename "$w")" "$w" <<'PY' || { mv "$aside/whl/$(basename "$w")" "$w"; echo "slim_tree: could not copy $w without its test data"; exit 1; }
 import sys, zipfile
 skip = "mujoco/mjx/test_data/"
 with zipfile.ZipFile(sys.argv[1]) as src, zipfile.ZipFile(sys.argv[2], "w", zipfile.ZIP_DEFLATED) as dst:
@@ -101,7 +100,8 @@ with zipfile.ZipFile(sys.argv[1]) as src, zipfile.ZipFile(sys.argv[2], "w", zipf
             data = b"".join(l for l in data.splitlines(True) if not l.startswith(skip.encode()))
         dst.writestr(info, data)
 PY
-done
+  done
+fi
 total=$(size)
 echo "slim_tree: docs/ holds only $folder; the tree carries $total bytes with the wheels (limit $(( 64 * 1024 * 1024 )))"
 [ "$total" -le $(( 64 * 1024 * 1024 )) ] || { echo "slim_tree: still over the 64 MiB a call carries"; exit 1; }

@@ -22,6 +22,7 @@ from flax import struct
 
 from envs import physics2d
 from envs.physics2d import fused
+from envs.physics2d.edge import first_true
 from envs.physics2d.vec import rotate
 from envs.bipedal import model as M
 from envs.core import EnvState, Environment
@@ -215,12 +216,7 @@ class BipedalWalker(WalkerInterface, Environment):
         valid = (c >= 0) & (c <= C.TERRAIN_LENGTH - 2)
         lo, hi = ground[0, 0], ground[-1, 0]
         reach = terrain.box_valid & (terrain.boxes[:, 1] >= lo) & (terrain.boxes[:, 0] <= hi)
-        rank = jnp.cumsum(reach.astype(jnp.int32)) - 1
-        # slot s takes the box of rank s (rows one-hot, or empty: index 0, not ok); compares and a
-        # reduction, not scatters, which on a GPU are a kernel each plus a buffer's fill and copy
-        pick = reach[None, :] & (rank[None, :] == jnp.arange(o.window_boxes)[:, None])  # (window_boxes, max_boxes)
-        box_ok = jnp.any(pick, 1)
-        index = jnp.argmax(pick, 1).astype(jnp.int32)
+        box_ok, index = first_true(reach, o.window_boxes)  # slot s: the s-th box in reach (empty: index 0)
         return edges, valid, terrain.boxes[index], box_ok, index
 
     # ------------------------------------------------------------------ observation / reward

@@ -160,17 +160,23 @@ def polygon_edges_manifolds(edges, valid, vertices, normals, centroid, radius):
     return m
 
 
+def first_true(has, count: int):
+    """Where ``has`` (S,) bool's first ``count`` True entries are, in order: ``(found (count,) bool,
+    index (count,) int32)``, slot k holding the k-th True entry's index (0 and not found past the last).
+    Compares, an ``any`` and an ``argmax``, not a scatter: on a GPU a scatter is a kernel plus its
+    buffer's fill and copy."""
+    rank = jnp.cumsum(has.astype(jnp.int32)) - 1
+    pick = has[None, :] & (rank[None, :] == jnp.arange(count)[:, None])  # (count, S), rows one-hot or empty
+    return jnp.any(pick, 1), jnp.argmax(pick, 1).astype(jnp.int32)
+
+
 def select_edges(m, count: int):
     """The first ``count`` edges (in edge order) whose manifolds have points, as (count, ...) leaves plus
     ``edge`` (count,) int32 (their indices; -1 for an empty slot, whose leaves are zero / False). Edges
     past ``count`` are dropped. Each leaf is read at its slot's edge (one gather per leaf), not summed
     over a one-hot mask: on a GPU a mask's sums are a reduce kernel per leaf shape and slot."""
-    has = m["on"][:, 0]
-    rank = jnp.cumsum(has.astype(jnp.int32)) - 1
-    pick = has[None, :] & (rank[None, :] == jnp.arange(count)[:, None])  # (count, S), rows one-hot or empty
-    found = jnp.any(pick, 1)
-    edge = jnp.where(found, jnp.argmax(pick, 1), -1).astype(jnp.int32)
-    at = jnp.maximum(edge, 0)
+    found, at = first_true(m["on"][:, 0], count)
+    edge = jnp.where(found, at, -1)
     out = {}
     for name, leaf in m.items():
         mask = found.reshape((count,) + (1,) * (leaf.ndim - 1))
