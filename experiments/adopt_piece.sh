@@ -42,7 +42,8 @@ done
 # a piece run with AOT_PROBE=1: its probe of the GPU host's key parts (a few kB), for experiments/aot_fill.sh
 if [ -f "$from/aot_probe.json" ]; then cp "$from/aot_probe.json" "$dir/" && chmod u+w "$dir/aot_probe.json" && echo "aot probe: $dir/aot_probe.json"; fi
 if [ -f "$from/run.log" ]; then
-  tr '\r' '\n' < "$from/run.log" | grep -a -E 'compiled in|^step |stopped at|still compiling' | tail -3
+  tr '\r' '\n' < "$from/run.log" | grep -a -E 'compiled in|stand-in' | head -3  # how the chunk was had
+  tr '\r' '\n' < "$from/run.log" | grep -a -E '^step |stopped at|still compiling' | tail -3
 fi
 if git rev-parse --git-dir >/dev/null 2>&1; then
   total=$(bash "$(dirname "$0")/carried_size.sh")

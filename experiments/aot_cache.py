@@ -28,8 +28,10 @@ differ in the two host parts (the driver's version is in the topology). ``fill -
 the programs under *portable keys* instead (``PORTABLE_PARTS`` and the device kind: no host part),
 renaming entries already there under the probed host's keys, and ``run -m shed_jax run ...`` (which
 ``run_piece.sh`` uses when the carried cache holds such entries) runs the run with the same keys, so
-one cache serves every host with that GPU model.
-This file uses JAX internals (``jax._src.cache_key``, ``jax._src.compilation_cache``) of jax 0.11:
+one cache serves every host with that GPU model. ``run`` also gives a resumed chunk without its
+trace, from a *stand-in* an earlier piece wrote (``with_stand_ins``, below).
+This file uses JAX internals (``jax._src.cache_key``, ``jax._src.compilation_cache``, the picklers of
+``jax.experimental.serialize_executable``) of jax 0.10 and 0.11:
 that is why it is a tool beside the runs, not part of ``shed_jax``.
 
     python experiments/aot_cache.py probe RUN_ARGS OUT.json          # on the GPU
@@ -46,6 +48,7 @@ import json
 import os
 import shlex
 import sys
+import threading
 import time
 
 
@@ -121,6 +124,9 @@ def _rename_entry(folder: str, old: str, new: str) -> bool:
     if os.path.exists(os.path.join(folder, f"{old}-atime")):
         os.replace(os.path.join(folder, f"{old}-atime"), os.path.join(folder, f"{new}-atime"))
     return True
+
+
+_FILED = threading.local()  # .key: the cache key the hook filed last in this thread (``hook_keys``)
 
 
 class _Captured(Exception):
@@ -204,6 +210,7 @@ def hook_keys(seen: dict, platform_version: str | None = None, compression: str 
                 say(f"aot_cache: {name} under its portable key {seen[name]['portable_key'][:56]}... (this host's "
                     f"backend version {parts['backend version'][:12]}, accelerator_config {parts['accelerator_config'][:12]})")
         filed = seen[name]["portable_key"] if (gpu and portable) else key
+        _FILED.key = filed
         if name == stop_at:
             raise _Captured(name)
         if present_in and gpu:
@@ -466,6 +473,322 @@ def fill(args_file: str, probe_file: str, chunks: bool, out: str | None, portabl
     return 0
 
 
+# Stand-ins. A piece that resumes SHED on the 2-D walker reads its chunk from the carried cache, yet
+# spends 76-122 s of its 555 s (2026-12-06) tracing and lowering the chunk only to compute that cache
+# key. The first piece that compiles or reads a chunk therefore writes a *stand-in* beside JAX's cache
+# folder: the compiled program as ``jax.experimental.serialize_executable`` pickles it, but with the
+# executable's bytes replaced by the key of the JAX cache entry that holds them (and their SHA-256),
+# filed under a key of everything the trace depends on (``stand_in_key``). A later piece with that key
+# loads the entry and skips the trace. Anything that does not match (a missing or changed cache
+# entry, another jax, an unpickling error) falls back to tracing, with one line saying why.
+STAND_INS = "programs"  # the stand-ins' folder, beside JAX's cache folder (.cache/device/programs)
+# environment variables that change only what JAX logs, not what it builds
+_LOG_ONLY_ENV = ("JAX_EXPLAIN_CACHE_MISSES", "TF_CPP_MIN_LOG_LEVEL", "TF_CPP_VMODULE", "TF_CPP_MAX_VLOG_LEVEL")
+_SCALARS = (bool, int, float, str, type(None))
+
+
+def stand_in_key(jitted, args: tuple, context: str) -> str | None:
+    """SHA-256 naming the program ``jitted.trace(*args)`` lowers, or None where it cannot be named
+    without the trace: not a ``jax.jit`` function, or a static argument that is not a plain scalar.
+    ``context`` must name everything else the program follows (``stand_in_context``). Dynamic Python
+    scalars count by type alone (their abstract value), static ones by value, arrays by shape, dtype,
+    weak type and sharding, all in the arguments' tree structure."""
+    import jax
+
+    info = getattr(jitted, "_jit_info", None)
+    if info is None:
+        return None
+    static = set(info.static_argnums)
+    parts = [context, info.fun_sourceinfo, repr(info.in_shardings_leaves), repr(info.out_shardings_leaves),
+             repr(info.donate_argnums), repr(info.static_argnums)]
+    for i, a in enumerate(args):
+        if i in static:
+            if not isinstance(a, _SCALARS):
+                return None
+            parts.append(f"static {a!r}")
+            continue
+        leaves, tree = jax.tree.flatten(a)
+        parts.append(str(tree))
+        for x in leaves:
+            if isinstance(x, _SCALARS):
+                parts.append(type(x).__name__)
+            elif hasattr(x, "shape") and hasattr(x, "dtype"):
+                parts.append(f"{tuple(x.shape)} {x.dtype} {getattr(x, 'weak_type', False)} "
+                             f"{getattr(x, 'sharding', None)!r}")
+            else:
+                return None
+    return hashlib.sha256("\n".join(parts).encode()).hexdigest()
+
+
+def stand_in_context(run_dir: str | None) -> str | None:
+    """What a run's programs follow beyond their arguments: its sources (``sources_digest`` of this
+    folder), jax and jaxlib, the devices, the ``JAX_*``/``XLA_*`` environment (less ``_LOG_ONLY_ENV``) and
+    the run's ``config.json`` less its output settings and commit; None where ``run_dir`` has none."""
+    import jax
+    import jaxlib
+
+    path = os.path.join(run_dir, "config.json") if run_dir else None
+    if not path or not os.path.isfile(path):
+        return None
+    config = json.load(open(path))
+    config = {k: v for k, v in config.items() if k not in ("output", "commit")}
+    env = sorted((k, v) for k, v in os.environ.items()
+                 if k.startswith(("JAX_", "XLA_")) and k not in _LOG_ONLY_ENV)
+    devices = [(d.id, d.platform, d.device_kind) for d in jax.devices()]
+    return json.dumps([sources_digest("."), jax.__version__, jaxlib.__version__, devices, env, config], sort_keys=True)
+
+
+def _cache_payload(backend, key: str) -> bytes | None:
+    """The serialized executable JAX's persistent cache holds under ``key``, or None."""
+    from jax._src import compilation_cache as cc
+
+    cache = cc._get_cache(backend)
+    raw = cache.get(key) if cache is not None else None
+    if raw is None:
+        return None
+    return cc.extract_executable_and_time(cc.decompress_executable(raw))[0]
+
+
+def save_stand_in(path: str, compiled, key: str) -> str | None:
+    """Write ``compiled``'s stand-in to ``path``, its executable named by the cache entry ``key``; returns
+    None, or why it was not written."""
+    import io
+    import pickle
+
+    import jax
+    from jax.experimental import serialize_executable as se
+
+    backend = jax.devices()[0].client
+    payload = _cache_payload(backend, key)
+    if payload is None:
+        return f"the cache holds no entry {key[:48]}..."
+    digest = hashlib.sha256(payload).hexdigest()
+
+    class Pickler(se._JaxPjrtPickler):
+        def persistent_id(self, obj):
+            pid = super().persistent_id(obj)
+            return ("cached", key, digest) if pid is not None and pid[0] == "exec" else pid
+
+    unloaded = getattr(compiled._executable, "_unloaded_executable", None)
+    if unloaded is None or compiled._params.const_args:
+        return "this executable cannot be serialized"
+    args_info_flat, in_tree = jax.tree.flatten(compiled.args_info)
+    with io.BytesIO() as f:
+        Pickler(f).dump((unloaded, args_info_flat, compiled._no_kwargs))
+        body = f.getvalue()
+    blob = pickle.dumps({"jax": jax.__version__, "key": key, "sha256": digest, "in_tree": in_tree,
+                         "out_tree": compiled.out_tree, "body": body})
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    with open(path + ".tmp", "wb") as f:
+        f.write(blob)
+    os.replace(path + ".tmp", path)
+    return None
+
+
+def load_stand_in(path: str):
+    """The ``jax.stages.Compiled`` a stand-in names; ValueError saying why where it cannot be had."""
+    import io
+    import pickle
+
+    import jax
+    from jax.experimental import serialize_executable as se
+
+    entry = pickle.load(open(path, "rb"))
+    if entry.get("jax") != jax.__version__:
+        raise ValueError(f"written by jax {entry.get('jax')}, this is {jax.__version__}")
+    backend = jax.devices()[0].client
+    payload = _cache_payload(backend, entry["key"])
+    if payload is None:
+        raise ValueError(f"the cache holds no entry {entry['key'][:48]}...")
+    if hashlib.sha256(payload).hexdigest() != entry["sha256"]:
+        raise ValueError(f"the cache entry {entry['key'][:48]}... holds another executable")
+
+    class Unpickler(se._JaxPjrtUnpickler):
+        def persistent_load(self, pid):
+            if pid[0] == "cached":
+                return self.backend.deserialize_executable(payload, executable_devices=self.execution_devices)
+            return super().persistent_load(pid)
+
+    unloaded, args_info_flat, no_kwargs = Unpickler(io.BytesIO(entry["body"]), backend).load()
+    return jax.stages.Compiled(unloaded.load(), [], entry["in_tree"].unflatten(args_info_flat),
+                               entry["out_tree"], no_kwargs=no_kwargs)
+
+
+class _Ready:
+    """Stands for a ``Lowered`` whose ``compile()`` is already known."""
+
+    def __init__(self, compiled):
+        self._compiled = compiled
+
+    def compile(self, *_, **__):
+        return self._compiled
+
+
+class _Saving:
+    """A ``Lowered`` whose ``compile()`` also writes the program's stand-in."""
+
+    def __init__(self, lowered, path: str, say):
+        self._lowered, self._path, self._say = lowered, path, say
+
+    def compile(self, *a, **kw):
+        _FILED.key = None
+        compiled = self._lowered.compile(*a, **kw)
+        key = getattr(_FILED, "key", None)
+        try:
+            why = save_stand_in(self._path, compiled, key) if key else "the compile filed no cache key"
+        except Exception as err:  # noqa: BLE001 - a stand-in is an optimisation; the run goes on
+            why = f"{type(err).__name__}: {err}"
+        self._say(f"aot_cache: {os.path.basename(self._path)[:16]}... stand-in "
+                  + ("written" if why is None else f"not written ({why})"))
+        return compiled
+
+    def __getattr__(self, name):
+        return getattr(self._lowered, name)
+
+
+def with_stand_ins(lower, folder, context, say):
+    """``lower(jitted, *args)`` (the driver's ``lower_from_clean_caches``) wrapped: a program whose
+    stand-in is in ``folder`` comes back compiled without a trace; any other is traced and lowered by
+    ``lower``, and its compile writes the stand-in. ``context()`` gives ``stand_in_context``'s string
+    (or None: no stand-ins), called at the first program. ``closure``, a keyword of the wrapper: a
+    string naming what ``jitted`` closes over that the context does not (``values_digest``)."""
+    memo = {}
+    lock = threading.Lock()  # programs are lowered in worker threads
+
+    def lower_or_load(jitted, *args, closure: str = "", **kwargs):
+        with lock:
+            if "context" not in memo:
+                memo["context"] = context()
+        ctx = memo["context"]
+        key = None if (kwargs or ctx is None) else stand_in_key(jitted, args, f"{ctx}\n{closure}")
+        if key is None:
+            return lower(jitted, *args, **kwargs)
+        path = os.path.join(folder(), f"{key}.pkl")
+        if os.path.exists(path):
+            t0 = time.time()
+            try:
+                compiled = load_stand_in(path)
+                say(f"aot_cache: {key[:16]}... read from its stand-in in {time.time() - t0:.1f} s, not traced")
+                return _Ready(compiled)
+            except Exception as err:  # noqa: BLE001
+                say(f"aot_cache: {key[:16]}... stand-in not used ({type(err).__name__}: {err}); tracing it")
+        return _Saving(lower(jitted, *args, **kwargs), path, say)
+
+    return lower_or_load
+
+
+def values_digest(tree) -> str:
+    """SHA-256 of a pytree's structure and its leaves' values (arrays: shape, dtype and bytes)."""
+    import jax
+    import numpy as np
+
+    leaves, tree_def = jax.tree.flatten(tree)
+    h = hashlib.sha256(str(tree_def).encode())
+    for x in leaves:
+        if isinstance(x, _SCALARS):
+            h.update(f"{type(x).__name__} {x!r}".encode())
+        else:
+            a = np.asarray(x)
+            h.update(f"{a.shape} {a.dtype}".encode() + a.tobytes())
+    return h.hexdigest()
+
+
+class _Program:
+    """A jitted program whose ``lower(*args)`` goes through ``lower_or_load`` with its closure's digest."""
+
+    def __init__(self, jitted, lower_or_load, closure: str):
+        self._jitted, self._lower_or_load, self._closure = jitted, lower_or_load, closure
+
+    def __call__(self, *args, **kwargs):
+        return self._jitted(*args, **kwargs)
+
+    def lower(self, *args):
+        return self._lower_or_load(self._jitted, *args, closure=self._closure)
+
+    def __getattr__(self, name):
+        return getattr(self._jitted, name)
+
+
+def evaluation_with_stand_ins(make, lower_or_load):
+    """``shed_jax.evaluation.evaluation_program`` wrapped: its program's ``lower`` reads and writes
+    stand-ins, named with the levels, episodes, step limit and determinism it closes over (the student
+    follows the run's config). Run on GPU, a run compiles its final evaluation beside its first chunks:
+    without this, a piece whose chunk came from a stand-in would lower that program after other traces
+    than a traced piece does, which can change the source locations inside its kernels and so its key."""
+    import inspect
+
+    signature = inspect.signature(make)
+
+    def evaluation_program(*args, **kwargs):
+        bound = signature.bind(*args, **kwargs)
+        bound.apply_defaults()
+        closure = values_digest({k: v for k, v in bound.arguments.items() if k != "student"})
+        return _Program(make(*args, **kwargs), lower_or_load, f"{make.__module__}.{make.__name__} {closure}")
+
+    return evaluation_program
+
+
+def _run_dir(argv: list[str]) -> str | None:
+    """The run directory of ``shed_jax run`` arguments (``--resume DIR`` or ``--out DIR``)."""
+    for flag in ("--resume", "--out"):
+        for i, a in enumerate(argv):
+            if a == flag and i + 1 < len(argv):
+                return argv[i + 1]
+            if a.startswith(flag + "="):
+                return a.split("=", 1)[1]
+    return None
+
+
+def _stand_in_folder() -> str:
+    import jax
+
+    return os.path.join(os.path.dirname(os.path.abspath(jax.config.jax_compilation_cache_dir)), STAND_INS)
+
+
+def _hook_stand_ins(argv: list[str], say) -> None:
+    """``shed_jax.driver.lower_from_clean_caches`` (the chunks) and ``shed_jax.evaluation.evaluation_program``
+    (the final evaluation) through stand-ins, each as its module is imported (not before: the package
+    sets things up before its first JAX computation); sources without them run as they are."""
+    import importlib.abc
+    import importlib.util
+
+    run_dir = _run_dir(argv)
+    load = with_stand_ins(lambda jitted, *a: jitted.lower(*a), _stand_in_folder, lambda: stand_in_context(run_dir), say)
+
+    def patch(module):
+        if module.__name__ == "shed_jax.driver" and hasattr(module, "lower_from_clean_caches"):
+            module.lower_from_clean_caches = with_stand_ins(module.lower_from_clean_caches, _stand_in_folder,
+                                                            lambda: stand_in_context(run_dir), say)
+        if module.__name__ == "shed_jax.evaluation" and hasattr(module, "evaluation_program"):
+            module.evaluation_program = evaluation_with_stand_ins(module.evaluation_program, load)
+
+    todo = {"shed_jax.driver", "shed_jax.evaluation"}
+
+    class Finder(importlib.abc.MetaPathFinder):
+        def find_spec(self, name, path, target=None):
+            if name not in todo:
+                return None
+            todo.discard(name)
+            sys.meta_path.remove(self)  # the real spec, from the finders after this one
+            try:
+                spec = importlib.util.find_spec(name)
+            finally:
+                if todo:
+                    sys.meta_path.insert(0, self)
+            if spec is None or spec.loader is None:
+                return spec
+            run = spec.loader.exec_module
+
+            def exec_module(module):
+                run(module)
+                patch(module)
+
+            spec.loader.exec_module = exec_module
+            return spec
+
+    sys.meta_path.insert(0, Finder())
+
+
 def run_portable(argv: list[str]) -> int:
     """``-m MODULE ARGS...`` run as ``python -m MODULE ARGS...`` runs it, from this folder, but with its
     GPU programs filed in (and read from) the compilation cache under their portable keys; one line on
@@ -476,7 +799,10 @@ def run_portable(argv: list[str]) -> int:
     import runpy
 
     sys.path.insert(0, os.getcwd())  # as ``python -m`` puts it
-    hook_keys({}, portable=True, say=lambda line: print(line, file=sys.stderr, flush=True))
+    say = lambda line: print(line, file=sys.stderr, flush=True)  # noqa: E731
+    hook_keys({}, portable=True, say=say)
+    if os.environ.get("AOT_STAND_INS", "1") == "1":
+        _hook_stand_ins(argv[2:], say)
     sys.argv = [argv[1], *argv[2:]]
     runpy.run_module(argv[1], run_name="__main__", alter_sys=True)
     return 0

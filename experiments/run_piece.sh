@@ -19,13 +19,16 @@
 # device call's limit_s less about 20 s: a call ended by its limit returns nothing of the piece. It exits with the run's exit code (75: stopped at
 # the time limit and saved; 0: finished, final evaluation included; 2: bad arguments; 6 and 7:
 # AOT_GATE=1 and the carried cache does not serve this host, nothing run or the run stopped before
-# compiling its chunk). Copy those
+# compiling its chunk). CHECKPOINT_EVERY (seconds, default 120): how often the run saves besides at
+# its stop. Copy those
 # back over FOLDER's parts (old parts removed first: the split may change) before the next piece.
 set -u
 usage="usage: OUT=DIR bash experiments/run_piece.sh FOLDER SECONDS"
 dir=${1:?$usage}
 secs=${2:?$usage}
 case $secs in ''|*[!0-9]*) echo "run_piece: SECONDS must be a whole number, got '$secs'"; exit 2;; esac
+every=${CHECKPOINT_EVERY:-120}
+case $every in ''|*[!0-9]*) echo "run_piece: CHECKPOINT_EVERY must be a whole number of seconds, got '$every'"; exit 2;; esac
 [ "$secs" -gt "${PACK_S:-45}" ] || { echo "run_piece: SECONDS=$secs leaves no time to run: the last ${PACK_S:-45} s are kept for the checkpoint and the packing"; exit 2; }
 # it replaces this tree's sources with the run's: only on a disposable copy of the tree, where OUT is set
 : "${OUT:?run_piece.sh replaces shed_jax/, envs/ and experiments/ in place: run it on a disposable copy with OUT set}"
@@ -120,7 +123,10 @@ if [ "${AOT_GATE:-0}" = 1 ] && ! grep -qs "is not in the compilation cache" shed
 fi
 runner=(python -m shed_jax)
 [ "$portable" = 1 ] && runner=(python "$tool" run -m shed_jax)
-timeout -k 5 $(( lim + ${PACK_S:-45} - 12 )) "${runner[@]}" run $what --keep 1 --no-gif --time-limit $lim > "$OUT/run.log" 2>&1 &
+# a checkpoint every CHECKPOINT_EVERY s (120) besides the one at the stop: SHED's 34 MB state saved
+# after every 11-s chunk held training up 14-21 s a piece (2026-12-06), and a cut-off call loses
+# nothing more, since a call returns no part of a piece that did not reach its own end
+timeout -k 5 $(( lim + ${PACK_S:-45} - 12 )) "${runner[@]}" run $what --keep 1 --no-gif --checkpoint-every "$every" --time-limit $lim > "$OUT/run.log" 2>&1 &
 pid=$!
 missed=0
 if [ "${AOT_GATE:-0}" = 1 ]; then

@@ -255,3 +255,164 @@ def test_the_final_evaluation_is_lowered_as_a_run_lowers_it_while_training(tmp_p
     assert aot_cache.final_evals(str(args), state)[0][1]().as_text() == ours
     args.write_text(f"--env lander --method dr --preset quick --seeds 2 --final-eval none --out {tmp_path / 'run'}")
     assert aot_cache.final_evals(str(args), state) == []
+
+
+def test_a_stand_in_key_follows_what_the_trace_follows():
+    """Static arguments by value, dynamic Python scalars by type (their abstract value), arrays by
+    shape, dtype and sharding; a plain function or a static argument that is not a scalar has none."""
+    f = jax.jit(lambda x, n, t: x * n + t, static_argnums=1)
+    key = lambda *a, context="c": aot_cache.stand_in_key(f, a, context)  # noqa: E731
+    base = key(jnp.ones(3), 2, 5)
+    assert len(base) == 64
+    assert key(jnp.zeros(3), 2, 7) == base  # values of dynamic arguments: the same program
+    assert key(jnp.ones(3), 3, 5) != base  # a static value: another program
+    assert key(jnp.ones(4), 2, 5) != base and key(jnp.ones(3, jnp.int32), 2, 5) != base
+    assert key(jnp.ones(3), 2, 5.0) != base  # a float, not an int: another abstract value
+    assert key(jnp.ones(3), 2, 5, context="d") != base
+    assert key((jnp.ones(3),), 2, 5) != base  # another tree
+    assert key(jnp.ones(3), [2], 5) is None
+    assert aot_cache.stand_in_key(lambda x: x, (jnp.ones(3),), "c") is None
+
+
+def test_a_stand_in_context_leaves_out_output_settings_and_logging(tmp_path, monkeypatch):
+    import json
+
+    assert aot_cache.stand_in_context(None) is None and aot_cache.stand_in_context(str(tmp_path)) is None
+    cfg = {"experiment": {"env": "bipedal"}, "seeds": 5, "commit": "abc", "output": {"keep": 3}}
+    (tmp_path / "config.json").write_text(json.dumps(cfg))
+    monkeypatch.chdir(tmp_path)
+    base = aot_cache.stand_in_context(str(tmp_path))
+    (tmp_path / "config.json").write_text(json.dumps({**cfg, "commit": "def", "output": {"keep": 1}}))
+    monkeypatch.setenv("JAX_EXPLAIN_CACHE_MISSES", "1")
+    assert aot_cache.stand_in_context(str(tmp_path)) == base
+    monkeypatch.setenv("XLA_FLAGS", "--xla_gpu_autotune_level=0")
+    assert aot_cache.stand_in_context(str(tmp_path)) != base
+    monkeypatch.delenv("XLA_FLAGS")
+    (tmp_path / "config.json").write_text(json.dumps({**cfg, "seeds": 4}))
+    assert aot_cache.stand_in_context(str(tmp_path)) != base
+    assert aot_cache._run_dir(["--resume", "runs/x", "--keep", "1"]) == "runs/x"
+    assert aot_cache._run_dir(["--env", "lander", "--out=runs/y"]) == "runs/y"
+    assert aot_cache._run_dir(["--env", "lander"]) is None
+
+
+_STAND_IN_SCRIPT = """
+import json, os, sys
+import jax, jax.numpy as jnp
+from experiments import aot_cache
+
+jax.config.update("jax_compilation_cache_dir", sys.argv[1])
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+jax.config.update("jax_persistent_cache_min_entry_size_bytes", -1)
+aot_cache.hook_keys({})
+traces = []
+
+def step(x, n, t):
+    traces.append(1)  # runs only while tracing
+    for _ in range(n):
+        x = jnp.sin(x) * 1.5 + t
+    return {"y": x, "s": jnp.sum(x)}
+
+f = jax.jit(step, static_argnums=1)
+lines = []
+lower = aot_cache.with_stand_ins(lambda j, *a: j.trace(*a).lower(), lambda: sys.argv[2], lambda: "ctx", lines.append)
+x = jnp.linspace(0.0, 1.0, 7)
+out = []
+for t in (0.25, 0.5):
+    c = lower(f, x, 3, jnp.float32(t)).compile()
+    r = c(x, jnp.float32(t))
+    out.append([float(v) for v in r["y"]] + [float(r["s"])])
+print(json.dumps({"traces": len(traces), "out": out, "lines": lines}))
+"""
+
+
+def test_a_stand_in_gives_the_compiled_program_without_a_trace(tmp_path):
+    """The first lowering of a program traces it and its compile writes a stand-in; the next (in this
+    process and in a new one) reads the executable from JAX's cache entry without tracing, and
+    computes the same values. A stand-in whose cache entry changed is not used: the program is traced."""
+    import json
+    import pathlib
+    import subprocess
+    import sys
+
+    root = pathlib.Path(aot_cache.__file__).resolve().parents[1]
+    script = tmp_path / "stand_in.py"
+    script.write_text(_STAND_IN_SCRIPT)
+    cache, store = tmp_path / "jax", tmp_path / "programs"
+
+    def run():
+        r = subprocess.run([sys.executable, str(script), str(cache), str(store)], cwd=root, capture_output=True,
+                           text=True, timeout=300, env={**__import__("os").environ, "JAX_PLATFORMS": "cpu"})
+        assert r.returncode == 0, r.stderr[-2000:]
+        return json.loads(r.stdout.strip().splitlines()[-1])
+
+    first = run()
+    assert first["traces"] == 1 and len(list(store.iterdir())) == 1, first["lines"]
+    assert "stand-in written" in first["lines"][0] and "read from its stand-in" in first["lines"][1]
+    second = run()
+    assert second["traces"] == 0 and second["out"] == first["out"], second["lines"]
+    want = [np.float32(v) for v in np.linspace(0.0, 1.0, 7, dtype=np.float32)]
+    y = np.array(want, np.float32)
+    for _ in range(3):
+        y = np.sin(y) * np.float32(1.5) + np.float32(0.25)
+    np.testing.assert_allclose(first["out"][0][:7], y, rtol=1e-6)
+    (stand_in,) = store.iterdir()
+    import pickle
+    entry = pickle.loads(stand_in.read_bytes())
+    stand_in.write_bytes(pickle.dumps({**entry, "sha256": "0" * 64}))  # as if the cache entry had changed
+    third = run()
+    assert third["traces"] == 1 and third["out"] == first["out"]
+    assert "holds another executable" in third["lines"][0] and "stand-in written" in third["lines"][1]
+    (cache / f"{entry['key']}-cache").unlink()  # the entry gone: traced and compiled again
+    fourth = run()
+    assert fourth["traces"] == 1 and fourth["out"] == first["out"]
+    assert "holds no entry" in fourth["lines"][0] and "stand-in written" in fourth["lines"][1]
+
+
+@pytest.mark.parametrize("stand_ins", ["1", "0"])
+def test_run_puts_the_stand_ins_in_the_drivers_lowering_as_it_is_imported(tmp_path, stand_ins):
+    """``aot_cache.py run -m shed_jax ...`` wraps the run's own ``shed_jax.driver.lower_from_clean_caches``
+    and ``shed_jax.evaluation.evaluation_program`` when the package imports them (``AOT_STAND_INS=0``:
+    not at all)."""
+    import os
+    import subprocess
+    import sys
+
+    pkg = tmp_path / "shed_jax"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text("")
+    (pkg / "driver.py").write_text("def lower_from_clean_caches(jitted, *args):\n    return 'traced'\n")
+    (pkg / "evaluation.py").write_text(
+        "def evaluation_program(student, levels, episodes, max_steps=None, deterministic=False):\n    return 'p'\n")
+    (pkg / "__main__.py").write_text(
+        "import sys\nfrom shed_jax import driver, evaluation\n"
+        "program = evaluation.evaluation_program('student', [1.0, 2.0], 10)\n"
+        "print(driver.lower_from_clean_caches.__name__, type(program).__name__, sys.argv[1:])\n")
+    r = subprocess.run([sys.executable, str(aot_cache.__file__), "run", "-m", "shed_jax", "run", "--resume", "runs/x"],
+                       cwd=tmp_path, capture_output=True, text=True, timeout=120,
+                       env={**os.environ, "AOT_STAND_INS": stand_ins})
+    assert r.returncode == 0, r.stderr
+    names = "lower_or_load _Program" if stand_ins == "1" else "lower_from_clean_caches str"
+    assert r.stdout.strip() == f"{names} ['run', '--resume', 'runs/x']"
+
+
+def test_an_evaluation_programs_stand_in_is_named_by_what_it_closes_over():
+    """The final evaluation's program closes over its levels, episodes and step limit: each goes into
+    the name its ``lower`` passes on, the student (which the run's config decides) does not; a call
+    runs the jitted program itself."""
+    made, lowered = [], []
+
+    def evaluation_program(student, levels, episodes, max_steps=None, deterministic=False):
+        made.append(student)
+        return jax.jit(lambda x: x * episodes)
+
+    wrapped = aot_cache.evaluation_with_stand_ins(
+        evaluation_program, lambda jitted, *a, closure: lowered.append(closure) or jitted.lower(*a))
+    levels = {"g": jnp.array([1.0, 2.0])}
+    p = wrapped("s1", levels, 10)
+    assert float(p(jnp.float32(2.0))) == 20.0 and made == ["s1"]
+    p.lower(jnp.ones(3)).compile()
+    wrapped("s2", {"g": jnp.array([1.0, 2.0])}, 10).lower(jnp.ones(3))
+    wrapped("s1", {"g": jnp.array([1.0, 2.5])}, 10).lower(jnp.ones(3))
+    wrapped("s1", levels, 10, 2000).lower(jnp.ones(3))
+    wrapped("s1", levels, episodes=11).lower(jnp.ones(3))
+    assert lowered[0] == lowered[1] and len(set(lowered)) == 4

@@ -87,7 +87,8 @@ def test_start_then_resume_from_the_returned_parts(tmp_path, folder):
     # 45 s to the run's checkpoint and the packing
     assert call[:3] == ["-m", "shed_jax", "run"] and "--resume" not in call
     assert " ".join(call[3:13]) == "--env lander --method dr --preset quick --seeds 1 --out runs/x"
-    assert call[13:16] == ["--keep", "1", "--no-gif"] and call[16] == "--time-limit" and 50 <= int(call[17]) <= 55
+    assert call[13:18] == ["--keep", "1", "--no-gif", "--checkpoint-every", "120"]
+    assert call[18] == "--time-limit" and 50 <= int(call[19]) <= 55
     # the run's sources replaced the tree's before it ran
     assert (repo / "shed_jax" / "run_sources.txt").is_file() and not (repo / "shed_jax" / "stale.txt").exists()
     out = first / "out1"
@@ -131,6 +132,8 @@ def test_bad_arguments_are_refused_before_any_work(tmp_path, folder):
     assert r.returncode == 2 and "SECONDS must be a whole number" in r.stdout
     r = _piece(tmp_path, repo, 5, seconds="40")  # less than the checkpoint and the packing need
     assert r.returncode == 2 and "leaves no time to run" in r.stdout
+    r = _piece(tmp_path, repo, 6, CHECKPOINT_EVERY="2m")
+    assert r.returncode == 2 and "CHECKPOINT_EVERY must be a whole number of seconds" in r.stdout
     r = _piece(tmp_path, repo, 2, out=False)
     assert r.returncode != 0 and "OUT set" in r.stderr
     (repo / "inflight" / "run.args").write_text("--env lander --method dr\n")
