@@ -513,8 +513,9 @@ def stand_in_key(jitted, args: tuple, context: str) -> str | None:
             if isinstance(x, _SCALARS):
                 parts.append(type(x).__name__)
             elif hasattr(x, "shape") and hasattr(x, "dtype"):
-                parts.append(f"{tuple(x.shape)} {x.dtype} {getattr(x, 'weak_type', False)} "
-                             f"{getattr(x, 'sharding', None)!r}")
+                sharding = getattr(x, "sharding", None)
+                ids = sorted(d.id for d in sharding.device_set) if sharding is not None else None
+                parts.append(f"{tuple(x.shape)} {x.dtype} {getattr(x, 'weak_type', False)} {sharding!r} {ids}")
             else:
                 return None
     return hashlib.sha256("\n".join(parts).encode()).hexdigest()
@@ -522,10 +523,10 @@ def stand_in_key(jitted, args: tuple, context: str) -> str | None:
 
 def stand_in_context(run_dir: str | None) -> str | None:
     """What a run's programs follow beyond their arguments: its sources (``sources_digest`` of this
-    folder), jax and jaxlib, the devices, the ``JAX_*``/``XLA_*`` environment (less ``_LOG_ONLY_ENV``) and
-    the run's ``config.json`` less its output settings and commit; None where ``run_dir`` has none."""
+    folder), Python and ``TRACED_PACKAGES``' versions, the devices, the ``JAX_*``/``XLA_*`` environment
+    (less ``_LOG_ONLY_ENV``) and the run's ``config.json`` less its output settings and commit; None
+    where ``run_dir`` has none."""
     import jax
-    import jaxlib
 
     path = os.path.join(run_dir, "config.json") if run_dir else None
     if not path or not os.path.isfile(path):
@@ -535,7 +536,23 @@ def stand_in_context(run_dir: str | None) -> str | None:
     env = sorted((k, v) for k, v in os.environ.items()
                  if k.startswith(("JAX_", "XLA_")) and k not in _LOG_ONLY_ENV)
     devices = [(d.id, d.platform, d.device_kind) for d in jax.devices()]
-    return json.dumps([sources_digest("."), jax.__version__, jaxlib.__version__, devices, env, config], sort_keys=True)
+    return json.dumps([sources_digest("."), sys.version, _versions(), devices, env, config], sort_keys=True)
+
+
+# the packages whose code a run's programs are traced from, besides its own sources
+TRACED_PACKAGES = ("jax", "jaxlib", "flax", "optax", "chex", "orbax-checkpoint", "brax", "mujoco", "mujoco-mjx", "numpy")
+
+
+def _versions() -> list:
+    from importlib import metadata
+
+    out = []
+    for name in TRACED_PACKAGES:
+        try:
+            out.append((name, metadata.version(name)))
+        except metadata.PackageNotFoundError:
+            out.append((name, None))
+    return out
 
 
 def _cache_payload(backend, key: str) -> bytes | None:
@@ -564,10 +581,14 @@ def save_stand_in(path: str, compiled, key: str) -> str | None:
         return f"the cache holds no entry {key[:48]}..."
     digest = hashlib.sha256(payload).hexdigest()
 
+    from jax._src.lib import _jax
+    from jax._src.lib import xla_client as xc
+
     class Pickler(se._JaxPjrtPickler):
-        def persistent_id(self, obj):
-            pid = super().persistent_id(obj)
-            return ("cached", key, digest) if pid is not None and pid[0] == "exec" else pid
+        def persistent_id(self, obj):  # the executable by reference, never serialized here
+            if isinstance(obj, (xc.LoadedExecutable, _jax.Executable)):
+                return ("cached", key, digest)
+            return super().persistent_id(obj)
 
     unloaded = getattr(compiled._executable, "_unloaded_executable", None)
     if unloaded is None or compiled._params.const_args:
@@ -576,8 +597,9 @@ def save_stand_in(path: str, compiled, key: str) -> str | None:
     with io.BytesIO() as f:
         Pickler(f).dump((unloaded, args_info_flat, compiled._no_kwargs))
         body = f.getvalue()
+    devices = sorted({d.id for sh in jax.tree.leaves(compiled.input_shardings) for d in sh.device_set})
     blob = pickle.dumps({"jax": jax.__version__, "key": key, "sha256": digest, "in_tree": in_tree,
-                         "out_tree": compiled.out_tree, "body": body})
+                         "out_tree": compiled.out_tree, "devices": devices, "body": body})
     os.makedirs(os.path.dirname(path), exist_ok=True)
     with open(path + ".tmp", "wb") as f:
         f.write(blob)
@@ -609,7 +631,11 @@ def load_stand_in(path: str):
                 return self.backend.deserialize_executable(payload, executable_devices=self.execution_devices)
             return super().persistent_load(pid)
 
-    unloaded, args_info_flat, no_kwargs = Unpickler(io.BytesIO(entry["body"]), backend).load()
+    by_id = {d.id: d for d in backend.devices()}
+    if not set(entry["devices"]) <= set(by_id):
+        raise ValueError(f"its devices {entry['devices']} are not all on this host")
+    devices = [by_id[i] for i in entry["devices"]]  # the program's own, not every device of the host
+    unloaded, args_info_flat, no_kwargs = Unpickler(io.BytesIO(entry["body"]), backend, devices).load()
     return jax.stages.Compiled(unloaded.load(), [], entry["in_tree"].unflatten(args_info_flat),
                                entry["out_tree"], no_kwargs=no_kwargs)
 
@@ -656,22 +682,29 @@ def with_stand_ins(lower, folder, context, say):
     lock = threading.Lock()  # programs are lowered in worker threads
 
     def lower_or_load(jitted, *args, closure: str = "", **kwargs):
-        with lock:
-            if "context" not in memo:
-                memo["context"] = context()
-        ctx = memo["context"]
-        key = None if (kwargs or ctx is None) else stand_in_key(jitted, args, f"{ctx}\n{closure}")
-        if key is None:
+        try:
+            with lock:
+                if "context" not in memo:
+                    memo["context"] = context()
+            ctx = memo["context"]
+            # the 2-D physics' kernels pad their worlds to a process-wide number (envs/physics2d/fused.py)
+            padding = getattr(sys.modules.get("envs.physics2d.fused"), "MIN_WORLDS", None)
+            key = None if (kwargs or ctx is None) else stand_in_key(jitted, args, f"{ctx}\n{closure}\n{padding}")
+            path = os.path.join(folder(), f"{key}.pkl") if key else None
+        except Exception as err:  # noqa: BLE001 - no stand-in, the program traced as ever
+            say(f"aot_cache: no stand-in ({type(err).__name__}: {err})")
+            path = None
+        if path is None:
             return lower(jitted, *args, **kwargs)
-        path = os.path.join(folder(), f"{key}.pkl")
+        name = os.path.basename(path)[:16]
         if os.path.exists(path):
             t0 = time.time()
             try:
                 compiled = load_stand_in(path)
-                say(f"aot_cache: {key[:16]}... read from its stand-in in {time.time() - t0:.1f} s, not traced")
+                say(f"aot_cache: {name}... read from its stand-in in {time.time() - t0:.1f} s, not traced")
                 return _Ready(compiled)
             except Exception as err:  # noqa: BLE001
-                say(f"aot_cache: {key[:16]}... stand-in not used ({type(err).__name__}: {err}); tracing it")
+                say(f"aot_cache: {name}... stand-in not used ({type(err).__name__}: {err}); tracing it")
         return _Saving(lower(jitted, *args, **kwargs), path, say)
 
     return lower_or_load
@@ -740,9 +773,13 @@ def _run_dir(argv: list[str]) -> str | None:
 
 
 def _stand_in_folder() -> str:
+    """``STAND_INS`` beside JAX's cache folder; ValueError where the run has none."""
     import jax
 
-    return os.path.join(os.path.dirname(os.path.abspath(jax.config.jax_compilation_cache_dir)), STAND_INS)
+    cache = jax.config.jax_compilation_cache_dir
+    if not cache or not jax.config.jax_enable_compilation_cache:
+        raise ValueError("the persistent compilation cache is off")
+    return os.path.join(os.path.dirname(os.path.abspath(cache)), STAND_INS)
 
 
 def _hook_stand_ins(argv: list[str], say) -> None:
@@ -750,7 +787,7 @@ def _hook_stand_ins(argv: list[str], say) -> None:
     (the final evaluation) through stand-ins, each as its module is imported (not before: the package
     sets things up before its first JAX computation); sources without them run as they are."""
     import importlib.abc
-    import importlib.util
+    import importlib.machinery
 
     run_dir = _run_dir(argv)
     load = with_stand_ins(lambda jitted, *a: jitted.lower(*a), _stand_in_folder, lambda: stand_in_context(run_dir), say)
@@ -768,14 +805,9 @@ def _hook_stand_ins(argv: list[str], say) -> None:
         def find_spec(self, name, path, target=None):
             if name not in todo:
                 return None
-            todo.discard(name)
-            sys.meta_path.remove(self)  # the real spec, from the finders after this one
-            try:
-                spec = importlib.util.find_spec(name)
-            finally:
-                if todo:
-                    sys.meta_path.insert(0, self)
-            if spec is None or spec.loader is None:
+            todo.discard(name)  # once (importlib imports a module once, under its lock)
+            spec = importlib.machinery.PathFinder.find_spec(name, path)
+            if spec is None or spec.loader is None or not hasattr(spec.loader, "exec_module"):
                 return spec
             run = spec.loader.exec_module
 

@@ -124,8 +124,9 @@ fi
 runner=(python -m shed_jax)
 [ "$portable" = 1 ] && runner=(python "$tool" run -m shed_jax)
 # a checkpoint every CHECKPOINT_EVERY s (120) besides the one at the stop: SHED's 34 MB state saved
-# after every 11-s chunk held training up 14-21 s a piece (2026-12-06), and a cut-off call loses
-# nothing more, since a call returns no part of a piece that did not reach its own end
+# after every 11-s chunk held training up 14-21 s a piece (2026-12-06). The cost: a run killed before
+# its stop's save is complete (the timeout below, 33 s after the stop) packs the newest complete
+# checkpoint, which may now be up to CHECKPOINT_EVERY s old instead of one chunk
 timeout -k 5 $(( lim + ${PACK_S:-45} - 12 )) "${runner[@]}" run $what --keep 1 --no-gif --checkpoint-every "$every" --time-limit $lim > "$OUT/run.log" 2>&1 &
 pid=$!
 missed=0

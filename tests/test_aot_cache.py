@@ -316,19 +316,23 @@ f = jax.jit(step, static_argnums=1)
 lines = []
 lower = aot_cache.with_stand_ins(lambda j, *a: j.trace(*a).lower(), lambda: sys.argv[2], lambda: "ctx", lines.append)
 x = jnp.linspace(0.0, 1.0, 7)
+if os.environ.get("STAND_IN_DEVICE"):  # a one-device program on another device of a host with several
+    x = jax.device_put(x, jax.devices()[int(os.environ["STAND_IN_DEVICE"])])
 out = []
 for t in (0.25, 0.5):
     c = lower(f, x, 3, jnp.float32(t)).compile()
-    r = c(x, jnp.float32(t))
+    r = c(x, jax.device_put(jnp.float32(t), x.sharding))
     out.append([float(v) for v in r["y"]] + [float(r["s"])])
 print(json.dumps({"traces": len(traces), "out": out, "lines": lines}))
 """
 
 
-def test_a_stand_in_gives_the_compiled_program_without_a_trace(tmp_path):
+@pytest.mark.parametrize("device", [None, "1"])
+def test_a_stand_in_gives_the_compiled_program_without_a_trace(tmp_path, device):
     """The first lowering of a program traces it and its compile writes a stand-in; the next (in this
     process and in a new one) reads the executable from JAX's cache entry without tracing, and
-    computes the same values. A stand-in whose cache entry changed is not used: the program is traced."""
+    computes the same values, also for a one-device program on the second of two devices. A stand-in
+    whose cache entry changed or is gone, or that another jax wrote, is not used: the program is traced."""
     import json
     import pathlib
     import subprocess
@@ -339,9 +343,14 @@ def test_a_stand_in_gives_the_compiled_program_without_a_trace(tmp_path):
     script.write_text(_STAND_IN_SCRIPT)
     cache, store = tmp_path / "jax", tmp_path / "programs"
 
+    env = {**__import__("os").environ, "JAX_PLATFORMS": "cpu"}
+    if device:
+        env["STAND_IN_DEVICE"] = device
+        env["XLA_FLAGS"] = env.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2"
+
     def run():
         r = subprocess.run([sys.executable, str(script), str(cache), str(store)], cwd=root, capture_output=True,
-                           text=True, timeout=300, env={**__import__("os").environ, "JAX_PLATFORMS": "cpu"})
+                           text=True, timeout=300, env=env)
         assert r.returncode == 0, r.stderr[-2000:]
         return json.loads(r.stdout.strip().splitlines()[-1])
 
@@ -366,6 +375,34 @@ def test_a_stand_in_gives_the_compiled_program_without_a_trace(tmp_path):
     fourth = run()
     assert fourth["traces"] == 1 and fourth["out"] == first["out"]
     assert "holds no entry" in fourth["lines"][0] and "stand-in written" in fourth["lines"][1]
+    entry = pickle.loads(stand_in.read_bytes())
+    stand_in.write_bytes(pickle.dumps({**entry, "jax": "0.0.1"}))
+    fifth = run()
+    assert fifth["traces"] == 1 and fifth["out"] == first["out"] and "written by jax 0.0.1" in fifth["lines"][0]
+
+
+def test_a_key_that_cannot_be_had_leaves_the_program_traced(tmp_path):
+    """An error while naming the program (an unreadable config, no cache folder) is one line, and the
+    program is lowered as without stand-ins."""
+    f = jax.jit(lambda x: x + 1.0)
+    lines, lowered = [], []
+
+    def lower(jitted, *a):
+        lowered.append(1)
+        return jitted.trace(*a).lower()
+
+    def broken():
+        raise ValueError("config.json is not JSON")
+
+    c = aot_cache.with_stand_ins(lower, lambda: str(tmp_path), broken, lines.append)(f, jnp.ones(2)).compile()
+    assert lowered == [1] and float(c(jnp.ones(2))[0]) == 2.0
+    assert lines == ["aot_cache: no stand-in (ValueError: config.json is not JSON)"]
+
+    def no_folder():
+        raise ValueError("the persistent compilation cache is off")
+
+    aot_cache.with_stand_ins(lower, no_folder, lambda: "ctx", lines.append)(f, jnp.ones(2))
+    assert lowered == [1, 1] and lines[-1] == "aot_cache: no stand-in (ValueError: the persistent compilation cache is off)"
 
 
 @pytest.mark.parametrize("stand_ins", ["1", "0"])
