@@ -431,6 +431,9 @@ def compile_batch(batch: Batch, placed: Placed, done: int, state=None, say: Call
 
     fresh = state is None
     sizes = chunk_sizes(batch.chunk, done, batch.total)
+    # every program of the run (chunks, the final evaluation) pads its GPU kernels to the training batch,
+    # also a resume with no chunk left, whose final evaluation is lowered next
+    runtime.pad_kernels_to(kernel_worlds(batch, placed))
     if not sizes and not fresh:
         return state, {}
     t0 = time.time()
@@ -438,8 +441,6 @@ def compile_batch(batch: Batch, placed: Placed, done: int, state=None, say: Call
               f"chunks of {sizes[0]} and {sizes[1]} budget steps" if sizes else "")
     what = " and ".join(x for x in ("the initial state" if fresh else "", chunks) if x)
     say(f"[shed_jax] compiling {what} (minutes for a large program)...")
-    # every program of the run (chunks, the final evaluation) pads its GPU kernels to the training batch
-    runtime.pad_kernels_to(kernel_worlds(batch, placed))
     run_chunk = sharding.sharded_run(batch.run, placed.mesh)
 
     def compile_all(state):

@@ -123,3 +123,21 @@ def test_a_run_pads_to_its_devices_training_batch():
     assert batch.student.train_envs == batch.student.config.num_envs
     assert driver.kernel_worlds(batch, placed) == 3 * batch.student.config.num_envs
     assert StudentPool(batch.student, 4).train_envs == 4 * batch.student.config.num_envs
+
+
+def test_a_resume_with_no_chunk_left_still_pads_its_final_evaluations_kernels():
+    """A run resumed after its last budget step compiles no chunk, but lowers its final evaluation next:
+    its kernels are padded as the run's others (else another program, and its cache entry missed)."""
+    from experiments import checkpoint_size as cs
+    from shed_jax import driver, sharding
+
+    _, batch = cs.build_batch("lander", "dr", "quick", 3)
+    placed = driver.place(batch, sharding.batch_mesh(jax.devices()[:1]))
+    before = fused.MIN_WORLDS
+    try:
+        fused.MIN_WORLDS = 7  # not what the run pads to
+        state, compiled = driver.compile_batch(batch, placed, batch.total, state={"kept": 1}, say=lambda _: None)
+        assert state == {"kept": 1} and compiled == {}
+        assert fused.MIN_WORLDS == max(driver.kernel_worlds(batch, placed), fused.DEFAULT_MIN_WORLDS)
+    finally:
+        fused.MIN_WORLDS = before
