@@ -43,6 +43,7 @@ from __future__ import annotations
 import argparse
 import base64
 import contextlib
+import functools
 import hashlib
 import json
 import os
@@ -523,7 +524,7 @@ def stand_in_key(jitted, args: tuple, context: str) -> str | None:
 
 def stand_in_context(run_dir: str | None) -> str | None:
     """What a run's programs follow beyond their arguments: its sources (``sources_digest`` of this
-    folder), Python and ``TRACED_PACKAGES``' versions, the devices, the ``JAX_*``/``XLA_*`` environment
+    folder), Python and its dependencies' versions, the devices, the ``JAX_*``/``XLA_*`` environment
     (less ``_LOG_ONLY_ENV``) and the run's ``config.json`` less its output settings and commit; None
     where ``run_dir`` has none."""
     import jax
@@ -539,15 +540,15 @@ def stand_in_context(run_dir: str | None) -> str | None:
     return json.dumps([sources_digest("."), sys.version, _versions(), devices, env, config], sort_keys=True)
 
 
-# the packages whose code a run's programs are traced from, besides its own sources
-TRACED_PACKAGES = ("jax", "jaxlib", "flax", "optax", "chex", "orbax-checkpoint", "brax", "mujoco", "mujoco-mjx", "numpy")
-
-
 def _versions() -> list:
+    """The installed versions of the run's dependencies (``shed_jax.runtime.REQUIRED_MODULES``, the
+    run's own list), whose code its programs are partly traced from."""
     from importlib import metadata
 
+    from shed_jax.runtime import REQUIRED_MODULES
+
     out = []
-    for name in TRACED_PACKAGES:
+    for name in sorted(REQUIRED_MODULES):
         try:
             out.append((name, metadata.version(name)))
         except metadata.PackageNotFoundError:
@@ -676,17 +677,12 @@ def with_stand_ins(lower, folder, context, say):
     """``lower(jitted, *args)`` (the driver's ``lower_from_clean_caches``) wrapped: a program whose
     stand-in is in ``folder`` comes back compiled without a trace; any other is traced and lowered by
     ``lower``, and its compile writes the stand-in. ``context()`` gives ``stand_in_context``'s string
-    (or None: no stand-ins), called at the first program. ``closure``, a keyword of the wrapper: a
+    (or None: no stand-ins), at each program (memoize it). ``closure``, a keyword of the wrapper: a
     string naming what ``jitted`` closes over that the context does not (``values_digest``)."""
-    memo = {}
-    lock = threading.Lock()  # programs are lowered in worker threads
 
     def lower_or_load(jitted, *args, closure: str = "", **kwargs):
         try:
-            with lock:
-                if "context" not in memo:
-                    memo["context"] = context()
-            ctx = memo["context"]
+            ctx = context()
             # the 2-D physics' kernels pad their worlds to a process-wide number (envs/physics2d/fused.py)
             padding = getattr(sys.modules.get("envs.physics2d.fused"), "MIN_WORLDS", None)
             key = None if (kwargs or ctx is None) else stand_in_key(jitted, args, f"{ctx}\n{closure}\n{padding}")
@@ -790,12 +786,13 @@ def _hook_stand_ins(argv: list[str], say) -> None:
     import importlib.machinery
 
     run_dir = _run_dir(argv)
-    load = with_stand_ins(lambda jitted, *a: jitted.lower(*a), _stand_in_folder, lambda: stand_in_context(run_dir), say)
+    context = functools.lru_cache(maxsize=None)(lambda: stand_in_context(run_dir))  # once per process
+    load = with_stand_ins(lambda jitted, *a: jitted.lower(*a), _stand_in_folder, context, say)
 
     def patch(module):
         if module.__name__ == "shed_jax.driver" and hasattr(module, "lower_from_clean_caches"):
             module.lower_from_clean_caches = with_stand_ins(module.lower_from_clean_caches, _stand_in_folder,
-                                                            lambda: stand_in_context(run_dir), say)
+                                                            context, say)
         if module.__name__ == "shed_jax.evaluation" and hasattr(module, "evaluation_program"):
             module.evaluation_program = evaluation_with_stand_ins(module.evaluation_program, load)
 
