@@ -453,3 +453,13 @@ def test_an_evaluation_programs_stand_in_is_named_by_what_it_closes_over():
     wrapped("s1", levels, 10, 2000).lower(jnp.ones(3))
     wrapped("s1", levels, episodes=11).lower(jnp.ones(3))
     assert lowered[0] == lowered[1] and len(set(lowered)) == 4
+
+
+def test_the_stand_in_check_reads_the_runs_compile_time_and_refuses_a_missing_source(tmp_path, capsys):
+    from experiments import stand_in_check
+
+    log = "[shed_jax] compiling a chunk...\naot_cache: ab... read\n[shed_jax] compiled in 6.6 s\nstep 2\n"
+    assert stand_in_check._compiled_s(log) == 6.6 and stand_in_check._compiled_s("nothing") is None
+    assert stand_in_check._compiled_s(log + "[shed_jax] compiled in 12.25 s (the final evaluation)\n") == 12.25
+    assert stand_in_check.main(["--src", str(tmp_path / "none.tgz")]) == 2
+    assert "no file" in capsys.readouterr().err
