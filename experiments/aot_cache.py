@@ -659,7 +659,12 @@ class _Saving:
 
     def compile(self, *a, **kw):
         _FILED.key = None
-        compiled = self._lowered.compile(*a, **kw)
+        try:
+            compiled = self._lowered.compile(*a, **kw)
+        except Exception as err:  # said here too: a caller may swallow it (the final evaluation's worker does)
+            self._say(f"aot_cache: {os.path.basename(self._path)[:16]}... not compiled, so no stand-in "
+                      f"({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''})")
+            raise
         key = getattr(_FILED, "key", None)
         try:
             why = save_stand_in(self._path, compiled, key) if key else "the compile filed no cache key"

@@ -884,7 +884,7 @@ class FinalEvalCompile:
     the final students' shapes and placement). On a GPU the host mostly waits for the device while a
     chunk runs, and a walker's evaluation compiles for minutes. ``program(name)`` waits for the worker
     (a heartbeat line while it takes long) and gives the compiled program, or None where that compile
-    failed: the final evaluation then compiles its own and reports what goes wrong. A run that stops
+    failed (one line naming the error): the final evaluation then compiles its own. A run that stops
     before its end (time limit, signal, non-finite guard) drops the worker: ``python -m shed_jax``
     then exits at once (``__main__._exit`` knows the thread's name); a caller of ``run`` from Python
     leaves it to finish or die with the process."""
@@ -896,6 +896,7 @@ class FinalEvalCompile:
         from shed_jax.experiment import seed_keys
 
         self.programs: dict = {}
+        self.errors: dict[str, str] = {}  # name -> "Type: message" of a compile that failed
         keys = seed_keys(0, batch.num_seeds)  # final_eval's seed
         # shapes, dtypes and placement only: the first chunk's students are not kept alive by the compile
         students = jax.tree_util.tree_map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=x.sharding), students)
@@ -905,8 +906,9 @@ class FinalEvalCompile:
                 try:
                     program = evaluation_program(batch.student, levels, episodes, max_steps)
                     self.programs[name] = program.lower(students, keys).compile()
-                except Exception:  # noqa: BLE001 - see the class docstring
+                except Exception as err:  # noqa: BLE001 - see the class docstring
                     self.programs[name] = None
+                    self.errors[name] = f"{type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}"
 
         # named for __main__._exit: a run stopped by its time limit may exit while this still compiles
         self.thread = threading.Thread(target=work, name="shed_jax-final-eval-compile", daemon=True)
@@ -916,6 +918,8 @@ class FinalEvalCompile:
         if self.thread.is_alive():  # the main thread waits in in_worker's loop: signals and heartbeat lines as ever
             in_worker(self.thread.join, "eval", heartbeat=HEARTBEAT_S,
                       what="compiling the final evaluation (begun during training)", say=say)
+        if name in self.errors:
+            say(f"the final evaluation's compile begun during training failed ({self.errors[name]}); compiling it again")
         return self.programs.get(name)
 
 

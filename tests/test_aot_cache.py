@@ -405,6 +405,23 @@ def test_a_key_that_cannot_be_had_leaves_the_program_traced(tmp_path):
     assert lowered == [1, 1] and lines[-1] == "aot_cache: no stand-in (ValueError: the persistent compilation cache is off)"
 
 
+def test_a_compile_that_fails_says_so_and_raises(tmp_path):
+    """A program whose compile raises writes no stand-in and says why in one line before the error goes
+    on to the caller (the final evaluation's worker swallows it, so the run's log would say nothing)."""
+    lines = []
+
+    class Lowered:
+        def compile(self):
+            raise RuntimeError("RESOURCE_EXHAUSTED: out of memory while autotuning\nmore detail")
+
+    lower = aot_cache.with_stand_ins(lambda jitted, *a: Lowered(), lambda: str(tmp_path), lambda: "ctx", lines.append)
+    with pytest.raises(RuntimeError, match="RESOURCE_EXHAUSTED"):
+        lower(jax.jit(lambda x: x + 1.0), jnp.ones(2)).compile()
+    assert len(lines) == 1 and lines[0].endswith(
+        "... not compiled, so no stand-in (RuntimeError: RESOURCE_EXHAUSTED: out of memory while autotuning)")
+    assert not list(tmp_path.glob("*.pkl"))
+
+
 @pytest.mark.parametrize("stand_ins", ["1", "0"])
 def test_run_puts_the_stand_ins_in_the_drivers_lowering_as_it_is_imported(tmp_path, stand_ins):
     """``aot_cache.py run -m shed_jax ...`` wraps the run's own ``shed_jax.driver.lower_from_clean_caches``

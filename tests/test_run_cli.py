@@ -543,6 +543,27 @@ def test_compile_final_eval_takes_three_values(capsys):
         driver.RunOptions(out="x", compile_final_eval="soon").check()
 
 
+
+def test_a_failed_early_compile_of_the_final_evaluation_is_one_line(monkeypatch):
+    """The worker's compile error is kept, and ``program`` names it when it hands back None (before,
+    a run's log said nothing of why its final evaluation compiled again)."""
+    import types
+
+    from shed_jax import evaluation
+
+    class Broken:
+        def lower(self, *a):
+            raise RuntimeError("out of memory while autotuning\nsecond line")
+
+    monkeypatch.setattr(evaluation, "evaluation_program", lambda *a, **k: Broken())
+    batch = types.SimpleNamespace(student=None, num_seeds=2)
+    early = driver.FinalEvalCompile(batch, [(None, None, "named")], {"w": jnp.zeros((2, 3))}, 3, 100)
+    lines = []
+    assert early.program("named", say=lines.append) is None
+    assert lines == ["the final evaluation's compile begun during training failed "
+                     "(RuntimeError: out of memory while autotuning); compiling it again"]
+    assert early.program("test", say=lines.append) is None and len(lines) == 1  # a set it never compiled
+
 # ---- failed writes ------------------------------------------------------------------------------
 
 def failing_save(at_step, exc):
