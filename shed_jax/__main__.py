@@ -95,8 +95,10 @@ def _exit(code: int) -> None:
     runs in its worker thread: XLA's threads may still be at work, and a normal interpreter shutdown
     would race them (``shed_jax/driver.py``, ``EXIT_AT_ONCE``)."""
     driver = sys.modules.get("shed_jax.driver")
-    if (driver is not None and driver.EXIT_AT_ONCE.is_set()) or any(
-            t.name.startswith("shed_jax-") and t.is_alive() for t in threading.enumerate()):
+    busy = [t.name for t in threading.enumerate() if t.name.startswith("shed_jax-") and t.is_alive()]
+    if (driver is not None and driver.EXIT_AT_ONCE.is_set()) or busy:
+        if busy:  # e.g. the final evaluation's compile begun during training, dropped by a time limit
+            print(f"[shed_jax] exiting while {', '.join(busy)} still runs: its work is dropped", file=sys.stderr)
         sys.stdout.flush()
         sys.stderr.flush()
         os._exit(code)

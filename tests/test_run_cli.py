@@ -292,6 +292,32 @@ def test_exit_skips_the_interpreter_shutdown_after_an_interrupted_start_up(monke
     assert ended == [("os._exit" if at_once else "sys.exit", 130)]
 
 
+def test_exit_names_a_worker_it_drops(monkeypatch, capsys):
+    """A time limit can end a run while the final evaluation's compile still runs in its worker: the
+    process ends at once, and says which work it dropped."""
+    import shed_jax.__main__ as cli_main
+
+    monkeypatch.setattr(driver, "EXIT_AT_ONCE", threading.Event())
+    release = threading.Event()
+    worker = threading.Thread(target=release.wait, name="shed_jax-final-eval-compile", daemon=True)
+    worker.start()
+    ended = []
+
+    def end(code):
+        ended.append(code)
+        raise SystemExit(code)
+
+    monkeypatch.setattr(cli_main.os, "_exit", end)
+    try:
+        with pytest.raises(SystemExit):
+            cli_main._exit(75)
+    finally:
+        release.set()
+        worker.join()
+    assert ended == [75]
+    assert "[shed_jax] exiting while shed_jax-final-eval-compile still runs: its work is dropped" in capsys.readouterr().err
+
+
 def test_signal_during_resume_startup_names_the_resume(finished, patched, tmp_path, monkeypatch):
     d = copy_of(finished, tmp_path, "stopped")
     (d / "summary.json").unlink()
