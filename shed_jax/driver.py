@@ -884,7 +884,8 @@ class FinalEvalCompile:
     the final students' shapes and placement). On a GPU the host mostly waits for the device while a
     chunk runs, and a walker's evaluation compiles for minutes. ``program(name)`` waits for the worker
     (a heartbeat line while it takes long) and gives the compiled program, or None where that compile
-    failed (one line naming the error): the final evaluation then compiles its own. A run that stops
+    failed (a line naming the error when it fails, and again here): the final evaluation then compiles
+    its own. A run that stops
     before its end (time limit, signal, non-finite guard) drops the worker: ``python -m shed_jax``
     then exits at once (``__main__._exit`` knows the thread's name); a caller of ``run`` from Python
     leaves it to finish or die with the process."""
@@ -909,6 +910,9 @@ class FinalEvalCompile:
                 except Exception as err:  # noqa: BLE001 - see the class docstring
                     self.programs[name] = None
                     self.errors[name] = f"{type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}"
+                    # said now too: a run stopped by its time limit never reaches program()
+                    _say(f"the final evaluation's compile begun during training failed ({self.errors[name]}); "
+                         "it compiles again after training")
 
         # named for __main__._exit: a run stopped by its time limit may exit while this still compiles
         self.thread = threading.Thread(target=work, name="shed_jax-final-eval-compile", daemon=True)

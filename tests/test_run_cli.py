@@ -570,9 +570,10 @@ def test_compile_final_eval_takes_three_values(capsys):
 
 
 
-def test_a_failed_early_compile_of_the_final_evaluation_is_one_line(monkeypatch):
-    """The worker's compile error is kept, and ``program`` names it when it hands back None (before,
-    a run's log said nothing of why its final evaluation compiled again)."""
+def test_a_failed_early_compile_of_the_final_evaluation_is_said(monkeypatch, capsys):
+    """The worker names its compile error at once (a run stopped by its time limit never asks for the
+    program) and keeps it, and ``program`` names it again when it hands back None (before, a run's log
+    said nothing of either)."""
     import types
 
     from shed_jax import evaluation
@@ -584,6 +585,9 @@ def test_a_failed_early_compile_of_the_final_evaluation_is_one_line(monkeypatch)
     monkeypatch.setattr(evaluation, "evaluation_program", lambda *a, **k: Broken())
     batch = types.SimpleNamespace(student=None, num_seeds=2)
     early = driver.FinalEvalCompile(batch, [(None, None, "named")], {"w": jnp.zeros((2, 3))}, 3, 100)
+    early.thread.join()
+    assert capsys.readouterr().out == ("[shed_jax] the final evaluation's compile begun during training failed "
+                                       "(RuntimeError: out of memory while autotuning); it compiles again after training\n")
     lines = []
     assert early.program("named", say=lines.append) is None
     assert lines == ["the final evaluation's compile begun during training failed "
