@@ -663,7 +663,7 @@ class _Saving:
             compiled = self._lowered.compile(*a, **kw)
         except Exception as err:  # said here too: a caller may swallow it (the final evaluation's worker does)
             self._say(f"aot_cache: {os.path.basename(self._path)[:16]}... not compiled, so no stand-in "
-                      f"({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''})")
+                      f"({type(err).__name__}: {_first_line(err)})")
             raise
         key = getattr(_FILED, "key", None)
         try:
@@ -706,9 +706,19 @@ def with_stand_ins(lower, folder, context, say):
                 return _Ready(compiled)
             except Exception as err:  # noqa: BLE001
                 say(f"aot_cache: {name}... stand-in not used ({type(err).__name__}: {err}); tracing it")
-        return _Saving(lower(jitted, *args, **kwargs), path, say)
+        try:
+            lowered = lower(jitted, *args, **kwargs)
+        except Exception as err:  # said here too, as a failed compile is (``_Saving``)
+            say(f"aot_cache: {name}... not lowered, so no stand-in ({type(err).__name__}: {_first_line(err)})")
+            raise
+        return _Saving(lowered, path, say)
 
     return lower_or_load
+
+
+def _first_line(err: BaseException) -> str:
+    text = str(err)
+    return text.splitlines()[0] if text else ""
 
 
 def values_digest(tree) -> str:

@@ -421,6 +421,14 @@ def test_a_compile_that_fails_says_so_and_raises(tmp_path):
         "... not compiled, so no stand-in (RuntimeError: RESOURCE_EXHAUSTED: out of memory while autotuning)")
     assert not list(tmp_path.glob("*.pkl"))
 
+    def unlowerable(jitted, *a):
+        raise ValueError("a shape the program does not take")
+
+    lower = aot_cache.with_stand_ins(unlowerable, lambda: str(tmp_path), lambda: "ctx", lines.append)
+    with pytest.raises(ValueError, match="a shape"):
+        lower(jax.jit(lambda x: x + 1.0), jnp.ones(2))
+    assert lines[-1].endswith("... not lowered, so no stand-in (ValueError: a shape the program does not take)")
+
 
 @pytest.mark.parametrize("stand_ins", ["1", "0"])
 def test_run_puts_the_stand_ins_in_the_drivers_lowering_as_it_is_imported(tmp_path, stand_ins):
