@@ -485,6 +485,9 @@ def fill(args_file: str, probe_file: str, chunks: bool, out: str | None, portabl
 STAND_INS = "programs"  # the stand-ins' folder, beside JAX's cache folder (.cache/device/programs)
 # environment variables that change only what JAX logs, not what it builds
 _LOG_ONLY_ENV = ("JAX_EXPLAIN_CACHE_MISSES", "TF_CPP_MIN_LOG_LEVEL", "TF_CPP_VMODULE", "TF_CPP_MAX_VLOG_LEVEL")
+# and those that change only how the client allocates device memory (experiments/run_pieces.sh gives
+# each of several runs on one GPU a share of it)
+_ALLOCATOR_ENV = "XLA_PYTHON_CLIENT_"
 _SCALARS = (bool, int, float, str, type(None))
 
 
@@ -525,7 +528,7 @@ def stand_in_key(jitted, args: tuple, context: str) -> str | None:
 def stand_in_context(run_dir: str | None) -> str | None:
     """What a run's programs follow beyond their arguments: its sources (``sources_digest`` of this
     folder), Python and its dependencies' versions, the devices, the ``JAX_*``/``XLA_*`` environment
-    (less ``_LOG_ONLY_ENV``) and the run's ``config.json`` less its output settings and commit; None
+    (less ``_LOG_ONLY_ENV`` and the allocator's ``XLA_PYTHON_CLIENT_*``) and the run's ``config.json`` less its output settings and commit; None
     where ``run_dir`` has none."""
     import jax
 
@@ -535,7 +538,7 @@ def stand_in_context(run_dir: str | None) -> str | None:
     config = json.load(open(path))
     config = {k: v for k, v in config.items() if k not in ("output", "commit")}
     env = sorted((k, v) for k, v in os.environ.items()
-                 if k.startswith(("JAX_", "XLA_")) and k not in _LOG_ONLY_ENV)
+                 if k.startswith(("JAX_", "XLA_")) and k not in _LOG_ONLY_ENV and not k.startswith(_ALLOCATOR_ENV))
     devices = [(d.id, d.platform, d.device_kind) for d in jax.devices()]
     return json.dumps([sources_digest("."), sys.version, _versions(), devices, env, config], sort_keys=True)
 

@@ -1,6 +1,6 @@
 #!/bin/bash
-# Keep a device call's carried tree under its 64 MiB: everything under docs/ but one carried run's
-# folder, and tests/ (a run needs none of it), go to .aside/ (git-ignored, so not carried; it stays in
+# Keep a device call's carried tree under its 64 MiB: everything under docs/ but the carried runs'
+# folders (one, or several for experiments/run_pieces.sh), and tests/ (a run needs none of it), go to .aside/ (git-ignored, so not carried; it stays in
 # the checkout). With --bipedal-wheels, .whl/ keeps what a 2-D walker run needs: MuJoCo's 9.7 MB
 # compiled wheel and Brax's own dependencies (trimesh, jaxopt, ml_collections, tensorboardX: 1.1 MB)
 # go aside, as the 2-D walker imports neither MuJoCo nor Brax; the mujoco, mujoco_mjx and brax wheels
@@ -9,14 +9,14 @@
 # With --gpu MODEL (a call that names its kind, e.g. nvidia-h100-x1 -> h100), the folder's caches for
 # other GPU models go aside too: FOLDER/cache.tgz.* when FOLDER/gpu-MODEL/ exists, and other gpu-*/.
 # Run from the repository root:
-#   bash experiments/slim_tree.sh [--bipedal-wheels] [--gpu MODEL] FOLDER   # before the call(s)
+#   bash experiments/slim_tree.sh [--bipedal-wheels] [--gpu MODEL] FOLDER [FOLDER ...]   # before the call(s)
 #   bash experiments/slim_tree.sh --restore                   # after adopt_piece.sh
 # docs/ must have no uncommitted changes outside FOLDER, so that nothing but moves happens. Commit the
 # piece after --restore (`git add FOLDER`, never `git commit -a` or `git add -A`): while the tree is
 # slim, git sees the rest of docs/, tests/ and the folder's caches for other GPU models as deleted
 # (and the suite cannot run).
 set -u
-usage="usage: bash experiments/slim_tree.sh [--bipedal-wheels] [--gpu MODEL] FOLDER | --restore"
+usage="usage: bash experiments/slim_tree.sh [--bipedal-wheels] [--gpu MODEL] FOLDER [FOLDER ...] | --restore"
 aside=.aside
 size() { bash "$(dirname "$0")/carried_size.sh"; }  # what a call carries, with the wheels
 git rev-parse --git-dir >/dev/null 2>&1 && [ -d docs ] || { echo "slim_tree: run it from the repository root"; exit 2; }
@@ -52,7 +52,7 @@ if [ "${1:-}" = --restore ]; then
   exit 0
 fi
 core=0 gpu=
-while [ $# -gt 1 ]; do
+while [ $# -gt 0 ]; do
   case $1 in
     --bipedal-wheels) core=1; shift;;
     --gpu) gpu=${2:-}; shift 2;;
@@ -60,23 +60,32 @@ while [ $# -gt 1 ]; do
   esac
 done
 case $gpu in ''|h100|h200|a100) ;; *) echo "slim_tree: --gpu takes a model as experiments/gpu_model.sh names it (h100, h200, a100), got '$gpu'"; exit 2;; esac
-folder=${1:?$usage}
-folder=${folder%/}
-case $folder in docs/results/?*) ;; *) echo "slim_tree: FOLDER must be a folder under docs/results/, got '$folder'"; exit 2;; esac
-[ -d "$folder" ] || { echo "slim_tree: no folder $folder"; exit 2; }
+[ $# -ge 1 ] || { echo "$usage"; exit 2; }
+folders=()
+for folder in "$@"; do
+  folder=${folder%/}
+  case $folder in docs/results/?*) ;; *) echo "slim_tree: FOLDER must be a folder under docs/results/, got '$folder'"; exit 2;; esac
+  [ -d "$folder" ] || { echo "slim_tree: no folder $folder"; exit 2; }
+  folders+=("$folder")
+done
 [ -e "$aside" ] && { echo "slim_tree: $aside exists: restore first (bash experiments/slim_tree.sh --restore)"; exit 2; }
-dirty=$(git status --porcelain -- docs ":(exclude)$folder" | head -3)
-[ -z "$dirty" ] || { echo "slim_tree: docs/ has uncommitted changes outside $folder (commit them first): $(echo "$dirty" | tr '\n' ' ')"; exit 2; }
+excl=()
+for folder in "${folders[@]}"; do excl+=(":(exclude)$folder"); done
+dirty=$(git status --porcelain -- docs "${excl[@]}" | head -3)
+[ -z "$dirty" ] || { echo "slim_tree: docs/ has uncommitted changes outside ${folders[*]} (commit them first): $(echo "$dirty" | tr '\n' ' ')"; exit 2; }
+kept() { local f; for f in "${folders[@]}"; do [ "$1" = "$f" ] && return 0; done; return 1; }
 mkdir -p "$aside/docs/results"
 for p in docs/*; do [ "$p" = docs/results ] || mv "$p" "$aside/docs/"; done
-for p in docs/results/*; do [ "$p" = "$folder" ] || mv "$p" "$aside/docs/results/"; done
+for p in docs/results/*; do kept "$p" || mv "$p" "$aside/docs/results/"; done
 [ -d tests ] && mv tests "$aside/tests"
-if [ -n "$gpu" ]; then  # the folder's caches for other GPU models (restored with the folder's own path)
-  keep=$aside/$folder
-  for p in "$folder"/gpu-*; do
-    [ -d "$p" ] && [ "$p" != "$folder/gpu-$gpu" ] && mkdir -p "$keep" && mv "$p" "$keep/"
+if [ -n "$gpu" ]; then  # the folders' caches for other GPU models (restored with each folder's own path)
+  for folder in "${folders[@]}"; do
+    keep=$aside/$folder
+    for p in "$folder"/gpu-*; do
+      [ -d "$p" ] && [ "$p" != "$folder/gpu-$gpu" ] && mkdir -p "$keep" && mv "$p" "$keep/"
+    done
+    if [ -d "$folder/gpu-$gpu" ]; then for p in "$folder"/cache.tgz.*; do [ -e "$p" ] && mkdir -p "$keep" && mv "$p" "$keep/"; done; fi
   done
-  if [ -d "$folder/gpu-$gpu" ]; then for p in "$folder"/cache.tgz.*; do [ -e "$p" ] && mkdir -p "$keep" && mv "$p" "$keep/"; done; fi
 fi
 if [ "$core" = 1 ]; then
   for w in .whl/mujoco_core-*.whl .whl/trimesh-*.whl .whl/jaxopt-*.whl .whl/ml_collections-*.whl .whl/tensorboardx-*.whl; do
@@ -103,6 +112,6 @@ PY
   done
 fi
 total=$(size)
-echo "slim_tree: docs/ holds only $folder; the tree carries $total bytes with the wheels (limit $(( 64 * 1024 * 1024 )))"
+echo "slim_tree: docs/ holds only ${folders[*]}; the tree carries $total bytes with the wheels (limit $(( 64 * 1024 * 1024 )))"
 [ "$total" -le $(( 64 * 1024 * 1024 )) ] || { echo "slim_tree: still over the 64 MiB a call carries"; exit 1; }
 exit 0

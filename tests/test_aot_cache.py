@@ -285,6 +285,10 @@ def test_a_stand_in_context_leaves_out_output_settings_and_logging(tmp_path, mon
     (tmp_path / "config.json").write_text(json.dumps({**cfg, "commit": "def", "output": {"keep": 1}}))
     monkeypatch.setenv("JAX_EXPLAIN_CACHE_MISSES", "1")
     assert aot_cache.stand_in_context(str(tmp_path)) == base
+    # the allocator's share of the GPU (experiments/run_pieces.sh) builds the same programs
+    monkeypatch.setenv("XLA_PYTHON_CLIENT_MEM_FRACTION", "0.45")
+    monkeypatch.setenv("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
+    assert aot_cache.stand_in_context(str(tmp_path)) == base
     monkeypatch.setenv("XLA_FLAGS", "--xla_gpu_autotune_level=0")
     assert aot_cache.stand_in_context(str(tmp_path)) != base
     monkeypatch.delenv("XLA_FLAGS")

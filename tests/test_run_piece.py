@@ -373,3 +373,73 @@ def test_adopt_refuses_to_guess_the_gpu_of_a_folder_with_a_cache_per_model(tmp_p
     r = _adopt(folder, out, tmp_path)
     assert r.returncode == 0 and "ran on h100" in r.stdout, r.stdout
     assert (folder / "gpu-h100" / "cache.tgz.aa").read_bytes() == (out / "cache.tgz.aa").read_bytes()
+
+
+PIECES = SCRIPT.with_name("run_pieces.sh")
+ADOPT_PIECES = SCRIPT.with_name("adopt_pieces.sh")
+
+
+def test_pieces_run_side_by_side_each_in_its_own_tree_and_come_back_in_one_archive(tmp_path, folder):
+    """run_pieces.sh: two carried runs' pieces at once, each on its own copy of the tree (run_piece.sh
+    replaces the tree's sources with its run's), with its share of the GPU's memory and its copy first on
+    the Python path; what they return comes back as one archive, which adopt_pieces.sh takes into each
+    folder as adopt_piece.sh would."""
+    repo = _tree(tmp_path, folder)
+    shutil.rmtree(repo / "inflight")
+    runs = repo / "docs" / "results"
+    for name in ("a_inflight", "b_inflight"):
+        shutil.copytree(folder, runs / name)
+    shutil.copy(PIECES, repo / "experiments")
+    bin_ = tmp_path / "bin"
+    bin_.mkdir()
+    (bin_ / "python").write_text(STUB.replace('echo "$@" >> "$STUB_LOG"',
+                                              'echo "$@" >> "$STUB_LOG"; echo "env $PWD $PYTHONPATH $XLA_PYTHON_CLIENT_MEM_FRACTION" >> "$STUB_LOG"'))
+    (bin_ / "python").chmod(0o755)
+    out = tmp_path / "out"
+    out.mkdir()
+    (tmp_path / "tmp").mkdir()
+    env = {**os.environ, "PATH": f"{bin_}:{os.environ['PATH']}", "STUB_LOG": str(tmp_path / "stub.log"), "PIECE": "1",
+           "RUN_PIECE_GPU": "", "TMPDIR": str(tmp_path / "tmp"), "OUT": str(out)}
+    r = subprocess.run(["bash", "experiments/run_pieces.sh", "100", "docs/results/a_inflight", "docs/results/b_inflight/"],
+                       cwd=repo, env=env, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert "== a_inflight: rc 75" in r.stdout and "== b_inflight: rc 75" in r.stdout
+    assert sorted(p.name for p in out.iterdir()) == ["pieces.tar.aa"]
+    envs = sorted(line.split()[1:] for line in (tmp_path / "stub.log").read_text().splitlines() if line.startswith("env "))
+    assert len(envs) == 2 and [e[2] for e in envs] == ["0.45", "0.45"]
+    for cwd, path, _ in envs:  # each piece in its own tree, that tree first on the path
+        assert path.split(":")[0] == cwd and cwd.endswith(("tree.a_inflight", "tree.b_inflight"))
+    assert {e[0].rsplit(".", 1)[1] for e in envs} == {"a_inflight", "b_inflight"}
+    assert not any((tmp_path / "tmp").glob("run_pieces.*"))  # the copies are removed
+    assert not (repo / "runs").exists() and (repo / "shed_jax" / "stale.txt").is_file()  # the tree itself untouched
+
+    r = subprocess.run(["bash", str(ADOPT_PIECES), str(out), "docs/results/a_inflight", "docs/results/b_inflight"],
+                       cwd=repo, env={**os.environ, "TMPDIR": str(tmp_path / "tmp")}, capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stdout + r.stderr
+    for name in ("a_inflight", "b_inflight"):
+        got = sorted(p.name for p in (runs / name).iterdir())
+        assert got == ["cache.tgz.aa", "ckpt.tgz.aa", "run.args", "src.tgz"], got
+        with tarfile.open(runs / name / "ckpt.tgz.aa") as tar:
+            assert tar.extractfile("runs/x/state").read() == b"piece 1\n"
+    assert r.stdout.count("its run.log: ") == 2
+
+
+def test_run_pieces_refuses_bad_arguments_before_any_work(tmp_path, folder):
+    repo = _tree(tmp_path, folder)
+    shutil.copy(PIECES, repo / "experiments")
+    env = {**os.environ, "OUT": str(tmp_path)}
+
+    def run(*args, **extra):
+        return subprocess.run(["bash", "experiments/run_pieces.sh", *args], cwd=repo, env={**env, **extra},
+                              capture_output=True, text=True, timeout=60)
+
+    r = run("ten", "inflight")
+    assert r.returncode == 2 and "SECONDS must be a whole number, got 'ten'" in r.stdout
+    r = run("100", "nowhere")
+    assert r.returncode == 2 and "nowhere is not a carried run's folder" in r.stdout
+    r = run("100", "inflight", "inflight/")
+    assert r.returncode == 2 and "two folders named inflight" in r.stdout
+    shutil.copytree(repo / "inflight", repo / "docs" / "other")
+    r = run("100", "inflight", "docs/other", MEM_FRACTION="0.7")
+    assert r.returncode == 2 and "MEM_FRACTION=0.7 for 2 pieces does not fit in one GPU" in r.stdout
+    assert not list(tmp_path.glob("pieces.tar.*"))

@@ -139,3 +139,25 @@ def test_restore_keeps_a_split_archive_whole(tmp_path):
     assert (run / "cache.tgz.aa").read_text() == "new one-part cache"
     assert sorted(p.name for p in (repo / ".aside" / "docs" / "results" / "run_inflight").iterdir()) == ["cache.tgz.aa", "cache.tgz.ab"]
     assert (repo / "docs" / "guide.md").read_text() == "guide"  # the rest came back
+
+
+def test_several_folders_stay_for_pieces_run_together(tmp_path):
+    """experiments/run_pieces.sh carries two runs' folders: both stay, with their own GPU model's cache."""
+    repo = _repo(tmp_path)
+    for rel in ("docs/results/run_inflight/gpu-h100/cache.tgz.aa", "docs/results/run_inflight/cache.tgz.aa",
+                "docs/results/other_inflight/gpu-h100/cache.tgz.aa"):
+        (repo / rel).parent.mkdir(parents=True, exist_ok=True)
+        (repo / rel).write_text(rel)
+    _git(repo, "add", "-A")
+    _git(repo, "-c", "user.email=t@t", "-c", "user.name=t", "commit", "-qm", "caches")
+    before = _files(repo)
+    r = _run(repo, "--gpu", "h100", "docs/results/run_inflight", "docs/results/other_inflight/")
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert "docs/ holds only docs/results/run_inflight docs/results/other_inflight;" in r.stdout
+    assert sorted(str(p.relative_to(repo)) for p in (repo / "docs").rglob("*") if p.is_file()) == [
+        "docs/results/other_inflight/gpu-h100/cache.tgz.aa",  # its H200 cache (cache.tgz.aa) aside
+        "docs/results/run_inflight/ckpt.tgz.aa", "docs/results/run_inflight/gpu-h100/cache.tgz.aa"]
+    assert _run(repo, "--gpu", "h100", "docs/results/nowhere").returncode == 2
+    r = _run(repo, "--restore")
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert _files(repo) == before and _git(repo, "status", "--porcelain") == ""
