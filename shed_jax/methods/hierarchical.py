@@ -215,6 +215,7 @@ class Experience:
     played: jax.Array  # [L] bool, which of them the student trained on
     ppo: Any  # the PPO metrics, mean over the step's updates
     env_steps_eval: jax.Array  # int32 evaluation env steps (with begin_episode's, pending)
+    eval_steps_run: jax.Array  # int32 sequential env steps the rollout that measured s' ran (its latency)
     state_noise: jax.Array  # the noise SD of s' (NaN without ``state_noise_check``)
     reward_checks: jax.Array  # [3] the reward again, crossed, crossed back (NaN without ``reward_noise_check``)
     extras: dict  # a variant's ``extra_info``
@@ -406,11 +407,17 @@ class HierarchicalTeacher:
 
     def performance(self, key, sstate):
         """s = mean return per evaluation level [m], and the env steps it cost."""
+        return self.performance_with_run(key, sstate)[:2]
+
+    def performance_with_run(self, key, sstate):
+        """``performance`` and the sequential env steps its rollout ran (it stops once every row has
+        ended its episode, so this is the longest episode's length rounded up to the rollout's chunk)."""
         rets, info = self.student.evaluate_with_info(sstate, key, self.eval_params, self.config.num_eval_episodes, self.eval_max)
-        return rets.mean(axis=-1), jnp.asarray(info["env_steps"], jnp.int32)
+        return rets.mean(axis=-1), jnp.asarray(info["env_steps"], jnp.int32), jnp.asarray(info["steps_run"], jnp.int32)
 
     def performance_and_test(self, key, sstate, test: EvalRequest):
-        """``performance`` plus the loop's test set as one rollout: (s, env steps, test returns [n, E]).
+        """``performance_with_run`` plus the loop's test set as one rollout: (s, env steps, steps run, test
+        returns [n, E]).
 
         The test returns are NaN when ``test.run`` is false. A traced ``test.run`` (the loop's
         schedule) makes the test rows an inactive request of the same rollout on the steps without
@@ -426,13 +433,14 @@ class HierarchicalTeacher:
         n_test = jax.tree_util.tree_leaves(test.levels)[0].shape[0]
         steps = jnp.int32(self.student.eval_env_steps(cfg.num_eval_levels, cfg.num_eval_episodes, self.eval_max))
         if test.run is False:
-            return self.performance(key, sstate)[0], steps, jnp.full((n_test, test.num_episodes), jnp.nan, jnp.float32)
-        (rets, _), (test_rets, _) = self.student.evaluate_many(
+            s, _, run = self.performance_with_run(key, sstate)
+            return s, steps, run, jnp.full((n_test, test.num_episodes), jnp.nan, jnp.float32)
+        (rets, info), (test_rets, _) = self.student.evaluate_many(
             sstate, [(key, self.eval_params, cfg.num_eval_episodes, self.eval_max),
                      (test.key, test.levels, test.num_episodes, test.max_steps, test.run)])
         if test.run is not True:
             test_rets = jnp.where(test.run, test_rets, jnp.nan)
-        return rets.mean(axis=-1), steps, test_rets
+        return rets.mean(axis=-1), steps, jnp.asarray(info["steps_run"], jnp.int32), test_rets
 
     # ---- interface -------------------------------------------------------------------------
 
@@ -494,10 +502,10 @@ class HierarchicalTeacher:
         sstate, vecs, played, ppo = self.train_on_action((k_seed, k_train), sstate, u)
         k_eval = self.evaluation_key(mstate, k_eval)
         if test is None:
-            s_next, eval_steps = self.performance(k_eval, sstate)
+            s_next, eval_steps, steps_run = self.performance_with_run(k_eval, sstate)
             test_rets = None
         else:
-            s_next, eval_steps, test_rets = self.performance_and_test(k_eval, sstate, test)
+            s_next, eval_steps, steps_run, test_rets = self.performance_and_test(k_eval, sstate, test)
         ts_next = self.teacher_state(s_next, mstate.t + 1)
         r = self.reward_fn_for(hp.eta)(ts, u, ts_next)
         done = (mstate.t == cfg.budget_steps - 1).astype(jnp.float32)
@@ -519,6 +527,7 @@ class HierarchicalTeacher:
             checks = jnp.full((3,), jnp.nan, jnp.float32)
         exp = Experience(transition=Transition(s=ts, u=u, r=r, s_next=ts_next, done=done), s_next=s_next, levels=vecs,
                          played=played, ppo=mean_metrics(ppo), env_steps_eval=eval_steps + mstate.pending_eval_steps,
+                         eval_steps_run=steps_run,
                          state_noise=state_noise, reward_checks=checks, extras=self.extra_info(u, vecs, played))
         return sstate, exp, test_rets
 
@@ -565,6 +574,9 @@ class HierarchicalTeacher:
                 "diffusion_heldout_loss": learned.synth_heldout,
                 "at_bound_fraction": at_bound_fraction(self.codec.space, exp.levels, exp.played),
                 "td_error_heldout": learned.td_heldout,
+                # the s' rollout's sequential steps (with the test rows where it tests): on a
+                # latency-bound simulator, most of the step's time
+                "eval_steps_run": exp.eval_steps_run,
                 "state_noise_sd": exp.state_noise,
                 "reward_again": exp.reward_checks[..., 0],
                 "reward_crossed": exp.reward_checks[..., 1],
