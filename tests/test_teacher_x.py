@@ -318,3 +318,12 @@ def test_policy_synthetic_actions_in_the_loop_come_from_the_actor_before_its_upd
     np.testing.assert_array_equal(np.asarray(m.synth.syn.data.u[:n]), 0.0)
     held = np.asarray(info.extras["diffusion_heldout_loss"])
     assert np.isnan(held[0]) and np.all(np.isfinite(held[1:]))
+
+
+def test_eval_length_refuses_a_folder_that_is_not_a_run(tmp_path, capsys):
+    """experiments/eval_length.py: one line, exit 2, for a folder without a run's config."""
+    from experiments import eval_length
+
+    assert eval_length.main([str(tmp_path), "--out", str(tmp_path / "r.json")]) == 2
+    assert "is not a run directory (no config.json)" in capsys.readouterr().err
+    assert not (tmp_path / "r.json").exists()

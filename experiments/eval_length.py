@@ -1,0 +1,85 @@
+"""How long a hierarchical teacher's evaluation rollout runs for a saved run's students: restore the
+run's latest checkpoint, evaluate its students on the teacher's evaluation levels as the teacher
+does (``performance``: every level, ``num_eval_episodes`` each, the teacher's step limit), and
+record each row's episode length and the rollout's sequential steps (``steps_run``: it stops once
+every row has ended its episode).
+
+On a simulator paid by the sequential step those steps are what the teacher's evaluation costs:
+SHED's budget step on the 2-D walker evaluates 5 seeds x 10 levels x 4 episodes = 200 rows, the
+batch at which docs/bipedal.md times a step.
+
+    python experiments/eval_length.py RUN_DIR --out F.json
+
+Run it with the run's own sources first on the path for a carried run (its ``src.tgz`` unpacked in
+DIR: ``PYTHONPATH=DIR python experiments/eval_length.py ...``); the record names the sources it used.
+"""
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import pathlib
+import platform
+import sys
+import time
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("run_dir", type=pathlib.Path, help="a hierarchical teacher's run directory (shed, hmdp, ...)")
+    ap.add_argument("--out", type=pathlib.Path, required=True, help="the JSON record to write")
+    ap.add_argument("--seed", type=int, default=123, help="the evaluation's key (default 123)")
+    ap.add_argument("--note", default="", help="a line for the record (e.g. which sources, and why)")
+    args = ap.parse_args(argv)
+    if not (args.run_dir / "config.json").is_file():
+        print(f"eval_length: {args.run_dir} is not a run directory (no config.json)", file=sys.stderr)
+        return 2
+
+    import jax
+    import numpy as np
+
+    import shed_jax
+    from shed_jax import evaluation
+    from shed_jax.experiment import build, seed_keys
+
+    t0 = time.time()
+    exp, env, student, tests, seeds, step, students = evaluation.restore_students(args.run_dir)
+    _, _, method, _ = build(exp)
+    if not hasattr(method, "eval_params"):
+        print(f"eval_length: the run's method ({type(method).__name__}) has no teacher evaluation", file=sys.stderr)
+        return 2
+    episodes = exp.method_config.num_eval_episodes
+    evaluate = jax.jit(jax.vmap(lambda s, k: student.evaluate_with_info(s, k, method.eval_params, episodes, method.eval_max)))
+    t1 = time.time()
+    rets, info = evaluate(students, seed_keys(args.seed, seeds))
+    jax.block_until_ready(rets)
+    t2 = time.time()
+    lens = np.asarray(info["lengths"])  # [seeds, levels, episodes]
+    limit = int(np.asarray(info["env_steps"]).reshape(-1)[0]) // (lens.shape[1] * lens.shape[2])
+    record = {
+        "what": "the teacher's evaluation rollout for a saved run's students: episode lengths and sequential steps",
+        "run": str(args.run_dir), "budget_step": int(step), "seeds": int(seeds),
+        "levels": int(lens.shape[1]), "episodes": int(lens.shape[2]), "rows": int(lens.size), "step_limit": limit,
+        "steps_run_per_seed": np.asarray(info["steps_run"]).reshape(-1).tolist(),
+        "longest_episode": int(lens.max()), "mean_episode": round(float(lens.mean()), 1),
+        "rows_at_the_limit": round(float((lens >= limit).mean()), 3),
+        "mean_length_per_level": lens.astype(np.float64).mean(axis=(0, 2)).round(1).tolist(),
+        "mean_return_per_level": np.asarray(rets, np.float64).mean(axis=(0, 2)).round(1).tolist(),
+        "seed": args.seed,
+        "sources": str(pathlib.Path(shed_jax.__file__).resolve().parent.parent),
+        "device": f"{jax.default_backend()}: {platform.processor() or platform.machine()}, jax {jax.__version__}",
+        "restore_s": round(t1 - t0, 1), "compile_and_run_s": round(t2 - t1, 1),
+        "command": "python experiments/eval_length.py " + " ".join(sys.argv[1:] if argv is None else argv),
+        "date": datetime.date.today().isoformat(),
+        "note": args.note,
+    }
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(record, indent=1) + "\n")
+    print(f"budget step {step}: {record['rows']} rows, steps run {record['steps_run_per_seed']}, longest episode "
+          f"{record['longest_episode']} of {limit}, mean {record['mean_episode']}, {record['rows_at_the_limit']:.0%} at the limit")
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
