@@ -173,7 +173,7 @@ class _StubStudent:
     def evaluate_with_info(self, state, key, levels, num_episodes, max_steps=None, deterministic=False):
         dist = jnp.sum(jnp.abs(self._unit(levels) - state.skill), axis=-1)  # [n]
         rets = 100.0 - 30.0 * dist[:, None] + jax.random.normal(key, (dist.shape[0], num_episodes))
-        return rets, {"env_steps": dist.shape[0] * num_episodes * 8}
+        return rets, {"env_steps": dist.shape[0] * num_episodes * 8, "lengths": jnp.full(rets.shape, 8, jnp.int32)}
 
     def evaluate(self, state, key, levels, num_episodes, max_steps=None, deterministic=False):
         return self.evaluate_with_info(state, key, levels, num_episodes, max_steps, deterministic)[0]

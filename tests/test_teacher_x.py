@@ -12,7 +12,6 @@ from test_shed_method import TINY, TINY_TEACHER, _cartpole  # noqa: E402
 from shed_jax.methods.hierarchical import at_bound_fraction
 from shed_jax.methods.learning_teacher import HMDPXConfig, SHEDXConfig, make_hmdp_x, make_shed_x
 from shed_jax.methods.registry import config_class, make_method
-from shed_jax.student.ppo import EVAL_CHUNK
 from shed_jax.teacher.buffers import Transition
 from shed_jax.teacher.ddpg import Actor, DDPGConfig, ddpg_act, ddpg_init, ddpg_update
 
@@ -182,11 +181,12 @@ def test_step_episode_levels_crn_and_signed_fixed_scale_reward(name):
     # CRN: every s' is the evaluation of that step's student with the episode's one key
     last = jax.tree_util.tree_map(lambda x: x[-1], students)
     np.testing.assert_allclose(method.performance(m.eval_key, last)[0], states[-1], rtol=1e-5)
-    # the s' rollout's sequential steps: its longest episode rounded up to the rollout's chunk, at most the limit
+    # the s' evaluation's longest episode (its sequential steps), at most the step limit
     _, info_s = method.student.evaluate_with_info(last, m.eval_key, method.eval_params, cfg.num_eval_episodes, method.eval_max)
-    longest, limit = int(np.asarray(info_s["lengths"]).max()), int(info_s["env_steps"]) // (cfg.num_eval_levels * cfg.num_eval_episodes)
-    assert int(ext["eval_steps_run"][-1]) == min(-(-longest // EVAL_CHUNK) * EVAL_CHUNK, limit)
-    assert ext["eval_steps_run"].shape == (4,) and np.all(ext["eval_steps_run"] > 0)
+    limit = int(info_s["env_steps"]) // (cfg.num_eval_levels * cfg.num_eval_episodes)
+    assert int(ext["eval_longest_episode"][-1]) == int(np.asarray(info_s["lengths"]).max())
+    assert ext["eval_longest_episode"].shape == (4,) and np.all((ext["eval_longest_episode"] > 0) & (ext["eval_longest_episode"] <= limit))
+    assert int(info_s["steps_run"]) >= int(ext["eval_longest_episode"][-1])  # the rollout ran at least that long
     if name == "shed-x":
         assert method.synthesiser.model.config.state_dim == 11 and int(ext["syn_size"][-1]) > 0
         assert all(np.all(np.isnan(ext[k])) for k in ("reward_again", "reward_crossed", "reward_crossed_back"))  # off

@@ -205,6 +205,11 @@ class HierarchicalState:
     eval_key: Any = None  # a teacher episode's evaluation key, for teachers that reuse it (common random numbers)
 
 
+def _longest(info) -> jax.Array:
+    """The longest episode of an evaluation (``info["lengths"]``, [levels, episodes]) as int32."""
+    return jnp.max(info["lengths"]).astype(jnp.int32)
+
+
 @struct.dataclass
 class Experience:
     """One student's part of a budget step (``HierarchicalTeacher.experience``)."""
@@ -215,7 +220,7 @@ class Experience:
     played: jax.Array  # [L] bool, which of them the student trained on
     ppo: Any  # the PPO metrics, mean over the step's updates
     env_steps_eval: jax.Array  # int32 evaluation env steps (with begin_episode's, pending)
-    eval_steps_run: jax.Array  # int32 sequential env steps the rollout that measured s' ran (its latency)
+    eval_longest: jax.Array  # int32 the longest episode of the evaluation that measured s' (its sequential steps)
     state_noise: jax.Array  # the noise SD of s' (NaN without ``state_noise_check``)
     reward_checks: jax.Array  # [3] the reward again, crossed, crossed back (NaN without ``reward_noise_check``)
     extras: dict  # a variant's ``extra_info``
@@ -407,17 +412,18 @@ class HierarchicalTeacher:
 
     def performance(self, key, sstate):
         """s = mean return per evaluation level [m], and the env steps it cost."""
-        return self.performance_with_run(key, sstate)[:2]
+        return self.performance_with_longest(key, sstate)[:2]
 
-    def performance_with_run(self, key, sstate):
-        """``performance`` and the sequential env steps its rollout ran (it stops once every row has
-        ended its episode, so this is the longest episode's length rounded up to the rollout's chunk)."""
+    def performance_with_longest(self, key, sstate):
+        """``performance`` and its longest episode (steps; an episode cut at the step limit counts the
+        limit): the rollout stops once every row has ended, so on a simulator paid by the sequential
+        step this is what the evaluation costs."""
         rets, info = self.student.evaluate_with_info(sstate, key, self.eval_params, self.config.num_eval_episodes, self.eval_max)
-        return rets.mean(axis=-1), jnp.asarray(info["env_steps"], jnp.int32), jnp.asarray(info["steps_run"], jnp.int32)
+        return rets.mean(axis=-1), jnp.asarray(info["env_steps"], jnp.int32), _longest(info)
 
     def performance_and_test(self, key, sstate, test: EvalRequest):
-        """``performance_with_run`` plus the loop's test set as one rollout: (s, env steps, steps run, test
-        returns [n, E]).
+        """``performance_with_longest`` plus the loop's test set as one rollout: (s, env steps, longest
+        episode of the teacher's rows, test returns [n, E]).
 
         The test returns are NaN when ``test.run`` is false. A traced ``test.run`` (the loop's
         schedule) makes the test rows an inactive request of the same rollout on the steps without
@@ -433,14 +439,14 @@ class HierarchicalTeacher:
         n_test = jax.tree_util.tree_leaves(test.levels)[0].shape[0]
         steps = jnp.int32(self.student.eval_env_steps(cfg.num_eval_levels, cfg.num_eval_episodes, self.eval_max))
         if test.run is False:
-            s, _, run = self.performance_with_run(key, sstate)
-            return s, steps, run, jnp.full((n_test, test.num_episodes), jnp.nan, jnp.float32)
+            s, _, longest = self.performance_with_longest(key, sstate)
+            return s, steps, longest, jnp.full((n_test, test.num_episodes), jnp.nan, jnp.float32)
         (rets, info), (test_rets, _) = self.student.evaluate_many(
             sstate, [(key, self.eval_params, cfg.num_eval_episodes, self.eval_max),
                      (test.key, test.levels, test.num_episodes, test.max_steps, test.run)])
         if test.run is not True:
             test_rets = jnp.where(test.run, test_rets, jnp.nan)
-        return rets.mean(axis=-1), steps, jnp.asarray(info["steps_run"], jnp.int32), test_rets
+        return rets.mean(axis=-1), steps, _longest(info), test_rets
 
     # ---- interface -------------------------------------------------------------------------
 
@@ -502,10 +508,10 @@ class HierarchicalTeacher:
         sstate, vecs, played, ppo = self.train_on_action((k_seed, k_train), sstate, u)
         k_eval = self.evaluation_key(mstate, k_eval)
         if test is None:
-            s_next, eval_steps, steps_run = self.performance_with_run(k_eval, sstate)
+            s_next, eval_steps, longest = self.performance_with_longest(k_eval, sstate)
             test_rets = None
         else:
-            s_next, eval_steps, steps_run, test_rets = self.performance_and_test(k_eval, sstate, test)
+            s_next, eval_steps, longest, test_rets = self.performance_and_test(k_eval, sstate, test)
         ts_next = self.teacher_state(s_next, mstate.t + 1)
         r = self.reward_fn_for(hp.eta)(ts, u, ts_next)
         done = (mstate.t == cfg.budget_steps - 1).astype(jnp.float32)
@@ -527,7 +533,7 @@ class HierarchicalTeacher:
             checks = jnp.full((3,), jnp.nan, jnp.float32)
         exp = Experience(transition=Transition(s=ts, u=u, r=r, s_next=ts_next, done=done), s_next=s_next, levels=vecs,
                          played=played, ppo=mean_metrics(ppo), env_steps_eval=eval_steps + mstate.pending_eval_steps,
-                         eval_steps_run=steps_run,
+                         eval_longest=longest,
                          state_noise=state_noise, reward_checks=checks, extras=self.extra_info(u, vecs, played))
         return sstate, exp, test_rets
 
@@ -574,9 +580,8 @@ class HierarchicalTeacher:
                 "diffusion_heldout_loss": learned.synth_heldout,
                 "at_bound_fraction": at_bound_fraction(self.codec.space, exp.levels, exp.played),
                 "td_error_heldout": learned.td_heldout,
-                # the s' rollout's sequential steps (with the test rows where it tests): on a
-                # latency-bound simulator, most of the step's time
-                "eval_steps_run": exp.eval_steps_run,
+                # the s' evaluation's sequential steps: on a latency-bound simulator, most of the step's time
+                "eval_longest_episode": exp.eval_longest,
                 "state_noise_sd": exp.state_noise,
                 "reward_again": exp.reward_checks[..., 0],
                 "reward_crossed": exp.reward_checks[..., 1],
