@@ -263,3 +263,20 @@ def test_a_run_state_of_two_students_saves_and_restores(tmp_path):
         _, _, pool, _, seeds, step, students = evaluation.restore_students(tmp_path)  # what eval --run reads
         assert isinstance(pool, StudentPool) and (seeds, step) == (2, 1)
         leaves_equal(students, state.student)
+
+
+def test_pooled_record_keeps_the_longest_evaluation_episode_of_all(two):
+    """The K students' evaluations run as one vmapped rollout, which lasts as long as its longest
+    episode: the pooled ``eval_longest_episode`` is the students' maximum; other extras are means."""
+    import types
+
+    from shed_jax.methods.base import StepInfo
+
+    method = two[0]
+    infos = StepInfo(levels=jnp.zeros((2, 1, 3)), env_steps_train=jnp.array([4, 4]), env_steps_eval=jnp.array([8, 8]),
+                     teacher_reward=jnp.array([1.0, 3.0]), num_new_levels=jnp.array([1, 2]),
+                     extras={"eval_longest_episode": jnp.array([120, 500], jnp.int32), "td_error_heldout": jnp.array([1.0, 3.0])})
+    exp = types.SimpleNamespace(transition=types.SimpleNamespace(r=jnp.array([1.0, 3.0])), s_next=jnp.zeros((2, 4)))
+    info = method.pooled_info(infos, exp, None)
+    assert int(info.extras["eval_longest_episode"]) == 500 and info.extras["eval_longest_episode"].dtype == jnp.int32
+    assert float(info.extras["td_error_heldout"]) == 2.0 and float(info.teacher_reward) == 2.0

@@ -207,10 +207,14 @@ class ParallelStudents:
         return mstate, sstate, info, (None if test_rets is None else pool_episodes(test_rets))
 
     def pooled_info(self, infos: StepInfo, exp, test_rets) -> StepInfo:
-        """The K students' records [K, ...] as one (module doc): levels concatenated, counts summed, the rest averaged."""
+        """The K students' records [K, ...] as one (module doc): levels concatenated, counts summed, the rest
+        averaged, but the evaluations' longest episode the longest of all: the K evaluations run as one
+        vmapped rollout, which lasts as long as its longest."""
         flat = lambda x: x.reshape((-1,) + x.shape[2:])
         extras = {key: (flat(v) if key.startswith("levels_") else jax.tree_util.tree_map(_mean, v))
                   for key, v in infos.extras.items()}
+        if "eval_longest_episode" in infos.extras:
+            extras["eval_longest_episode"] = jnp.max(infos.extras["eval_longest_episode"], axis=0)
         extras["teacher_reward_per_student"] = exp.transition.r
         extras["teacher_state_per_student"] = exp.s_next
         n = exp.s_next.shape[0]
