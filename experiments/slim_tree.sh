@@ -55,7 +55,7 @@ core=0 gpu=
 while [ $# -gt 0 ]; do
   case $1 in
     --bipedal-wheels) core=1; shift;;
-    --gpu) gpu=${2:-}; shift 2;;
+    --gpu) [ $# -ge 2 ] || { echo "slim_tree: --gpu takes a GPU model (h100, h200, a100)"; exit 2; }; gpu=$2; shift 2;;
     *) break;;
   esac
 done

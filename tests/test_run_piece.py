@@ -375,71 +375,94 @@ def test_adopt_refuses_to_guess_the_gpu_of_a_folder_with_a_cache_per_model(tmp_p
     assert (folder / "gpu-h100" / "cache.tgz.aa").read_bytes() == (out / "cache.tgz.aa").read_bytes()
 
 
+
 PIECES = SCRIPT.with_name("run_pieces.sh")
 ADOPT_PIECES = SCRIPT.with_name("adopt_pieces.sh")
 
 
-def test_pieces_run_side_by_side_each_in_its_own_tree_and_come_back_in_one_archive(tmp_path, folder):
-    """run_pieces.sh: two carried runs' pieces at once, each on its own copy of the tree (run_piece.sh
-    replaces the tree's sources with its run's), with its share of the GPU's memory and its copy first on
-    the Python path; what they return comes back as one archive, which adopt_pieces.sh takes into each
-    folder as adopt_piece.sh would."""
+def _private_mounts() -> bool:
+    r = subprocess.run(["unshare", "-m", "--propagation", "private", "true"], capture_output=True)
+    return r.returncode == 0
+
+
+def _pieces_tree(tmp_path, folder):
     repo = _tree(tmp_path, folder)
     shutil.rmtree(repo / "inflight")
-    runs = repo / "docs" / "results"
     for name in ("a_inflight", "b_inflight"):
-        shutil.copytree(folder, runs / name)
+        shutil.copytree(folder, repo / "docs" / "results" / name)
     shutil.copy(PIECES, repo / "experiments")
-    bin_ = tmp_path / "bin"
-    bin_.mkdir()
-    (bin_ / "python").write_text(STUB.replace('echo "$@" >> "$STUB_LOG"',
-                                              'echo "$@" >> "$STUB_LOG"; echo "env $PWD $PYTHONPATH $XLA_PYTHON_CLIENT_MEM_FRACTION" >> "$STUB_LOG"'))
-    (bin_ / "python").chmod(0o755)
+    (tmp_path / "tmp").mkdir()
     out = tmp_path / "out"
     out.mkdir()
-    (tmp_path / "tmp").mkdir()
+    return repo, out
+
+
+@pytest.mark.skipif(shutil.which("unshare") is None or not _private_mounts(), reason="needs private mounts (root)")
+def test_pieces_run_side_by_side_each_seeing_its_own_tree_at_the_trees_path(tmp_path, folder):
+    """run_pieces.sh: two carried runs' pieces at once, each on its own copy of the tree (run_piece.sh
+    replaces the tree's sources with its run's) seen at the tree's own path (cache keys hold absolute
+    paths), with its share of the GPU's memory; each comes back as an archive of its own, which
+    adopt_pieces.sh takes into its folder as adopt_piece.sh would."""
+    repo, out = _pieces_tree(tmp_path, folder)
+    bin_ = tmp_path / "bin"
+    bin_.mkdir()
+    (bin_ / "python").write_text(STUB.replace(
+        'echo "$@" >> "$STUB_LOG"',
+        'echo "$@" >> "$STUB_LOG"; echo "env $PWD $PYTHONPATH $XLA_PYTHON_CLIENT_MEM_FRACTION $(ls docs/results | tr \'\\n\' +)" >> "$STUB_LOG"'))
+    (bin_ / "python").chmod(0o755)
     env = {**os.environ, "PATH": f"{bin_}:{os.environ['PATH']}", "STUB_LOG": str(tmp_path / "stub.log"), "PIECE": "1",
            "RUN_PIECE_GPU": "", "TMPDIR": str(tmp_path / "tmp"), "OUT": str(out)}
-    r = subprocess.run(["bash", "experiments/run_pieces.sh", "100", "docs/results/a_inflight", "docs/results/b_inflight/"],
+    r = subprocess.run(["bash", "experiments/run_pieces.sh", "100", "docs/results/a_inflight", "./docs/results/b_inflight/"],
                        cwd=repo, env=env, capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stdout + r.stderr
     assert "== a_inflight: rc 75" in r.stdout and "== b_inflight: rc 75" in r.stdout
-    assert sorted(p.name for p in out.iterdir()) == ["pieces.tar.aa"]
+    assert sorted(p.name for p in out.iterdir()) == ["a_inflight.tar.aa", "b_inflight.tar.aa"]
     envs = sorted(line.split()[1:] for line in (tmp_path / "stub.log").read_text().splitlines() if line.startswith("env "))
-    assert len(envs) == 2 and [e[2] for e in envs] == ["0.45", "0.45"]
-    for cwd, path, _ in envs:  # each piece in its own tree, that tree first on the path
-        assert path.split(":")[0] == cwd and cwd.endswith(("tree.a_inflight", "tree.b_inflight"))
-    assert {e[0].rsplit(".", 1)[1] for e in envs} == {"a_inflight", "b_inflight"}
+    # both at the tree's path, that path first on the Python path, each seeing only its own folder
+    assert envs == [[str(repo), f"{repo}:/tmp/site", "0.45", "a_inflight+"], [str(repo), f"{repo}:/tmp/site", "0.45", "b_inflight+"]]
     assert not any((tmp_path / "tmp").glob("run_pieces.*"))  # the copies are removed
     assert not (repo / "runs").exists() and (repo / "shed_jax" / "stale.txt").is_file()  # the tree itself untouched
 
+    whole = (out / "b_inflight.tar.aa").read_bytes()
+    (out / "b_inflight.tar.aa").write_bytes(whole[:700])  # one piece cut short, inside its first member
+    before_b = {p.name: p.read_bytes() for p in (repo / "docs/results/b_inflight").iterdir()}
     r = subprocess.run(["bash", str(ADOPT_PIECES), str(out), "docs/results/a_inflight", "docs/results/b_inflight"],
                        cwd=repo, env={**os.environ, "TMPDIR": str(tmp_path / "tmp")}, capture_output=True, text=True, timeout=60)
-    assert r.returncode == 0, r.stdout + r.stderr
-    for name in ("a_inflight", "b_inflight"):
-        got = sorted(p.name for p in (runs / name).iterdir())
-        assert got == ["cache.tgz.aa", "ckpt.tgz.aa", "run.args", "src.tgz"], got
-        with tarfile.open(runs / name / "ckpt.tgz.aa") as tar:
-            assert tar.extractfile("runs/x/state").read() == b"piece 1\n"
-    assert r.stdout.count("its run.log: ") == 2
+    assert r.returncode == 1, r.stdout + r.stderr
+    got = sorted(p.name for p in (repo / "docs/results/a_inflight").iterdir())
+    assert got == ["cache.tgz.aa", "ckpt.tgz.aa", "run.args", "src.tgz"], got
+    with tarfile.open(repo / "docs/results/a_inflight/ckpt.tgz.aa") as tar:
+        assert tar.extractfile("runs/x/state").read() == b"piece 1\n"
+    assert "its exit code: 75" in r.stdout and r.stdout.count("its run.log: ") == 1
+    assert "b_inflight.tar.* is not a whole archive; docs/results/b_inflight left as it was" in r.stdout
+    assert {p.name: p.read_bytes() for p in (repo / "docs/results/b_inflight").iterdir()} == before_b
 
 
-def test_run_pieces_refuses_bad_arguments_before_any_work(tmp_path, folder):
-    repo = _tree(tmp_path, folder)
-    shutil.copy(PIECES, repo / "experiments")
-    env = {**os.environ, "OUT": str(tmp_path)}
+def test_run_pieces_refuses_bad_arguments_and_a_machine_without_private_mounts(tmp_path, folder):
+    repo, out = _pieces_tree(tmp_path, folder)
+    env = {**os.environ, "OUT": str(out), "TMPDIR": str(tmp_path / "tmp")}
 
     def run(*args, **extra):
         return subprocess.run(["bash", "experiments/run_pieces.sh", *args], cwd=repo, env={**env, **extra},
                               capture_output=True, text=True, timeout=60)
 
-    r = run("ten", "inflight")
+    a, b = "docs/results/a_inflight", "docs/results/b_inflight"
+    r = run("ten", a)
     assert r.returncode == 2 and "SECONDS must be a whole number, got 'ten'" in r.stdout
     r = run("100", "nowhere")
     assert r.returncode == 2 and "nowhere is not a carried run's folder" in r.stdout
-    r = run("100", "inflight", "inflight/")
-    assert r.returncode == 2 and "two folders named inflight" in r.stdout
-    shutil.copytree(repo / "inflight", repo / "docs" / "other")
-    r = run("100", "inflight", "docs/other", MEM_FRACTION="0.7")
+    r = run("100", a, a + "/")
+    assert r.returncode == 2 and "two folders named a_inflight" in r.stdout
+    r = run("100", str(repo / a))
+    assert r.returncode == 2 and "must be a path inside the tree" in r.stdout
+    r = run("100", a, b, MEM_FRACTION="0.7")
     assert r.returncode == 2 and "MEM_FRACTION=0.7 for 2 pieces does not fit in one GPU" in r.stdout
-    assert not list(tmp_path.glob("pieces.tar.*"))
+    r = run("100", a, TMPDIR=str(repo / "tmp"))
+    assert r.returncode == 2 and "TMPDIR is inside the tree" in r.stdout
+    bin_ = tmp_path / "nomount"
+    bin_.mkdir()
+    (bin_ / "unshare").write_text("#!/bin/bash\necho 'unshare: unshare failed: Operation not permitted' >&2\nexit 1\n")
+    (bin_ / "unshare").chmod(0o755)
+    r = run("100", a, b, PATH=f"{bin_}:{os.environ['PATH']}")
+    assert r.returncode == 5 and "gives no private mounts (unshare: unshare failed: Operation not permitted" in r.stdout
+    assert list(out.iterdir()) == [] and not any((tmp_path / "tmp").glob("run_pieces.*"))
