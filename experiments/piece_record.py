@@ -22,7 +22,8 @@ _STOP = re.compile(r"stopped at budget step (\d+)/(\d+)")
 _COMPILED = re.compile(r"\[shed_jax\] compiled in ([0-9.]+) s")
 _READ = re.compile(r"aot_cache: ([0-9a-f]{16})\.\.\. read from its stand-in in ([0-9.]+) s, not traced")
 _WRITTEN = re.compile(r"aot_cache: ([0-9a-f]{16})\.\.\. stand-in written")
-_NOT_USED = re.compile(r"aot_cache: ([0-9a-f]{16})\.\.\. stand-in not (?:used|written) \((.*)\)")
+_NOT_USED = re.compile(r"aot_cache: ([0-9a-f]{16})\.\.\. stand-in not (?:used|written) \((.*?)\)(?:; tracing it)?$", re.M)
+_FAILED = re.compile(r"aot_cache: ([0-9a-f]{16})\.\.\. not (lowered|compiled), so no stand-in \((.*?)\)$", re.M)
 _BAR = re.compile(r"(\d+)/(\d+) \[(?:(\d+):)?(\d+):(\d+)<")
 
 
@@ -55,6 +56,7 @@ def parse(text: str) -> dict:
         "stand_ins_read": [{"key": k, "s": float(t)} for k, t in _READ.findall(text)],
         "stand_ins_written": _WRITTEN.findall(text),
         "stand_ins_passed_over": [{"key": k, "why": why} for k, why in _NOT_USED.findall(text)],
+        "programs_failed": [{"key": k, "stage": stage, "why": why} for k, stage, why in _FAILED.findall(text)],
     }
 
 

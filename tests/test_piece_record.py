@@ -14,6 +14,7 @@ LOG = (
     "shed/bipedal:  75%| | 754/1000 [00:10<21:58,  5.36s/step]aot_cache: 77917dd6f70f19cf... read from its stand-in in 2.0 s, not traced\n"
     "aot_cache: 0123456789abcdef... stand-in written\n"
     "aot_cache: fedcba9876543210... stand-in not used (ValueError: entry changed); tracing it\n"
+    "aot_cache: 1111222233334444... not compiled, so no stand-in (RuntimeError: out of memory (while autotuning))\n"
     "shed/bipedal:  84%| | 844/1000 [08:08<13:49,  5.31s/step]\n"
     "[shed_jax] --time-limit 494s reached: stopped at budget step 844/1000\n"
 )
@@ -29,6 +30,8 @@ def test_parse_reads_steps_time_and_stand_ins():
     assert p["stand_ins_read"] == [{"key": "b52d3155b3128bd3", "s": 7.8}, {"key": "77917dd6f70f19cf", "s": 2.0}]
     assert p["stand_ins_written"] == ["0123456789abcdef"]
     assert p["stand_ins_passed_over"] == [{"key": "fedcba9876543210", "why": "ValueError: entry changed"}]
+    assert p["programs_failed"] == [{"key": "1111222233334444", "stage": "compiled",
+                                     "why": "RuntimeError: out of memory (while autotuning)"}]
 
 
 def test_parse_hours_on_the_bar():
