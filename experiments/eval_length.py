@@ -16,10 +16,8 @@ DIR: ``PYTHONPATH=DIR python experiments/eval_length.py ...``); the record names
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
 import pathlib
-import platform
 import sys
 import time
 
@@ -41,6 +39,7 @@ def main(argv: list[str] | None = None) -> int:
     import shed_jax
     from shed_jax import evaluation
     from shed_jax.experiment import build, seed_keys
+    from shed_jax.runtime import provenance
 
     t0 = time.time()
     exp, env, student, tests, seeds, step, students = evaluation.restore_students(args.run_dir)
@@ -57,6 +56,9 @@ def main(argv: list[str] | None = None) -> int:
     lens = np.asarray(info["lengths"])  # [seeds, levels, episodes]
     limit = int(np.asarray(info["env_steps"]).reshape(-1)[0]) // (lens.shape[1] * lens.shape[2])
     record = {
+        **provenance("experiments.eval_length", argv),
+        # run as a file, so that a carried run's own sources can come first on the path
+        "command": "python experiments/eval_length.py " + " ".join(sys.argv[1:] if argv is None else argv),
         "what": "the teacher's evaluation rollout for a saved run's students: episode lengths and sequential steps",
         "run": str(args.run_dir), "budget_step": int(step), "seeds": int(seeds),
         "levels": int(lens.shape[1]), "episodes": int(lens.shape[2]), "rows": int(lens.size), "step_limit": limit,
@@ -67,10 +69,7 @@ def main(argv: list[str] | None = None) -> int:
         "mean_return_per_level": np.asarray(rets, np.float64).mean(axis=(0, 2)).round(1).tolist(),
         "seed": args.seed,
         "sources": str(pathlib.Path(shed_jax.__file__).resolve().parent.parent),
-        "device": f"{jax.default_backend()}: {platform.processor() or platform.machine()}, jax {jax.__version__}",
-        "restore_s": round(t1 - t0, 1), "compile_and_run_s": round(t2 - t1, 1),
-        "command": "python experiments/eval_length.py " + " ".join(sys.argv[1:] if argv is None else argv),
-        "date": datetime.date.today().isoformat(),
+        "jax": jax.__version__, "restore_s": round(t1 - t0, 1), "compile_and_run_s": round(t2 - t1, 1),
         "note": args.note,
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -79,6 +79,8 @@ def main(argv: list[str] | None = None) -> int:
             return 2
     record = {
         "what": "a carried run's pieces, each one device call, read from their logs",
+        # the GPUs that ran the pieces, as their logs name them (not this host, which only reads the logs)
+        "device": ", ".join(sorted({p["gpu"] for p in pieces.values() if p["gpu"]})) or None,
         "folder": str(args.folder),
         "command": "python -m experiments.piece_record " + " ".join(sys.argv[1:] if argv is None else argv),
         "date": datetime.date.today().isoformat(),

@@ -50,5 +50,6 @@ def test_main_writes_the_record_and_refuses_a_missing_piece(tmp_path, capsys):
     assert piece_record.main([str(tmp_path), "--pieces", "3", "--out", str(out)]) == 0
     rec = json.loads(out.read_text())
     assert rec["pieces"]["3"]["steps"] == 92 and "piece_record" in rec["command"]
+    assert rec["device"] == "1 x NVIDIA H100 80GB HBM3" and rec["date"]
     assert piece_record.main([str(tmp_path), "--pieces", "4", "--out", str(out)]) == 2
     assert "piece4.log does not exist" in capsys.readouterr().err
