@@ -890,7 +890,8 @@ class FinalEvalCompile:
     then exits at once (``__main__._exit`` knows the thread's name); a caller of ``run`` from Python
     leaves it to finish or die with the process."""
 
-    def __init__(self, batch: Batch, final_sets, students, episodes: int, max_steps: int | None):
+    def __init__(self, batch: Batch, final_sets, students, episodes: int, max_steps: int | None,
+                 say: Callable[[str], None] = _say):
         import jax
 
         from shed_jax.evaluation import evaluation_program
@@ -910,8 +911,9 @@ class FinalEvalCompile:
                 except Exception as err:  # noqa: BLE001 - see the class docstring
                     self.programs[name] = None
                     self.errors[name] = f"{type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}"
-                    # said now too: a run stopped by its time limit never reaches program()
-                    _say(f"the final evaluation's compile begun during training failed ({self.errors[name]}); "
+                    # said now too (through ``say``, e.g. the progress bar's writer, so that the line is
+                    # not glued to the bar): a run stopped by its time limit never reaches program()
+                    say(f"the final evaluation's compile begun during training failed ({self.errors[name]}); "
                          "it compiles again after training")
 
         # named for __main__._exit: a run stopped by its time limit may exit while this still compiles
@@ -1176,15 +1178,16 @@ def _train_run(opts, plan, batch, compiled, progress, final_sets, stop) -> int:
                     lambda p: {"wall_time_s": p.wall()}, every=opts.checkpoint_every)
     early: list = []  # the final evaluation's programs, compiling from the first chunk on (compile_early)
 
-    def compile_final_eval(p: Progress) -> None:
+    def compile_final_eval(p: Progress) -> None:  # called by the reporter, while its bar is shown
         try:
             early.append(FinalEvalCompile(batch, final_sets, batch.rows(p.state.student, 0), opts.final_eval_episodes,
-                                          batch.exp.loop.test_max_steps))
+                                          batch.exp.loop.test_max_steps, say=reporter.note))
         except Exception as err:  # noqa: BLE001 - a head start only: the final evaluation compiles its own
-            print(f"[shed_jax] the final evaluation will compile after training ({type(err).__name__}: {err})", flush=True)
+            reporter.note(f"the final evaluation will compile after training ({type(err).__name__}: {err})")
 
     hook = compile_final_eval if final_sets and compile_early(opts.compile_final_eval) else None
-    stopped = train(batch, compiled, progress, output, stop, _RunReporter(batch.exp, batch.num_seeds, hook), safe)
+    reporter = _RunReporter(batch.exp, batch.num_seeds, hook)
+    stopped = train(batch, compiled, progress, output, stop, reporter, safe)
     if stopped is not None:
         code, reason = stopped
         if code != EXIT_NONFINITE:

@@ -511,9 +511,9 @@ def test_final_evaluation_compiled_during_training_gives_the_same_returns(finish
     started, chunks_after, stages = [], [], []
     original = driver.FinalEvalCompile.__init__
 
-    def spy(self, batch, final_sets, students, episodes, max_steps):
-        started.append((len(final_sets), episodes))
-        original(self, batch, final_sets, students, episodes, max_steps)
+    def spy(self, batch, final_sets, students, episodes, max_steps, say):
+        started.append((len(final_sets), episodes, say.__qualname__))  # the bar's writer, not a bare print
+        original(self, batch, final_sets, students, episodes, max_steps, say)
 
     monkeypatch.setattr(driver.FinalEvalCompile, "__init__", spy)
     original_chunk = driver._RunReporter.chunk
@@ -525,7 +525,7 @@ def test_final_evaluation_compiled_during_training_gives_the_same_returns(finish
     code, out, err = run(["--out", str(d), *BASE, "--final-eval", "test", "--final-eval-episodes", "3",
                           "--compile-final-eval", "early"])
     assert code == 0, err
-    assert started == [(1, 3)] and chunks_after == [0, 1, 1, 1]  # begun in the first chunk's report, once
+    assert started == [(1, 3, "_RunReporter.note")] and chunks_after == [0, 1, 1, 1]  # begun in the first chunk's report, once
     assert "final evaluation on 'test': 2 level(s) x 2 seed(s) x 3 episode(s) (compiled during training)" in out
     assert stages == ["evaluating"]  # the early program ran: the final evaluation compiled nothing
     ours, theirs = (json.loads((x / "final_eval_test.json").read_text()) for x in (d, finished["dir"]))
@@ -588,6 +588,11 @@ def test_a_failed_early_compile_of_the_final_evaluation_is_said(monkeypatch, cap
     early.thread.join()
     assert capsys.readouterr().out == ("[shed_jax] the final evaluation's compile begun during training failed "
                                        "(RuntimeError: out of memory while autotuning); it compiles again after training\n")
+    written = []  # a run passes its progress bar's writer: the worker's line goes there, not to a bare print
+    driver.FinalEvalCompile(batch, [(None, None, "named")], {"w": jnp.zeros((2, 3))}, 3, 100, say=written.append).thread.join()
+    assert written == ["the final evaluation's compile begun during training failed "
+                       "(RuntimeError: out of memory while autotuning); it compiles again after training"]
+    assert capsys.readouterr().out == ""
     lines = []
     assert early.program("named", say=lines.append) is None
     assert lines == ["the final evaluation's compile begun during training failed "
