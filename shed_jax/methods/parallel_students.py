@@ -27,8 +27,9 @@ over levels and episodes, averaged): the expected score of a student trained by 
 a smaller variance than one student's. ``eval`` and ``--final-eval`` pool the same way.
 
 The step's record (``StepInfo``) keeps the one-student shapes: ``levels`` (and ``levels_*``) hold
-every student's levels, student after student; ``num_new_levels`` is their total; every other entry
-is the mean over the students (NaN-aware), so ``teacher_reward``, ``teacher_state`` and the
+every student's levels, student after student; ``num_new_levels`` is their total;
+``eval_longest_episode`` is the longest of the students' (their evaluations run as one vmapped
+rollout, which lasts as long as its longest); every other entry is the mean over the students (NaN-aware), so ``teacher_reward``, ``teacher_state`` and the
 diagnostics are the students' means, and the env-step counts are per student (each student trains
 the preset's budget; the run costs K times as many env steps). Per student it adds
 ``teacher_reward_per_student`` [K], ``teacher_state_per_student`` [K, m] and
@@ -70,6 +71,20 @@ def _mean(x: jax.Array) -> jax.Array:
     if jnp.issubdtype(x.dtype, jnp.floating):
         return jnp.nanmean(x, axis=0)
     return jnp.mean(x, axis=0).astype(x.dtype)
+
+
+#: ``extra_info`` entries pooled over the students by their maximum, not their mean (module doc)
+POOLED_BY_MAX = ("eval_longest_episode",)
+
+
+def _pool_extra(key: str, v):
+    """One ``extra_info`` entry [K, ...] as one student's (module doc): ``levels_*`` concatenated, those
+    in ``POOLED_BY_MAX`` the largest, the rest averaged."""
+    if key.startswith("levels_"):
+        return v.reshape((-1,) + v.shape[2:])
+    if key in POOLED_BY_MAX:
+        return jnp.max(v, axis=0)
+    return jax.tree_util.tree_map(_mean, v)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -207,14 +222,10 @@ class ParallelStudents:
         return mstate, sstate, info, (None if test_rets is None else pool_episodes(test_rets))
 
     def pooled_info(self, infos: StepInfo, exp, test_rets) -> StepInfo:
-        """The K students' records [K, ...] as one (module doc): levels concatenated, counts summed, the rest
-        averaged, but the evaluations' longest episode the longest of all: the K evaluations run as one
-        vmapped rollout, which lasts as long as its longest."""
+        """The K students' records [K, ...] as one (module doc): levels concatenated, counts summed, the
+        evaluations' longest episode the longest, the rest averaged."""
         flat = lambda x: x.reshape((-1,) + x.shape[2:])
-        extras = {key: (flat(v) if key.startswith("levels_") else jax.tree_util.tree_map(_mean, v))
-                  for key, v in infos.extras.items()}
-        if "eval_longest_episode" in infos.extras:
-            extras["eval_longest_episode"] = jnp.max(infos.extras["eval_longest_episode"], axis=0)
+        extras = {key: _pool_extra(key, v) for key, v in infos.extras.items()}
         extras["teacher_reward_per_student"] = exp.transition.r
         extras["teacher_state_per_student"] = exp.s_next
         n = exp.s_next.shape[0]
