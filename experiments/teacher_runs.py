@@ -99,21 +99,47 @@ def reward_noise(rows: list[tuple[int, float, float, float, float]]) -> dict:
 def run_settings(config: dict) -> list[str] | None:
     """What one ``shed_jax run`` (its config.json) sets apart from today's preset, as ``key=value``
     strings in the form of a sweep's ``--set`` values (``episodes=3``, ``level_switch=episode``);
-    None where this version no longer has the run's preset or method."""
+    None where this version no longer has the run's preset or method. A field the run's config lacks
+    and today's preset holds at its declared default was added after the run, with the default that
+    keeps the earlier behaviour: no setting (runs carried across sessions keep their own sources)."""
     from shed_jax.checkpoint import config_differences
     from shed_jax.presets import build_experiment
 
     exp = config["experiment"]
     try:
-        default = build_experiment(exp["env"], exp["method"], exp["preset"]).to_dict()
+        default = build_experiment(exp["env"], exp["method"], exp["preset"])
     except (KeyError, ValueError, TypeError):
         return None
     short = {"loop.num_episodes": "episodes"}
     out = []
-    for key, saved, _ in config_differences({"e": exp}, {"e": default}, ["e"]):
+    for key, saved, now in config_differences({"e": exp}, {"e": default.to_dict()}, ["e"]):
         key = key.removeprefix("e.")
+        if saved == "<missing>" and _is_field_default(default, key, now):
+            continue  # a field added after the run, at the default that keeps the earlier behaviour
         out.append(f"{short.get(key, key.removeprefix('method_config.'))}={saved}")
     return out
+
+
+def _is_field_default(obj, dotted: str, value) -> bool:
+    """Whether ``value`` (JSON-read) is the declared default of the dataclass field at ``dotted`` under
+    ``obj`` (``ppo.log_std_min`` of an Experiment); False where the path is not a dataclass field."""
+    import dataclasses
+    import json
+
+    *parents, name = dotted.split(".")
+    for part in parents:
+        obj = getattr(obj, part, None)
+    fields = {f.name: f for f in dataclasses.fields(obj)} if dataclasses.is_dataclass(obj) else {}
+    field = fields.get(name)
+    if field is None:
+        return False
+    if field.default is not dataclasses.MISSING:
+        declared = field.default
+    elif field.default_factory is not dataclasses.MISSING:
+        declared = field.default_factory()
+    else:
+        return False
+    return json.loads(json.dumps(declared, default=str)) == value
 
 
 def run_group(config: dict) -> str:

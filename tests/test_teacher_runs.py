@@ -407,3 +407,21 @@ def test_paired_records_the_environment_and_a_record_refuses_a_control_of_anothe
     (tmp_path / "lander" / "sweep_args.json").write_text(json.dumps({"env": "lander"}))
     with pytest.raises(SystemExit, match="the sets hold runs on lander and walker"):
         teacher_runs.paired([tmp_path / "run"], [tmp_path / "lander"])
+
+
+def test_run_settings_leave_out_fields_added_after_the_run():
+    """A carried run keeps its own sources, so its config.json lacks fields added since; one that today's
+    preset holds at its declared default is no setting, while a changed value or a non-default still is."""
+    from shed_jax.presets import build_experiment
+
+    exp = build_experiment("lander", "dr", "quick")
+    cfg = {"experiment": exp.to_dict()}
+    assert teacher_runs.run_settings(cfg) == []
+    del cfg["experiment"]["ppo"]["log_std_min"]  # the field's default: no bound, the earlier behaviour
+    assert teacher_runs.run_settings(cfg) == []
+    cfg["experiment"]["ppo"]["hparams"]["lr"] = 1e-3
+    assert teacher_runs.run_settings(cfg) == ["ppo.hparams.lr=0.001"]
+    assert teacher_runs._is_field_default(exp, "ppo.log_std_min", -math.inf)
+    assert not teacher_runs._is_field_default(exp, "ppo.log_std_min", -2.3)  # a bound the run did not have
+    assert not teacher_runs._is_field_default(exp, "ppo.no_such_field", 1)
+    assert not teacher_runs._is_field_default(exp, "ppo.hparams.no_such_field", 1)
