@@ -484,7 +484,8 @@ def fill(args_file: str, probe_file: str, chunks: bool, out: str | None, portabl
 # entry, another jax, an unpickling error) falls back to tracing, with one line saying why.
 STAND_INS = "programs"  # the stand-ins' folder, beside JAX's cache folder (.cache/device/programs)
 # environment variables that change only what JAX logs, not what it builds
-_LOG_ONLY_ENV = ("JAX_EXPLAIN_CACHE_MISSES", "TF_CPP_MIN_LOG_LEVEL", "TF_CPP_VMODULE", "TF_CPP_MAX_VLOG_LEVEL")
+_LOG_ONLY_ENV = ("JAX_EXPLAIN_CACHE_MISSES", "JAX_DEBUG_LOG_MODULES", "JAX_LOGGING_LEVEL", "TF_CPP_MIN_LOG_LEVEL",
+                 "TF_CPP_VMODULE", "TF_CPP_MAX_VLOG_LEVEL")
 # and those that change only how the client allocates device memory (experiments/run_pieces.sh gives
 # each of several runs on one GPU a share of it)
 _ALLOCATOR_ENV = "XLA_PYTHON_CLIENT_"

@@ -116,10 +116,15 @@ lim=$(( secs - ($(date +%s) - t0) - ${PACK_S:-45} ))
 # the run stops itself at lim and then writes its checkpoint (about 15-25 s); it is killed only if it
 # has not exited 12 s before the packing must begin
 # AOT_GATE=1 also stops the run as soon as its chunk proves not to be in the carried cache (the run's
-# own line, or for sources older than that line JAX's, which JAX_EXPLAIN_CACHE_MISSES turns on; it is
-# not part of any cache key, but it logs every trace): nothing is packed, the folder stays as it was (exit 7)
+# own line, or for sources older than that line JAX's "PERSISTENT COMPILATION CACHE MISS", which JAX
+# logs at DEBUG level: JAX_DEBUG_LOG_MODULES shows that module's debug lines, and only while the jax
+# logger's own level is above DEBUG, hence JAX_LOGGING_LEVEL; neither is part of any cache key):
+# nothing is packed, the folder stays as it was (exit 7). Not JAX_EXPLAIN_CACHE_MISSES, which also
+# logs that line: it turns on JAX 0.11's tracing-cache explainer too, which raises ValueError ("not
+# enough values to unpack") inside a trace once Pallas' Triton lowering has cached a jaxpr (that call
+# passes debug_info by keyword), and so failed the carried runs' early compile of their final evaluation
 if [ "${AOT_GATE:-0}" = 1 ] && ! grep -qs "is not in the compilation cache" shed_jax/driver.py; then
-  export JAX_EXPLAIN_CACHE_MISSES=1
+  export JAX_LOGGING_LEVEL=WARNING JAX_DEBUG_LOG_MODULES=jax._src.compiler
 fi
 runner=(python -m shed_jax)
 [ "$portable" = 1 ] && runner=(python "$tool" run -m shed_jax)

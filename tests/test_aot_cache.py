@@ -284,6 +284,8 @@ def test_a_stand_in_context_leaves_out_output_settings_and_logging(tmp_path, mon
     base = aot_cache.stand_in_context(str(tmp_path))
     (tmp_path / "config.json").write_text(json.dumps({**cfg, "commit": "def", "output": {"keep": 1}}))
     monkeypatch.setenv("JAX_EXPLAIN_CACHE_MISSES", "1")
+    monkeypatch.setenv("JAX_LOGGING_LEVEL", "WARNING")  # run_piece.sh's AOT_GATE=1, to see JAX's cache misses
+    monkeypatch.setenv("JAX_DEBUG_LOG_MODULES", "jax._src.compiler")
     assert aot_cache.stand_in_context(str(tmp_path)) == base
     # the allocator's share of the GPU (experiments/run_pieces.sh) builds the same programs
     monkeypatch.setenv("XLA_PYTHON_CLIENT_MEM_FRACTION", "0.45")

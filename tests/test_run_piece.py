@@ -26,6 +26,7 @@ echo cached > .cache/device/jax/entry
 echo kernels > .cache/device/jax/xla_gpu_kernel_cache_file
 [ -n "${STUB_NO_RUN:-}" ] && exit 1  # a compile cut off: no run directory, the cache alone
 if [ -n "${STUB_MISS:-}" ]; then  # the chunk is not in the cache: the run says so, then compiles for long
+  echo "logging [${JAX_EXPLAIN_CACHE_MISSES:-}] [${JAX_LOGGING_LEVEL:-}] [${JAX_DEBUG_LOG_MODULES:-}]" >> "$STUB_LOG"
   echo "$STUB_MISS"; echo "killed" > "$STUB_LOG.term"; sleep 60; rm "$STUB_LOG.term"; exit 0
 fi
 mkdir -p runs/x
@@ -251,6 +252,9 @@ def test_aot_gate_stops_a_run_whose_chunk_is_not_in_the_carried_cache(tmp_path, 
     assert (tmp_path / "stub.log.term").exists()  # the stub was killed in its compile, not left to finish
     assert not list((tmp_path / "out1").glob("*.tgz.*"))
     assert (tmp_path / "out1" / "aot_probe.json").exists()  # this host's key parts, to find what differed
+    # these sources lack the run's own line, so JAX's miss line is shown: through the compiler module's
+    # debug log, not JAX_EXPLAIN_CACHE_MISSES, whose tracing explainer raised inside GPU traces
+    assert "logging [] [WARNING] [jax._src.compiler]" in (tmp_path / "stub.log").read_text().splitlines()
 
 
 def test_aot_gate_takes_0_or_1(tmp_path, folder):
