@@ -3,7 +3,7 @@ each a device call's ``run.log``): the GPU, the budget steps each piece took the
 how long they took, the "compiled in" seconds, and which programs came from a stand-in
 (``experiments/aot_cache.py``) or wrote one.
 
-    python -m experiments.piece_record docs/results/bipedal_paper_shed_inflight --pieces 15 16 17 \
+    python -m experiments.piece_record docs/results/bipedal_paper_shed/pieces --pieces 15 16 17 \
         --out docs/results/stand_ins/bipedal_shed_h100_pieces_2026-12-06.json
 """
 from __future__ import annotations
@@ -19,6 +19,7 @@ _GPU = re.compile(r"backend gpu: (\d+) x ([^;]+);")
 _JAX = re.compile(r"\[shed_jax\] jax ([0-9.]+),")
 _RESUME = re.compile(r"resuming \S+ from budget step (\d+)/(\d+)")
 _STOP = re.compile(r"stopped at budget step (\d+)/(\d+)")
+_DONE = re.compile(r"training done \((\d+)/(\d+) budget steps\)")  # the last piece: no stop, the run's end
 _COMPILED = re.compile(r"\[shed_jax\] compiled in ([0-9.]+) s")
 _READ = re.compile(r"aot_cache: ([0-9a-f]{16})\.\.\. read from its stand-in in ([0-9.]+) s, not traced")
 _WRITTEN = re.compile(r"aot_cache: ([0-9a-f]{16})\.\.\. stand-in written")
@@ -30,10 +31,11 @@ _BAR = re.compile(r"(\d+)/(\d+) \[(?:(\d+):)?(\d+):(\d+)<")
 def parse(text: str) -> dict:
     """One piece's facts from its log; ValueError naming what the log lacks."""
     text = text.replace("\r", "\n")
-    resume, stop = _RESUME.search(text), _STOP.search(text)
+    resume, stop, done = _RESUME.search(text), _STOP.search(text), _DONE.search(text)
+    stop = stop or done
     if resume is None or stop is None:
-        raise ValueError("the log names no resumed budget step or no stop (a piece that started the run, "
-                         "or one cut off before it saved, is not one this reads)")
+        raise ValueError("the log names no resumed budget step, and no stop or end of training (a piece that "
+                         "started the run, or one cut off before it saved, is not one this reads)")
     start, end, total = int(resume.group(1)), int(stop.group(1)), int(stop.group(2))
     bars = _BAR.findall(text)
     if not bars:
@@ -48,6 +50,7 @@ def parse(text: str) -> dict:
         "jax": jax.group(1) if jax else None,
         "budget_steps": [start, end],
         "of": total,
+        "finished": stop is done,  # the run's training ended in this piece (its final evaluation may follow)
         "steps": end - start,
         # the progress bar's clock starts once the first chunk is compiled (or read), so this leaves out the compile
         "bar_elapsed_s": elapsed,

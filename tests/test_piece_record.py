@@ -34,6 +34,16 @@ def test_parse_reads_steps_time_and_stand_ins():
                                      "why": "RuntimeError: out of memory (while autotuning)"}]
 
 
+def test_parse_reads_the_last_piece_by_its_end_of_training():
+    last = LOG.replace("[shed_jax] --time-limit 494s reached: stopped at budget step 844/1000\n",
+                       "shed/bipedal: 100%| | 1000/1000 [22:08<00:00,  5.36s/step]\n"
+                       "[shed_jax] training done (1000/1000 budget steps); writing the plots and summary.json...\n")
+    p = piece_record.parse(last)
+    assert p["budget_steps"] == [752, 1000] and p["steps"] == 248 and p["finished"] is True
+    assert p["bar_elapsed_s"] == 22 * 60 + 8
+    assert piece_record.parse(LOG)["finished"] is False
+
+
 def test_parse_hours_on_the_bar():
     p = piece_record.parse(LOG.replace("[08:08<13:49", "[1:00:08<13:49"))
     assert p["bar_elapsed_s"] == 3608
