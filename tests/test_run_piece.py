@@ -257,6 +257,38 @@ def test_aot_gate_stops_a_run_whose_chunk_is_not_in_the_carried_cache(tmp_path, 
     assert "logging [] [WARNING] [jax._src.compiler]" in (tmp_path / "stub.log").read_text().splitlines()
 
 
+@pytest.mark.parametrize("entry", [None, "jit_init_point-old-cache"])
+def test_aot_gate_lets_a_resume_without_any_initial_state_entry_run(tmp_path, folder, entry):
+    """A resume never compiles the initial state, so a folder may leave its entry out of the cache to
+    fit a call: AOT_GATE=1 then runs the piece and leaves the decision to the chunk's lookup. An entry
+    under another host's key still stops it (exit 6), as does a missing entry for a first piece."""
+    _cache_archive(folder / "cache.tgz.aa", entry or "jit_chunk-x-cache")
+    ckpt = tmp_path / "ckpt_src"
+    (ckpt / "runs" / "x").mkdir(parents=True)
+    (ckpt / "runs" / "x" / "state").write_text("piece 1")
+    with tarfile.open(folder / "ckpt.tgz.aa", "w:gz") as tar:
+        tar.add(ckpt / "runs", arcname="runs")
+    repo = _tree(tmp_path, folder)
+    shutil.copy(SCRIPT.with_name("aot_cache.py"), repo / "experiments" / "aot_cache.py")
+    r = _piece(tmp_path, repo, 2, AOT_GATE="1")
+    calls = (tmp_path / "stub.log").read_text().splitlines()
+    if entry is None:
+        assert r.returncode == 75, r.stdout + r.stderr
+        assert "holds no initial state under any key (a resume does not compile it)" in r.stdout
+        assert calls[1].split()[:5] == ["-m", "shed_jax", "run", "--resume", "runs/x"] and "found piece 1" in calls
+    else:
+        assert r.returncode == 6, r.stdout + r.stderr
+        assert len(calls) == 1  # the probe alone
+
+
+def test_aot_gate_stops_a_first_piece_whose_cache_has_no_initial_state(tmp_path, folder):
+    _cache_archive(folder / "cache.tgz.aa", "jit_chunk-x-cache")
+    repo = _tree(tmp_path, folder)
+    shutil.copy(SCRIPT.with_name("aot_cache.py"), repo / "experiments" / "aot_cache.py")
+    r = _piece(tmp_path, repo, 1, AOT_GATE="1")
+    assert r.returncode == 6 and "holds no initial state under this host's key" in r.stdout, r.stdout + r.stderr
+
+
 def test_aot_gate_takes_0_or_1(tmp_path, folder):
     repo = _tree(tmp_path, folder)
     r = _piece(tmp_path, repo, 1, AOT_GATE="yes")
