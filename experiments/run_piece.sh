@@ -111,6 +111,8 @@ if [ -f "$probe_json" ]; then  # does the carried cache serve this host?
     # out of the cache to fit a call (shed-x on the 2-D walker, 2026-12-06): nothing to probe against;
     # under AOT_GATE=1 the chunk's own cache lookup below still stops a host the cache does not serve
     echo "aot probe: the carried cache holds no initial state under any key (a resume does not compile it): the chunk's lookup decides"
+    rm -f "$OUT/aot_probe.log" "$OUT/aot_probe_init.mlir.gz"  # as where it serves: a call returns 8 files
+    served=1
   else
     echo "aot probe: the carried cache holds no initial state under this host's key ${key:0:40}: its programs will compile again"
     if [ "${AOT_GATE:-0}" = 1 ]; then echo "run_piece: AOT_GATE=1, so no run (the folder is unchanged; aot_probe.json says this host's key parts)"; exit 6; fi

@@ -276,6 +276,9 @@ def test_aot_gate_lets_a_resume_without_any_initial_state_entry_run(tmp_path, fo
         assert r.returncode == 75, r.stdout + r.stderr
         assert "holds no initial state under any key (a resume does not compile it)" in r.stdout
         assert calls[1].split()[:5] == ["-m", "shed_jax", "run", "--resume", "runs/x"] and "found piece 1" in calls
+        # the probe's key parts at the end of the run's log, not files of their own (8 files a call)
+        assert {p.name for p in (tmp_path / "out2").iterdir()} == {"run.log", "cache.tgz.aa", "ckpt.tgz.aa"}
+        assert (tmp_path / "out2" / "run.log").read_text().endswith('"portable_key": "jit_init_point-portable-def"}}}\n')
     else:
         assert r.returncode == 6, r.stdout + r.stderr
         assert len(calls) == 1  # the probe alone
