@@ -101,22 +101,21 @@ probed_key() { python3 -c 'import json, sys; p = json.load(open(sys.argv[1]))["p
 if [ -f "$probe_json" ]; then  # does the carried cache serve this host?
   key=$(probed_key)
   if [ -n "$key" ] && [ -e ".cache/device/jax/$key-cache" ]; then echo "aot probe: the carried cache holds the initial state under this host's key"
-    # the probe's log and program text serve only to diff a key that differs, and its key parts go
-    # to the end of run.log once the run has ended: a call returns at most 8 files (2026-12-06: these
-    # and the parts left out the run's log), and shed-x's checkpoint alone is four
-    rm -f "$OUT/aot_probe.log" "$OUT/aot_probe_init.mlir.gz"
     served=1
   elif [ "$what" != "$args" ] && ! ls .cache/device/jax/jit_init_point-*-cache >/dev/null 2>&1; then
     # a resume traces the initial state's shapes but never compiles it, so a folder may leave its entry
     # out of the cache to fit a call (shed-x on the 2-D walker, 2026-12-06): nothing to probe against;
     # under AOT_GATE=1 the chunk's own cache lookup below still stops a host the cache does not serve
     echo "aot probe: the carried cache holds no initial state under any key (a resume does not compile it): the chunk's lookup decides"
-    rm -f "$OUT/aot_probe.log" "$OUT/aot_probe_init.mlir.gz"  # as where it serves: a call returns 8 files
     served=1
   else
     echo "aot probe: the carried cache holds no initial state under this host's key ${key:0:40}: its programs will compile again"
     if [ "${AOT_GATE:-0}" = 1 ]; then echo "run_piece: AOT_GATE=1, so no run (the folder is unchanged; aot_probe.json says this host's key parts)"; exit 6; fi
   fi
+  # where the run goes on, the probe's log and program text (only to diff a key that differs) go, and
+  # its key parts go to the end of run.log once the run has ended: a call returns at most 8 files
+  # (2026-12-06: these and the parts left out the run's log), and shed-x's checkpoint alone is four
+  [ "$served" = 1 ] && rm -f "$OUT/aot_probe.log" "$OUT/aot_probe_init.mlir.gz"
 fi
 lim=$(( secs - ($(date +%s) - t0) - ${PACK_S:-45} ))
 [ "$lim" -gt 0 ] || { echo "run_piece: SECONDS=$secs leaves no time to run after set-up and packing"; exit 2; }

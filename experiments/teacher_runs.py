@@ -102,7 +102,7 @@ def run_settings(config: dict) -> list[str] | None:
     None where this version no longer has the run's preset or method. A field the run's config lacks
     and today's preset holds at its declared default was added after the run, with the default that
     keeps the earlier behaviour: no setting (runs carried across sessions keep their own sources)."""
-    from shed_jax.checkpoint import config_differences
+    from shed_jax.checkpoint import MISSING, config_differences
     from shed_jax.presets import build_experiment
 
     exp = config["experiment"]
@@ -114,7 +114,7 @@ def run_settings(config: dict) -> list[str] | None:
     out = []
     for key, saved, now in config_differences({"e": exp}, {"e": default.to_dict()}, ["e"]):
         key = key.removeprefix("e.")
-        if saved == "<missing>" and _is_field_default(default, key, now):
+        if saved == MISSING and _is_field_default(default, key, now):
             continue  # a field added after the run, at the default that keeps the earlier behaviour
         out.append(f"{short.get(key, key.removeprefix('method_config.'))}={saved}")
     return out
@@ -124,7 +124,8 @@ def _is_field_default(obj, dotted: str, value) -> bool:
     """Whether ``value`` (JSON-read) is the declared default of the dataclass field at ``dotted`` under
     ``obj`` (``ppo.log_std_min`` of an Experiment); False where the path is not a dataclass field."""
     import dataclasses
-    import json
+
+    from shed_jax.checkpoint import jsonable
 
     *parents, name = dotted.split(".")
     for part in parents:
@@ -139,7 +140,7 @@ def _is_field_default(obj, dotted: str, value) -> bool:
         declared = field.default_factory()
     else:
         return False
-    return json.loads(json.dumps(declared, default=str)) == value
+    return jsonable(declared) == value
 
 
 def run_group(config: dict) -> str:

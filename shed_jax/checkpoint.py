@@ -113,12 +113,16 @@ def _flat_items(obj: Any, prefix: str = "") -> dict[str, Any]:
     return {prefix: obj}
 
 
+#: how ``config_differences`` shows a key that one side lacks
+MISSING = "<missing>"
+
+
 def config_differences(saved: dict, current: dict, keys: Iterable[str] = COMPARED_KEYS) -> list[tuple[str, Any, Any]]:
     """``(dotted key, saved, current)`` for every leaf that differs under ``keys`` (after a JSON round trip).
 
-    A key missing on one side shows as ``<missing>``.
+    A key missing on one side shows as ``MISSING``.
     """
-    missing = "<missing>"
+    missing = MISSING
     diffs = []
     for top in keys:
         a = _flat_items(jsonable(saved.get(top, missing)), top)

@@ -77,11 +77,16 @@ def _mean(x: jax.Array) -> jax.Array:
 POOLED_BY_MAX = ("eval_longest_episode",)
 
 
+def _flat(x: jax.Array) -> jax.Array:
+    """[K, n, ...] -> [K * n, ...]: the students' rows, student after student."""
+    return x.reshape((-1,) + x.shape[2:])
+
+
 def _pool_extra(key: str, v):
     """One ``extra_info`` entry [K, ...] as one student's (module doc): ``levels_*`` concatenated, those
     in ``POOLED_BY_MAX`` the largest, the rest averaged."""
     if key.startswith("levels_"):
-        return v.reshape((-1,) + v.shape[2:])
+        return _flat(v)
     if key in POOLED_BY_MAX:
         return jnp.max(v, axis=0)
     return jax.tree_util.tree_map(_mean, v)
@@ -224,13 +229,12 @@ class ParallelStudents:
     def pooled_info(self, infos: StepInfo, exp, test_rets) -> StepInfo:
         """The K students' records [K, ...] as one (module doc): levels concatenated, counts summed, the
         evaluations' longest episode the longest, the rest averaged."""
-        flat = lambda x: x.reshape((-1,) + x.shape[2:])
         extras = {key: _pool_extra(key, v) for key, v in infos.extras.items()}
         extras["teacher_reward_per_student"] = exp.transition.r
         extras["teacher_state_per_student"] = exp.s_next
         n = exp.s_next.shape[0]
         extras["test_return_per_student"] = (jnp.full((n,), jnp.nan, jnp.float32) if test_rets is None
                                              else jnp.mean(test_rets, axis=(1, 2)))
-        return StepInfo(levels=flat(infos.levels), env_steps_train=_mean(infos.env_steps_train),
+        return StepInfo(levels=_flat(infos.levels), env_steps_train=_mean(infos.env_steps_train),
                         env_steps_eval=_mean(infos.env_steps_eval), teacher_reward=_mean(infos.teacher_reward),
                         num_new_levels=jnp.sum(infos.num_new_levels).astype(jnp.int32), extras=extras)
