@@ -2,7 +2,8 @@
 # Takes what one piece of experiments/run_piece.sh returned into the run's folder, for the next piece.
 # Run from the repository root:
 #   bash experiments/adopt_piece.sh FOLDER FROM
-# FROM is where the piece's files came back (the device call's files_at): cache.tgz.*, run.log, gpu and,
+# FROM is where the piece's files came back (the device call's files_at): cache.tgz.* (none from a run
+# that finished: FOLDER keeps its cache), run.log, gpu and,
 # when the run saved, ckpt.tgz.*; with AOT_PROBE=1 or AOT_GATE=1, aot_probe.json where the carried cache did
 # not serve the host (copied too; where it did, the probe is at the end of run.log). Every archive is checked whole (gzip -t) before FOLDER is touched;
 # then FOLDER's old parts of each returned archive are removed (the split may change) and the new ones
@@ -14,9 +15,10 @@ usage="usage: bash experiments/adopt_piece.sh FOLDER FROM"
 dir=${1:?$usage}
 from=${2:?$usage}
 [ -f "$dir/run.args" ] || { echo "adopt_piece: $dir is not a carried run's folder (no run.args)"; exit 2; }
-ls "$from"/cache.tgz.* >/dev/null 2>&1 || { echo "adopt_piece: $from holds no cache.tgz.* (nothing came back from the piece?)"; exit 2; }
-kinds=(cache)
+kinds=()
+ls "$from"/cache.tgz.* >/dev/null 2>&1 && kinds+=(cache)
 ls "$from"/ckpt.tgz.* >/dev/null 2>&1 && kinds+=(ckpt)
+[ "${#kinds[@]}" -gt 0 ] || { echo "adopt_piece: $from holds no cache.tgz.* and no ckpt.tgz.* (nothing came back from the piece?)"; exit 2; }
 for k in "${kinds[@]}"; do
   cat "$from"/$k.tgz.* | gzip -t 2>/dev/null || { echo "adopt_piece: $from/$k.tgz.* is not a whole gzip archive; $dir left as it was"; exit 3; }
 done
@@ -38,7 +40,8 @@ for k in "${kinds[@]}"; do
   done
   echo "$k: $(ls "$to"/$k.tgz.* | wc -l) part(s), $(cat "$to"/$k.tgz.* | wc -c) bytes$( [ -f "$from/gpu" ] && echo " (ran on $(cat "$from/gpu"))") in $to"
 done
-[ "${#kinds[@]}" -eq 1 ] && echo "ckpt: none returned; $dir keeps its checkpoint"
+case " ${kinds[*]} " in *" ckpt "*) ;; *) echo "ckpt: none returned; $dir keeps its checkpoint";; esac
+case " ${kinds[*]} " in *" cache "*) ;; *) echo "cache: none returned (a run that finished packs none); $dir keeps its cache";; esac
 # a piece run with AOT_PROBE=1: its probe of the GPU host's key parts (a few kB), for experiments/aot_fill.sh
 if [ -f "$from/aot_probe.json" ]; then cp "$from/aot_probe.json" "$dir/" && chmod u+w "$dir/aot_probe.json" && echo "aot probe: $dir/aot_probe.json"; fi
 if [ -f "$from/run.log" ]; then

@@ -13,7 +13,7 @@
 # The script installs the wheels in .whl if there are any, puts the run's sources in place OF THIS
 # TREE'S (so OUT must be set: it runs on a disposable copy, e.g. the device machine's), starts the run
 # (no ckpt.tgz.* yet) or resumes it, stops it with --time-limit SECONDS counted from the script's
-# start, and writes the new ckpt.tgz.*, cache.tgz.*, run.log and gpu (the GPU model) into $OUT. SECONDS is the whole
+# start, and writes the new ckpt.tgz.*, cache.tgz.* (not once the run has finished), run.log and gpu (the GPU model) into $OUT. SECONDS is the whole
 # piece, packing included: the run stops PACK_S (45) seconds before it, which covers the checkpoint
 # the run writes when it stops (about 15 s for SHED on the 2-D walker) and the packing. Give it the
 # device call's limit_s less about 20 s: a call ended by its limit returns nothing of the piece. It exits with the run's exit code (75: stopped at
@@ -181,9 +181,13 @@ fi
 # file (tens of MB under JAX_PERSISTENT_CACHE_ENABLE_XLA_CACHES=all) serves only compiles of new
 # programs: it is left out, so the folder, the checkpoint and the wheels stay under what a call carries.
 # A new program (e.g. the final evaluation's) then compiles its kernels again.
+# A run that finished needs no cache: no piece reads it again, and three finished runs' caches beside
+# their results would not fit one call's return (KEEP_CACHE=1 packs it anyway).
 skip=()
 [ -d "$run" ] && skip=(--exclude=xla_gpu_kernel_cache_file)
-if [ -d .cache/device ]; then tar czf - "${skip[@]}" .cache/device | split -b 15M - "$OUT/cache.tgz."; fi
+if [ "$rc" = 0 ] && [ "${KEEP_CACHE:-0}" != 1 ]; then
+  echo "run_piece: the run finished, so its compilation cache is not packed (KEEP_CACHE=1 packs it)"
+elif [ -d .cache/device ]; then tar czf - "${skip[@]}" .cache/device | split -b 15M - "$OUT/cache.tgz."; fi
 last=$(tail -c 2000 "$OUT/run.log" | tr '\r' '\n' | grep -a -v '^ *$' | tail -4)
 if [ "${served:-0}" = 1 ] && [ -f "$probe_json" ]; then
   { echo; echo "[run_piece] aot_probe.json, this host's key parts (the carried cache served them):"; cat "$probe_json"; } >> "$OUT/run.log"

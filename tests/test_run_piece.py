@@ -31,7 +31,7 @@ if [ -n "${STUB_MISS:-}" ]; then  # the chunk is not in the cache: the run says 
 fi
 mkdir -p runs/x
 echo "piece $PIECE" > runs/x/state
-exit 75
+exit ${STUB_RC:-75}
 """
 
 
@@ -118,6 +118,26 @@ def test_a_piece_cut_off_before_its_first_checkpoint_keeps_the_kernel_cache(tmp_
     assert sorted(p.name for p in out.iterdir()) == ["cache.tgz.aa", "run.log"]
     with tarfile.open(out / "cache.tgz.aa") as tar:
         assert ".cache/device/jax/xla_gpu_kernel_cache_file" in tar.getnames()
+
+
+def test_a_run_that_finished_returns_its_results_without_its_cache(tmp_path, folder):
+    """A finished run's cache is read by no later piece; leaving it out keeps several finished runs'
+    results within one call's return. adopt_piece.sh takes the results and keeps the folder's cache."""
+    repo = _tree(tmp_path, folder)
+    r = _piece(tmp_path, repo, 1, STUB_RC="0")
+    assert r.returncode == 0, r.stdout + r.stderr
+    out = tmp_path / "out1"
+    assert sorted(p.name for p in out.iterdir()) == ["ckpt.tgz.aa", "run.log"]
+    assert "its compilation cache is not packed" in r.stdout
+    (folder / "cache.tgz.aa").write_bytes(b"the folder's cache")
+    a = _adopt(folder, out, tmp_path)
+    assert a.returncode == 0, a.stdout + a.stderr
+    assert (folder / "cache.tgz.aa").read_bytes() == b"the folder's cache"
+    assert (folder / "ckpt.tgz.aa").read_bytes() == (out / "ckpt.tgz.aa").read_bytes()
+    assert "keeps its cache" in a.stdout
+    # KEEP_CACHE=1 packs it all the same
+    r = _piece(tmp_path / "keep", _tree(tmp_path / "keep", folder), 3, STUB_RC="0", KEEP_CACHE="1")
+    assert r.returncode == 0 and (tmp_path / "keep" / "out3" / "cache.tgz.aa").is_file()
 
 
 def test_run_env_is_exported_to_every_piece(tmp_path, folder):
