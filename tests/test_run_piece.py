@@ -24,6 +24,7 @@ fi
 mkdir -p .cache/device/jax
 echo cached > .cache/device/jax/entry
 echo kernels > .cache/device/jax/xla_gpu_kernel_cache_file
+[ -n "${STUB_BIG_CACHE:-}" ] && head -c "$STUB_BIG_CACHE" /dev/urandom > .cache/device/jax/big
 [ -n "${STUB_NO_RUN:-}" ] && exit 1  # a compile cut off: no run directory, the cache alone
 if [ -n "${STUB_MISS:-}" ]; then  # the chunk is not in the cache: the run says so, then compiles for long
   echo "logging [${JAX_EXPLAIN_CACHE_MISSES:-}] [${JAX_LOGGING_LEVEL:-}] [${JAX_DEBUG_LOG_MODULES:-}]" >> "$STUB_LOG"
@@ -495,6 +496,35 @@ def test_pieces_run_side_by_side_each_seeing_its_own_tree_at_the_trees_path(tmp_
     assert "its exit code: 75" in r.stdout and r.stdout.count("its run.log: ") == 1
     assert "b_inflight.tar.* is not a whole archive; docs/results/b_inflight left as it was" in r.stdout
     assert {p.name: p.read_bytes() for p in (repo / "docs/results/b_inflight").iterdir()} == before_b
+
+
+@pytest.mark.skipif(shutil.which("unshare") is None or not _private_mounts(), reason="needs private mounts (root)")
+def test_pieces_whose_files_would_not_fit_a_calls_return_leave_out_caches_first(tmp_path, folder):
+    """Two pieces each returning a 300 kB cache against a 450 kB return: the larger cache is left out
+    (its folder keeps the one it had), both checkpoints come back, and both folders take their piece."""
+    repo, out = _pieces_tree(tmp_path, folder)
+    bin_ = tmp_path / "bin"
+    bin_.mkdir()
+    (bin_ / "python").write_text(STUB)
+    (bin_ / "python").chmod(0o755)
+    (repo / "docs/results/a_inflight/cache.tgz.aa").write_bytes(b"a's own cache")
+    (repo / "docs/results/b_inflight/cache.tgz.aa").write_bytes(b"b's own cache")
+    env = {**os.environ, "PATH": f"{bin_}:{os.environ['PATH']}", "STUB_LOG": str(tmp_path / "stub.log"), "PIECE": "1",
+           "RUN_PIECE_GPU": "", "TMPDIR": str(tmp_path / "tmp"), "OUT": str(out), "STUB_BIG_CACHE": "300000",
+           "RETURN_BYTES": "450000"}
+    r = subprocess.run(["bash", "experiments/run_pieces.sh", "100", "docs/results/a_inflight", "docs/results/b_inflight"],
+                       cwd=repo, env=env, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert r.stdout.count("so that the pieces' checkpoints come back") == 1, r.stdout
+    assert sum(p.stat().st_size for p in out.iterdir()) <= 450000
+    r = subprocess.run(["bash", str(ADOPT_PIECES), str(out), "docs/results/a_inflight", "docs/results/b_inflight"],
+                       cwd=repo, env={**os.environ, "TMPDIR": str(tmp_path / "tmp")}, capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stdout + r.stderr
+    kept = [n for n in ("a", "b") if (repo / f"docs/results/{n}_inflight/cache.tgz.aa").read_bytes() == f"{n}'s own cache".encode()]
+    assert len(kept) == 1 and "keeps its cache" in r.stdout
+    for n in ("a", "b"):
+        with tarfile.open(repo / f"docs/results/{n}_inflight/ckpt.tgz.aa") as tar:
+            assert tar.extractfile("runs/x/state").read() == b"piece 1\n"
 
 
 def test_run_pieces_refuses_bad_arguments_and_a_machine_without_private_mounts(tmp_path, folder):
