@@ -122,13 +122,12 @@ def config_differences(saved: dict, current: dict, keys: Iterable[str] = COMPARE
 
     A key missing on one side shows as ``MISSING``.
     """
-    missing = MISSING
     diffs = []
     for top in keys:
-        a = _flat_items(jsonable(saved.get(top, missing)), top)
-        b = _flat_items(jsonable(current.get(top, missing)), top)
+        a = _flat_items(jsonable(saved.get(top, MISSING)), top)
+        b = _flat_items(jsonable(current.get(top, MISSING)), top)
         for k in sorted(set(a) | set(b)):
-            va, vb = a.get(k, missing), b.get(k, missing)
+            va, vb = a.get(k, MISSING), b.get(k, MISSING)
             if va != vb:
                 diffs.append((k, va, vb))
     return diffs
