@@ -19,7 +19,7 @@
 # device call's limit_s less about 20 s: a call ended by its limit returns nothing of the piece. It exits with the run's exit code (75: stopped at
 # the time limit and saved; 0: finished, final evaluation included; 2: bad arguments; 6 and 7:
 # AOT_GATE=1 and the carried cache does not serve this host, nothing run or the run stopped before
-# compiling its chunk). CHECKPOINT_EVERY (seconds, default 120): how often the run saves besides at
+# compiling its chunk; 8: parts the folder left out of this call are not staged on this machine, nothing run). CHECKPOINT_EVERY (seconds, default 120): how often the run saves besides at
 # its stop. Copy those
 # back over FOLDER's parts (old parts removed first: the split may change) before the next piece.
 set -u
@@ -36,6 +36,25 @@ case $every in ''|*[!0-9]*) echo "run_piece: CHECKPOINT_EVERY must be a whole nu
 # run.env is sourced: plain NAME=VALUE lines only (no spaces, quotes or shell syntax), comments, blanks
 if [ -f "$dir/run.env" ] && grep -Evq '^([A-Za-z_][A-Za-z0-9_]*=[A-Za-z0-9_./:,=+-]*|#.*|)$' "$dir/run.env"; then
   echo "run_piece: $dir/run.env: every line must be NAME=VALUE (letters, digits and _./:,=+- in the value) or a # comment"; exit 2
+fi
+# A folder too large for one call (slim_tree.sh --staging, then --staged) names in staged.sha256 the
+# parts it left out of this call, which an earlier call on this machine staged in STAGED_DIR/NAME
+# (experiments/stage_parts.sh; STAGED_DIR: .cache/staged, or what run_pieces.sh says). They go back
+# into the folder (this disposable copy's) once their SHA-256 sums match; without them the piece runs
+# nothing: a run without its cache compiles for most of a call, and one without its checkpoint's
+# parts cannot resume.
+if [ -f "$dir/staged.sha256" ]; then
+  staged=${STAGED_DIR:-$PWD/.cache/staged}/$(basename "$dir")
+  sums=$(cd "$dir" && pwd)/staged.sha256
+  if ! [ -d "$staged" ] || ! (cd "$staged" && sha256sum --quiet --strict -c "$sums" >/dev/null 2>&1); then
+    echo "run_piece: $dir's parts listed in staged.sha256 were left out of this call for copies staged on this machine by an earlier call (experiments/stage_parts.sh), and $staged $([ -d "$staged" ] && echo "does not hold them as listed" || echo "is not here"): nothing run (exit 8; the folder is unchanged)"
+    exit 8
+  fi
+  while read -r _ p; do
+    p=${p#\*}
+    mkdir -p "$dir/$(dirname "$p")" && cp "$staged/$p" "$dir/$p" || { echo "run_piece: could not copy the staged $p into $dir"; exit 4; }
+  done < "$dir/staged.sha256"
+  echo "run_piece: $(wc -l < "$dir/staged.sha256") part(s) staged by an earlier call on this machine put back into $dir ($staged)"
 fi
 t0=$(date +%s)
 args=$(cat "$dir/run.args")
@@ -164,16 +183,23 @@ if [ -f "$probe_json" ]; then  # did the run itself compile (or find) the initia
 fi
 # Only the newest committed checkpoint goes back: one the run resumed from is deleted by the run
 # only once its next save has finished in the background, which a stopped run may not reach.
+newest=
 if [ -d "$run/checkpoints" ]; then
   newest=$(for c in "$run"/checkpoints/*/commit_success.txt; do [ -f "$c" ] && basename "$(dirname "$c")"; done | grep -E '^[0-9]+$' | sort -n | tail -1)
   if [ -n "$newest" ]; then
     for c in "$run"/checkpoints/*; do [ "$(basename "$c")" = "$newest" ] || { rm -rf "$c"; echo "run_piece: left out checkpoint $(basename "$c"): the newest complete one is $newest"; }; done
   fi
 fi
-# the checkpoint in parts under the 16 MiB a call returns, written whole before it is put in $OUT
+# the checkpoint in parts under the 16 MiB a call returns, written whole before it is put in $OUT.
+# A run that goes on leaves its metrics.jsonl out: the checkpoint's metrics history holds the same
+# records, and a resume writes the file again from it, byte for byte (shed-x's on the 2-D walker at
+# budget step 216, 2026-12-06: 7.5 MB, 2.9 MB packed, growing with every piece, in a folder that
+# must fit the 64 MiB a call carries). A finished run's results keep it.
 if [ -d "$run" ]; then
   whole=${TMPDIR:-/tmp}/run_piece.$$.tgz
-  tar czf "$whole" "$run" && gzip -t "$whole" && split -b 15M "$whole" "$OUT/ckpt.tgz." || echo "no checkpoint packed"
+  keep=()
+  [ "$rc" != 0 ] && [ -n "${newest:-}" ] && keep=(--exclude="$run/metrics.jsonl")
+  tar czf "$whole" "${keep[@]}" "$run" && gzip -t "$whole" && split -b 15M "$whole" "$OUT/ckpt.tgz." || echo "no checkpoint packed"
   rm -f "$whole"
   ls -l "$OUT"/ckpt.tgz.*
 fi

@@ -54,6 +54,13 @@ fi
 if ls .whl/*.whl >/dev/null 2>&1; then
   python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || exit 3
 fi
+# caches an earlier call staged on this machine (stage_caches.sh) are in .cache/staged, which each
+# piece's private mount hides: they are read from a copy beside the pieces' trees
+staged_env=()
+if [ -d .cache/staged ]; then
+  cp -a .cache/staged "$work/staged" || exit 4
+  staged_env=(STAGED_DIR="$work/staged")
+fi
 pids=()
 for i in "${!folders[@]}"; do
   f=${folders[$i]} n=${names[$i]}
@@ -65,7 +72,7 @@ for i in "${!folders[@]}"; do
   tar cf - --exclude=./.whl --exclude=./.cache --exclude=./runs --exclude=./.git --exclude=./.aside "${others[@]}" . \
     | tar xf - -C "$tree" || exit 4
   left=$(( secs - ($(date +%s) - t0) ))
-  unshare -m --propagation private env OUT="$out" PYTHONPATH="$root:/tmp/site" XLA_PYTHON_CLIENT_MEM_FRACTION="$frac" \
+  unshare -m --propagation private env OUT="$out" PYTHONPATH="$root:/tmp/site" XLA_PYTHON_CLIENT_MEM_FRACTION="$frac" "${staged_env[@]}" \
     bash -c 'mount --bind "$0" "$1" && cd "$1" && bash experiments/run_piece.sh "$2" "$3" > "$OUT/piece.out" 2>&1; echo $? > "$OUT/rc"' \
     "$tree" "$root" "$f" "$left" &
   pids+=($!)

@@ -8,20 +8,27 @@
 # of test data.
 # With --gpu MODEL (a call that names its kind, e.g. nvidia-h100-x1 -> h100), the folder's caches for
 # other GPU models go aside too: FOLDER/cache.tgz.* when FOLDER/gpu-MODEL/ exists, and other gpu-*/.
+# A folder whose checkpoint and cache together are over what a call carries (shed-x on the 2-D walker:
+# 51 MB and 12 MB, 2026-12-06) goes in two calls on one warm machine. The first (--staging) carries
+# its cache for MODEL and the checkpoint's first part, the other parts aside, and copies them onto the
+# machine with experiments/stage_parts.sh; the second (--staged), started before the machine's idle
+# release (30 s), carries the rest, those parts aside and their SHA-256 sums in FOLDER/staged.sha256,
+# by which run_piece.sh finds the staged copies, checks them and puts them back. Both need --gpu.
 # Run from the repository root:
-#   bash experiments/slim_tree.sh [--bipedal-wheels] [--gpu MODEL] FOLDER [FOLDER ...]   # before the call(s)
+#   bash experiments/slim_tree.sh [--bipedal-wheels] [--gpu MODEL] [--staging | --staged] FOLDER [FOLDER ...]
 #   bash experiments/slim_tree.sh --restore                   # after adopt_piece.sh
 # docs/ must have no uncommitted changes outside FOLDER, so that nothing but moves happens. Commit the
 # piece after --restore (`git add FOLDER`, never `git commit -a` or `git add -A`): while the tree is
 # slim, git sees the rest of docs/, tests/ and the folder's caches for other GPU models as deleted
 # (and the suite cannot run).
 set -u
-usage="usage: bash experiments/slim_tree.sh [--bipedal-wheels] [--gpu MODEL] FOLDER [FOLDER ...] | --restore"
+usage="usage: bash experiments/slim_tree.sh [--bipedal-wheels] [--gpu MODEL] [--staging | --staged] FOLDER [FOLDER ...] | --restore"
 aside=.aside
 size() { bash "$(dirname "$0")/carried_size.sh"; }  # what a call carries, with the wheels
 git rev-parse --git-dir >/dev/null 2>&1 && [ -d docs ] || { echo "slim_tree: run it from the repository root"; exit 2; }
 grep -qx "/$aside/" .git/info/exclude 2>/dev/null || echo "/$aside/" >> .git/info/exclude
 if [ "${1:-}" = --restore ]; then
+  rm -f docs/results/*/staged.sha256  # written by --staged for one call
   [ -d "$aside" ] || { echo "slim_tree: nothing is aside"; exit 0; }
   # docs/ back; the carried folder's entries set aside (its caches for other GPU models) back into it.
   # Nothing in the tree is overwritten: an entry there already (a part the piece replaced) wins, and
@@ -35,9 +42,14 @@ if [ "${1:-}" = --restore ]; then
     else
       case $(basename "$1") in
         *.tgz.??) set=$(basename "$1" | sed 's/\.tgz\...$/.tgz./')  # the whole set moves, or none of it
-          if ls "$(dirname "$2")/$set"* >/dev/null 2>&1; then
+          # parts of the set in the tree too: the set goes back only over copies of its own parts
+          # (--staging leaves the checkpoint's first part in the tree and a copy of it aside), never
+          # beside a part a piece replaced
+          for q in "$(dirname "$2")/$set"*; do
+            [ -e "$q" ] || continue
+            cmp -s "$q" "$(dirname "$1")/$(basename "$q")" && continue
             echo "slim_tree: $(dirname "${2#./}") holds other parts of $set*; its set-aside parts left in $aside"; return
-          fi
+          done
           mv "$(dirname "$1")/$set"* "$(dirname "$2")/";;
         *) mv "$1" "$2";;
       esac
@@ -51,16 +63,19 @@ if [ "${1:-}" = --restore ]; then
   echo "slim_tree: restored; the tree carries $(size) bytes with the wheels"
   exit 0
 fi
-core=0 gpu=
+core=0 gpu= split=
 while [ $# -gt 0 ]; do
   case $1 in
     --bipedal-wheels) core=1; shift;;
+    --staging|--staged) [ -z "$split" ] || [ "$split" = "$1" ] || { echo "slim_tree: --staging and --staged are the two calls of one piece: give one"; exit 2; }
+      split=$1; shift;;
     --gpu) [ $# -ge 2 ] || { echo "slim_tree: --gpu takes a GPU model (h100, h200, a100)"; exit 2; }; gpu=$2; shift 2;;
     *) break;;
   esac
 done
 case $gpu in ''|h100|h200|a100) ;; *) echo "slim_tree: --gpu takes a model as experiments/gpu_model.sh names it (h100, h200, a100), got '$gpu'"; exit 2;; esac
 [ $# -ge 1 ] || { echo "$usage"; exit 2; }
+[ -z "$split" ] || [ -n "$gpu" ] || { echo "slim_tree: $split needs --gpu MODEL (the model whose cache is staged)"; exit 2; }
 folders=()
 for folder in "$@"; do
   folder=${folder%/}
@@ -87,6 +102,29 @@ if [ -n "$gpu" ]; then  # the folders' caches for other GPU models (restored wit
     if [ -d "$folder/gpu-$gpu" ]; then for p in "$folder"/cache.tgz.*; do [ -e "$p" ] && mkdir -p "$keep" && mv "$p" "$keep/"; done; fi
   done
 fi
+# the parts staged in the first call of a staged piece: the cache for MODEL (gpu-MODEL's, else the
+# folder's own) and the checkpoint's first part
+staged_parts() {  # FOLDER -> relative paths
+  local c=gpu-$gpu
+  ls "$1/$c"/cache.tgz.* >/dev/null 2>&1 || c=.
+  (cd "$1/$c" && ls cache.tgz.* 2>/dev/null) | sed "s|^|$c/|; s|^\./||"
+  [ -f "$1/ckpt.tgz.aa" ] && echo ckpt.tgz.aa
+}
+for folder in "${folders[@]}"; do
+  [ -n "$split" ] || break
+  parts=$(staged_parts "$folder")
+  echo "$parts" | grep -q '^ckpt' && echo "$parts" | grep -q cache.tgz || {
+    echo "slim_tree: $split: $folder needs a checkpoint and a cache for $gpu to split between two calls"; bash "$0" --restore >/dev/null; exit 2; }
+  keep=$aside/$folder
+  if [ "$split" = --staging ]; then  # the checkpoint's other parts wait for the second call
+    mkdir -p "$keep" && cp -p "$folder/ckpt.tgz.aa" "$keep/"  # the whole set aside, for --restore
+    for p in "$folder"/ckpt.tgz.*; do [ "$p" = "$folder/ckpt.tgz.aa" ] || mv "$p" "$keep/"; done
+  else
+    (cd "$folder" && sha256sum $parts) > "$folder/staged.sha256"
+    mkdir -p "$keep" && for p in "$folder"/ckpt.tgz.*; do cp -p "$p" "$keep/"; done  # the whole set aside, for --restore
+    for p in $parts; do mkdir -p "$keep/$(dirname "$p")" && mv "$folder/$p" "$keep/$(dirname "$p")/"; done
+  fi
+done
 if [ "$core" = 1 ]; then
   for w in .whl/mujoco_core-*.whl .whl/trimesh-*.whl .whl/jaxopt-*.whl .whl/ml_collections-*.whl .whl/tensorboardx-*.whl; do
     [ -f "$w" ] && mkdir -p "$aside/whl" && mv "$w" "$aside/whl/"

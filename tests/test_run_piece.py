@@ -32,6 +32,7 @@ if [ -n "${STUB_MISS:-}" ]; then  # the chunk is not in the cache: the run says 
 fi
 mkdir -p runs/x
 echo "piece $PIECE" > runs/x/state
+echo '{"step": 0}' > runs/x/metrics.jsonl
 exit ${STUB_RC:-75}
 """
 
@@ -139,6 +140,21 @@ def test_a_run_that_finished_returns_its_results_without_its_cache(tmp_path, fol
     # KEEP_CACHE=1 packs it all the same
     r = _piece(tmp_path / "keep", _tree(tmp_path / "keep", folder), 3, STUB_RC="0", KEEP_CACHE="1")
     assert r.returncode == 0 and (tmp_path / "keep" / "out3" / "cache.tgz.aa").is_file()
+
+
+def test_a_run_that_goes_on_leaves_its_metrics_jsonl_to_the_checkpoints_history(tmp_path, folder):
+    """A resume writes metrics.jsonl again from the checkpoint's history, so a piece that stops with a
+    complete checkpoint packs the run without it; a finished run, or one with no complete checkpoint
+    to rebuild it from, packs it."""
+    def packed(name, **extra):
+        root = tmp_path / name
+        r = _piece(root, _tree(root, folder), 1, **extra)
+        with tarfile.open(root / "out1" / "ckpt.tgz.aa") as tar:
+            return r.returncode, sorted(n for n in tar.getnames() if n.startswith("runs/x/") and "/checkpoints/" not in n)
+
+    assert packed("goes_on", STUB_STEPS="4+") == (75, ["runs/x/checkpoints", "runs/x/state"])
+    assert packed("finished", STUB_STEPS="4+", STUB_RC="0") == (0, ["runs/x/checkpoints", "runs/x/metrics.jsonl", "runs/x/state"])
+    assert packed("uncommitted", STUB_STEPS="4") == (75, ["runs/x/checkpoints", "runs/x/metrics.jsonl", "runs/x/state"])
 
 
 def test_run_env_is_exported_to_every_piece(tmp_path, folder):
@@ -555,3 +571,105 @@ def test_run_pieces_refuses_bad_arguments_and_a_machine_without_private_mounts(t
     r = run("100", a, b, PATH=f"{bin_}:{os.environ['PATH']}")
     assert r.returncode == 5 and "gives no private mounts (unshare: unshare failed: Operation not permitted" in r.stdout
     assert list(out.iterdir()) == [] and not any((tmp_path / "tmp").glob("run_pieces.*"))
+
+
+STAGE = SCRIPT.with_name("stage_parts.sh")
+
+
+def _sums(root: pathlib.Path, parts) -> str:
+    return subprocess.run(["sha256sum", *parts], cwd=root, capture_output=True, text=True, check=True).stdout
+
+
+def test_parts_staged_by_an_earlier_call_go_back_into_the_folder_of_the_next(tmp_path, folder):
+    """A folder too large for one call goes in two on one machine: the first carries its cache and its
+    checkpoint's first part, which stage_parts.sh copies to .cache/staged/NAME; the second carries the
+    rest with the staged parts' sums (slim_tree.sh --staged), and run_piece.sh puts the staged parts
+    back once the sums match, then resumes as from a whole folder."""
+    repo0 = _tree(tmp_path / "call0", folder)  # a piece that leaves a checkpoint in two parts
+    assert _piece(tmp_path / "call0", repo0, 0, STUB_BIG_CACHE="1").returncode == 75
+    whole = b"".join(p.read_bytes() for p in sorted((tmp_path / "call0" / "out0").glob("ckpt.tgz.*")))
+    assert len(whole) > 100
+    (folder / "ckpt.tgz.aa").write_bytes(whole[:100])
+    (folder / "ckpt.tgz.ab").write_bytes(whole[100:])
+    _cache_archive(folder / "gpu-h100" / "cache.tgz.aa", "filled_for_h100")
+    staged_parts = ["ckpt.tgz.aa", "gpu-h100/cache.tgz.aa"]
+
+    first = tmp_path / "call1"  # what --staging carries: the cache and the checkpoint's first part
+    carried = tmp_path / "carried1"
+    shutil.copytree(folder, carried, ignore=shutil.ignore_patterns("ckpt.tgz.ab"))
+    repo1 = _tree(first, carried)
+    shutil.copy(STAGE, repo1 / "experiments" / "stage_parts.sh")
+    r = subprocess.run(["bash", "experiments/stage_parts.sh", "inflight/"], cwd=repo1, capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stdout + r.stderr
+    staged = repo1 / ".cache" / "staged" / "inflight"
+    assert sorted(str(p.relative_to(staged)) for p in staged.rglob("*") if p.is_file()) == staged_parts
+    assert all((staged / p).read_bytes() == (folder / p).read_bytes() for p in staged_parts)
+    assert "inflight: 2 part(s)" in r.stdout and "staged in .cache/staged/inflight: ckpt.tgz.aa gpu-h100/cache.tgz.aa" in r.stdout
+
+    light = tmp_path / "light"  # what --staged carries: the rest, and the staged parts' sums
+    shutil.copytree(folder, light, ignore=shutil.ignore_patterns("ckpt.tgz.aa", "cache.tgz.*"))
+    (light / "staged.sha256").write_text(_sums(folder, staged_parts))
+    repo2 = _tree(tmp_path / "call2", light)
+    r = _piece(tmp_path / "call2", repo2, 1, RUN_PIECE_GPU="h100", STAGED_DIR=str(repo1 / ".cache" / "staged"))
+    assert r.returncode == 75, r.stdout + r.stderr
+    assert f"2 part(s) staged by an earlier call on this machine put back into inflight ({staged})" in r.stdout
+    assert "found piece 0" in (tmp_path / "call2" / "stub.log").read_text().splitlines()  # resumed from the whole checkpoint
+    assert "filled_for_h100" in {p.name for p in (repo2 / ".cache" / "device" / "jax").iterdir()}
+    # without STAGED_DIR the copies are looked for in the tree's own .cache/staged
+    again = _tree(tmp_path / "again", light)
+    shutil.copytree(repo1 / ".cache" / "staged", again / ".cache" / "staged")
+    assert _piece(tmp_path / "again", again, 1, RUN_PIECE_GPU="h100").returncode == 75
+
+    # a machine without the staged copies (a fresh one), or with others: nothing runs
+    for name, other in (("fresh", None), ("other", "began_on_h200")):
+        root = tmp_path / name
+        repo = _tree(root, light)
+        if other:
+            shutil.copytree(staged, repo / ".cache" / "staged" / "inflight")
+            _cache_archive(repo / ".cache" / "staged" / "inflight" / "gpu-h100" / "cache.tgz.aa", other)
+        r = _piece(root, repo, 1, RUN_PIECE_GPU="h100")
+        assert r.returncode == 8, r.stdout + r.stderr
+        assert ("is not here" if other is None else "does not hold them as listed") in r.stdout
+        assert not (root / "stub.log").exists() and list((root / "out1").iterdir()) == []
+
+
+def test_stage_parts_refuses_a_folder_without_parts_before_staging_any(tmp_path, folder):
+    _cache_archive(folder / "cache.tgz.aa", "own")
+    bare = tmp_path / "bare"
+    bare.mkdir()
+    (bare / "run.args").write_text("--out runs/y\n")
+    repo = _tree(tmp_path, folder)
+    shutil.copy(STAGE, repo / "experiments" / "stage_parts.sh")
+    shutil.copytree(bare, repo / "bare")
+    run = lambda *a: subprocess.run(["bash", "experiments/stage_parts.sh", *a], cwd=repo, capture_output=True, text=True, timeout=60)
+    r = run("inflight", "bare")
+    assert r.returncode == 2 and r.stdout.strip() == "stage_parts: bare holds no archive parts in this call"
+    assert not (repo / ".cache").exists()
+    r = run("shed_jax")
+    assert r.returncode == 2 and "not a carried run's folder" in r.stdout
+    r = run("inflight")
+    assert r.returncode == 0 and (repo / ".cache" / "staged" / "inflight" / "cache.tgz.aa").is_file()
+
+
+@pytest.mark.skipif(shutil.which("unshare") is None or not _private_mounts(), reason="needs private mounts (root)")
+def test_pieces_read_parts_staged_in_the_trees_own_cache_folder(tmp_path, folder):
+    """Each piece's private mount hides the tree's .cache/staged: run_pieces.sh hands the pieces a copy."""
+    repo, out = _pieces_tree(tmp_path, folder)
+    bin_ = tmp_path / "bin"
+    bin_.mkdir()
+    (bin_ / "python").write_text(STUB)
+    (bin_ / "python").chmod(0o755)
+    staged = repo / ".cache" / "staged" / "a_inflight"
+    _cache_archive(staged / "cache.tgz.aa", "staged_for_a")
+    (repo / "docs/results/a_inflight/staged.sha256").write_text(_sums(staged, ["cache.tgz.aa"]))
+    env = {**os.environ, "PATH": f"{bin_}:{os.environ['PATH']}", "STUB_LOG": str(tmp_path / "stub.log"), "PIECE": "1",
+           "RUN_PIECE_GPU": "", "TMPDIR": str(tmp_path / "tmp"), "OUT": str(out)}
+    r = subprocess.run(["bash", "experiments/run_pieces.sh", "100", "docs/results/a_inflight", "docs/results/b_inflight"],
+                       cwd=repo, env=env, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stdout + r.stderr
+    with tarfile.open(out / "a_inflight.tar.aa") as tar:
+        tar.extractall(tmp_path / "back", filter="data")
+    assert "1 part(s) staged by an earlier call on this machine put back" in (tmp_path / "back/a_inflight/piece.out").read_text()
+    with tarfile.open(tmp_path / "back/a_inflight/cache.tgz.aa") as tar:  # the staged programs, packed with the piece's
+        assert ".cache/device/jax/staged_for_a" in tar.getnames()
+    assert not any((tmp_path / "tmp").glob("run_pieces.*"))

@@ -1,5 +1,6 @@
 """experiments/slim_tree.sh: a device call's tree slimmed to one carried run's folder and restored,
 in a throwaway git repository."""
+import hashlib
 import pathlib
 import shutil
 import subprocess
@@ -161,3 +162,64 @@ def test_several_folders_stay_for_pieces_run_together(tmp_path):
     r = _run(repo, "--restore")
     assert r.returncode == 0, r.stdout + r.stderr
     assert _files(repo) == before and _git(repo, "status", "--porcelain") == ""
+
+
+def test_the_two_calls_of_a_staged_piece_each_carry_part_of_the_folder(tmp_path):
+    """--staging (call 1) carries the cache for the named GPU model and the checkpoint's first part,
+    --staged (call 2) the rest, with the sums of the parts it left out, by which run_piece.sh checks
+    the staged copies; restore gives it all back, the sums removed."""
+    repo = _repo(tmp_path)
+    run = repo / "docs" / "results" / "run_inflight"
+    for rel in ("ckpt.tgz.ab", "ckpt.tgz.ac", "cache.tgz.aa", "gpu-h100/cache.tgz.aa", "gpu-h100/cache.tgz.ab",
+                "gpu-h100/aot_report.json", "src.tgz", "run.args"):
+        (run / rel).parent.mkdir(parents=True, exist_ok=True)
+        (run / rel).write_text("old " + rel)
+    _git(repo, "add", "-A")
+    _git(repo, "-c", "user.email=t@t", "-c", "user.name=t", "commit", "-qm", "parts")
+    before = _files(repo)
+    here = lambda: sorted(str(p.relative_to(run)) for p in run.rglob("*") if p.is_file())
+    r = _run(repo, "--gpu", "h100", "--staging", "docs/results/run_inflight")
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert here() == ["ckpt.tgz.aa", "gpu-h100/aot_report.json", "gpu-h100/cache.tgz.aa", "gpu-h100/cache.tgz.ab",
+                      "run.args", "src.tgz"]
+    assert _run(repo, "--restore").returncode == 0 and _files(repo) == before
+
+    r = _run(repo, "--gpu", "h100", "--staged", "docs/results/run_inflight")
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert here() == ["ckpt.tgz.ab", "ckpt.tgz.ac", "gpu-h100/aot_report.json", "run.args", "src.tgz", "staged.sha256"]
+    sums = dict(reversed(line.split()) for line in (run / "staged.sha256").read_text().splitlines())
+    assert sums == {p: hashlib.sha256(f"old {p}".encode() if p != "ckpt.tgz.aa" else b"ckpt").hexdigest()
+                    for p in ("gpu-h100/cache.tgz.aa", "gpu-h100/cache.tgz.ab", "ckpt.tgz.aa")}
+    r = _run(repo, "--restore")
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert _files(repo) == before and _git(repo, "status", "--porcelain") == ""  # the sums are gone too
+
+    # a checkpoint adopted before the restore: the old set stays aside, never mixed with the new parts
+    assert _run(repo, "--gpu", "h100", "--staged", "docs/results/run_inflight").returncode == 0
+    (run / "ckpt.tgz.ab").write_text("new ckpt.tgz.ab")
+    r = _run(repo, "--restore")
+    assert r.returncode == 1 and "holds other parts of ckpt.tgz." in r.stdout
+    assert sorted(p.name for p in run.glob("ckpt.tgz.*")) == ["ckpt.tgz.ab", "ckpt.tgz.ac"]
+    assert (run / "ckpt.tgz.ab").read_text() == "new ckpt.tgz.ab"
+    shutil.rmtree(repo / ".aside")
+    _git(repo, "checkout", "--", "docs")
+    assert _files(repo) == before
+
+    # without a cache of the named model, the folder's own is the one staged (gpu-h100/ aside, as ever)
+    assert _run(repo, "--gpu", "h200", "--staged", "docs/results/run_inflight").returncode == 0
+    assert here() == ["ckpt.tgz.ab", "ckpt.tgz.ac", "run.args", "src.tgz", "staged.sha256"]
+    assert sorted(l.split()[1] for l in (run / "staged.sha256").read_text().splitlines()) == ["cache.tgz.aa", "ckpt.tgz.aa"]
+    assert _run(repo, "--restore").returncode == 0 and _files(repo) == before
+
+
+def test_staged_pieces_refuse_what_cannot_be_split(tmp_path):
+    repo = _repo(tmp_path)
+    before = _files(repo)
+    r = _run(repo, "--staged", "docs/results/run_inflight")
+    assert r.returncode == 2 and "--staged needs --gpu MODEL" in r.stdout
+    r = _run(repo, "--gpu", "h100", "--staging", "--staged", "docs/results/run_inflight")
+    assert r.returncode == 2 and "the two calls of one piece: give one" in r.stdout
+    for flag, folder in (("--staged", "run_inflight"), ("--staging", "other_inflight")):  # no cache; no checkpoint
+        r = _run(repo, "--gpu", "h100", flag, f"docs/results/{folder}")
+        assert r.returncode == 2 and "needs a checkpoint and a cache for h100 to split between two calls" in r.stdout
+        assert _files(repo) == before and not (repo / ".aside").exists()
