@@ -59,6 +59,7 @@ fi
 t0=$(date +%s)
 args=$(cat "$dir/run.args")
 run=$(echo "$args" | sed -n 's/.*--out \([^ ]*\).*/\1/p')
+run=${run%/}
 [ -n "$run" ] || { echo "run_piece: $dir/run.args lacks --out DIR"; exit 2; }
 if ls .whl/*.whl >/dev/null 2>&1; then
   python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || exit 3

@@ -54,7 +54,7 @@ fi
 if ls .whl/*.whl >/dev/null 2>&1; then
   python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || exit 3
 fi
-# caches an earlier call staged on this machine (stage_caches.sh) are in .cache/staged, which each
+# parts an earlier call staged on this machine (stage_parts.sh) are in .cache/staged, which each
 # piece's private mount hides: they are read from a copy beside the pieces' trees
 staged_env=()
 if [ -d .cache/staged ]; then

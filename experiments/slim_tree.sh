@@ -16,7 +16,7 @@
 # by which run_piece.sh finds the staged copies, checks them and puts them back. Both need --gpu.
 # Run from the repository root:
 #   bash experiments/slim_tree.sh [--bipedal-wheels] [--gpu MODEL] [--staging | --staged] FOLDER [FOLDER ...]
-#   bash experiments/slim_tree.sh --restore                   # after adopt_piece.sh
+#   bash experiments/slim_tree.sh --restore                   # after the call(s), before or after adopt_piece.sh
 # docs/ must have no uncommitted changes outside FOLDER, so that nothing but moves happens. Commit the
 # piece after --restore (`git add FOLDER`, never `git commit -a` or `git add -A`): while the tree is
 # slim, git sees the rest of docs/, tests/ and the folder's caches for other GPU models as deleted
@@ -28,32 +28,41 @@ size() { bash "$(dirname "$0")/carried_size.sh"; }  # what a call carries, with 
 git rev-parse --git-dir >/dev/null 2>&1 && [ -d docs ] || { echo "slim_tree: run it from the repository root"; exit 2; }
 grep -qx "/$aside/" .git/info/exclude 2>/dev/null || echo "/$aside/" >> .git/info/exclude
 if [ "${1:-}" = --restore ]; then
-  rm -f docs/results/*/staged.sha256  # written by --staged for one call
+  find docs/results -name staged.sha256 -type f -delete 2>/dev/null  # written by --staged for one call
   [ -d "$aside" ] || { echo "slim_tree: nothing is aside"; exit 0; }
   # docs/ back; the carried folder's entries set aside (its caches for other GPU models) back into it.
   # Nothing in the tree is overwritten: an entry there already (a part the piece replaced) wins, and
-  # a split archive's parts (NAME.tgz.aa, .ab, ...) go back only if the tree holds none of that set.
+  # a split archive's parts (NAME.tgz.aa, .ab, ...) go back only if the tree holds none of that set,
+  # or only copies of the set's own parts (--staging and --staged leave some parts in the tree and
+  # the whole set aside). In a folder of a staged piece (.aside/split), a set whose parts in the tree
+  # differ (the piece's, adopted before the restore) replaces the set-aside one, which is dropped: it
+  # is the folder's committed state, in git.
+  split_folders=$(cat "$aside/split" 2>/dev/null)
+  rm -f "$aside/split"
   shopt -s dotglob
   back() {  # FROM TO
-    local p set
+    local p q set mine
     if [ -d "$1" ] && [ -d "$2" ]; then
       for p in "$1"/*; do [ -e "$p" ] && back "$p" "$2/$(basename "$p")"; done
-    elif [ -e "$2" ]; then echo "slim_tree: ${2#./} exists in the tree too; left in $aside"
-    else
-      case $(basename "$1") in
-        *.tgz.??) set=$(basename "$1" | sed 's/\.tgz\...$/.tgz./')  # the whole set moves, or none of it
-          # parts of the set in the tree too: the set goes back only over copies of its own parts
-          # (--staging leaves the checkpoint's first part in the tree and a copy of it aside), never
-          # beside a part a piece replaced
-          for q in "$(dirname "$2")/$set"*; do
-            [ -e "$q" ] || continue
-            cmp -s "$q" "$(dirname "$1")/$(basename "$q")" && continue
-            echo "slim_tree: $(dirname "${2#./}") holds other parts of $set*; its set-aside parts left in $aside"; return
-          done
-          mv "$(dirname "$1")/$set"* "$(dirname "$2")/";;
-        *) mv "$1" "$2";;
-      esac
+      return
     fi
+    case $(basename "$1") in
+      *.tgz.??) set=$(basename "$1" | sed 's/\.tgz\...$/.tgz./')  # the whole set moves, or none of it
+        mine=1
+        for q in "$(dirname "$2")/$set"*; do
+          [ -e "$q" ] || continue
+          cmp -s "$q" "$(dirname "$1")/$(basename "$q")" || { mine=0; break; }
+        done
+        if [ "$mine" = 1 ]; then mv -f "$(dirname "$1")/$set"* "$(dirname "$2")/"; return; fi
+        for f in $split_folders; do
+          case ${2#./} in "$f"/*)
+            rm -f "$(dirname "$1")/$set"*
+            echo "slim_tree: $(dirname "${2#./}")/$set* in the tree replace the set-aside ones (the folder's committed parts, in git)"; return;;
+          esac
+        done
+        echo "slim_tree: $(dirname "${2#./}") holds other parts of $set*; its set-aside parts left in $aside";;
+      *) if [ -e "$2" ]; then echo "slim_tree: ${2#./} exists in the tree too; left in $aside"; else mv "$1" "$2"; fi;;
+    esac
   }
   [ -d "$aside/docs" ] && back "$aside/docs" docs
   if [ -d "$aside/tests" ]; then if [ -e tests ]; then back "$aside/tests" tests; else mv "$aside/tests" tests; fi; fi
@@ -99,7 +108,7 @@ if [ -n "$gpu" ]; then  # the folders' caches for other GPU models (restored wit
     for p in "$folder"/gpu-*; do
       [ -d "$p" ] && [ "$p" != "$folder/gpu-$gpu" ] && mkdir -p "$keep" && mv "$p" "$keep/"
     done
-    if [ -d "$folder/gpu-$gpu" ]; then for p in "$folder"/cache.tgz.*; do [ -e "$p" ] && mkdir -p "$keep" && mv "$p" "$keep/"; done; fi
+    if ls "$folder/gpu-$gpu"/cache.tgz.* >/dev/null 2>&1; then for p in "$folder"/cache.tgz.*; do [ -e "$p" ] && mkdir -p "$keep" && mv "$p" "$keep/"; done; fi
   done
 fi
 # the parts staged in the first call of a staged piece: the cache for MODEL (gpu-MODEL's, else the
@@ -110,6 +119,7 @@ staged_parts() {  # FOLDER -> relative paths
   (cd "$1/$c" && ls cache.tgz.* 2>/dev/null) | sed "s|^|$c/|; s|^\./||"
   [ -f "$1/ckpt.tgz.aa" ] && echo ckpt.tgz.aa
 }
+[ -n "$split" ] && printf '%s\n' "${folders[@]}" > "$aside/split"
 for folder in "${folders[@]}"; do
   [ -n "$split" ] || break
   parts=$(staged_parts "$folder")

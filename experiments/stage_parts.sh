@@ -11,9 +11,12 @@
 set -u
 usage="usage: bash experiments/stage_parts.sh FOLDER [FOLDER ...]"
 [ $# -ge 1 ] || { echo "$usage"; exit 2; }
+names=" "
 for f in "$@"; do
   f=${f%/}
   [ -f "$f/run.args" ] || { echo "stage_parts: $f is not a carried run's folder (no run.args)"; exit 2; }
+  case $names in *" $(basename "$f") "*) echo "stage_parts: two folders named $(basename "$f") (each is staged under its name)"; exit 2;; esac
+  names="$names$(basename "$f") "
   [ -n "$(find "$f" -name '*.tgz.*' -type f | head -1)" ] || { echo "stage_parts: $f holds no archive parts in this call"; exit 2; }
 done
 for f in "$@"; do

@@ -311,7 +311,9 @@ def reconcile_metrics_jsonl(path: pathlib.Path, hist: dict, step: int, num_seeds
     flat = {k: np.asarray(v)[:, :step] for k, v in hist.items()}
     tmp.write_bytes(reporting.jsonl_bytes(reporting.step_records(flat, range(num_seeds))))
     os.replace(tmp, path)
+    if backup is None:  # e.g. a carried piece packed without it (experiments/run_piece.sh): expected
+        return f"metrics.jsonl: none beside the checkpoint; wrote its {len(expected)} record(s) from the checkpoint's history"
     return (f"metrics.jsonl did not hold exactly the records of steps < {step} "
             f"({len(seen & expected)}/{len(expected)} present{', duplicates' if dup else ''}); "
             f"rewrote it from the checkpoint's history "
-            f"({f'old file kept as {backup.name}' if backup is not None else 'there was no metrics.jsonl'})")
+            f"(old file kept as {backup.name})")

@@ -647,6 +647,8 @@ def test_stage_parts_refuses_a_folder_without_parts_before_staging_any(tmp_path,
     assert not (repo / ".cache").exists()
     r = run("shed_jax")
     assert r.returncode == 2 and "not a carried run's folder" in r.stdout
+    r = run("inflight", "./inflight/")
+    assert r.returncode == 2 and "two folders named inflight" in r.stdout and not (repo / ".cache").exists()
     r = run("inflight")
     assert r.returncode == 0 and (repo / ".cache" / "staged" / "inflight" / "cache.tgz.aa").is_file()
 

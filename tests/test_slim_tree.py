@@ -194,14 +194,25 @@ def test_the_two_calls_of_a_staged_piece_each_carry_part_of_the_folder(tmp_path)
     assert r.returncode == 0, r.stdout + r.stderr
     assert _files(repo) == before and _git(repo, "status", "--porcelain") == ""  # the sums are gone too
 
-    # a checkpoint adopted before the restore: the old set stays aside, never mixed with the new parts
-    assert _run(repo, "--gpu", "h100", "--staged", "docs/results/run_inflight").returncode == 0
-    (run / "ckpt.tgz.ab").write_text("new ckpt.tgz.ab")
+    # restored after call 1 (nothing adopted): no "left in .aside" line, the copy of ckpt.tgz.aa dropped
+    assert _run(repo, "--gpu", "h100", "--staging", "docs/results/run_inflight").returncode == 0
     r = _run(repo, "--restore")
-    assert r.returncode == 1 and "holds other parts of ckpt.tgz." in r.stdout
-    assert sorted(p.name for p in run.glob("ckpt.tgz.*")) == ["ckpt.tgz.ab", "ckpt.tgz.ac"]
-    assert (run / "ckpt.tgz.ab").read_text() == "new ckpt.tgz.ab"
-    shutil.rmtree(repo / ".aside")
+    assert r.returncode == 0 and "aside" not in r.stdout.replace("nothing is aside", ""), r.stdout
+    assert _files(repo) == before
+
+    # adopted before the restore: the piece's parts (a shorter set) win, never mixed with the old ones
+    assert _run(repo, "--gpu", "h100", "--staged", "docs/results/run_inflight").returncode == 0
+    for p in run.glob("ckpt.tgz.*"):
+        p.unlink()
+    (run / "ckpt.tgz.aa").write_text("new ckpt.tgz.aa")
+    (run / "gpu-h100" / "cache.tgz.aa").write_text("new cache")
+    r = _run(repo, "--restore")
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert "ckpt.tgz.* in the tree replace the set-aside ones" in r.stdout
+    assert sorted(p.name for p in run.glob("ckpt.tgz.*")) == ["ckpt.tgz.aa"] and (run / "ckpt.tgz.aa").read_text() == "new ckpt.tgz.aa"
+    assert sorted(p.name for p in (run / "gpu-h100").glob("cache.tgz.*")) == ["cache.tgz.aa"]
+    assert not (repo / ".aside").exists() and not (run / "staged.sha256").exists()
+    assert (repo / "docs" / "guide.md").read_text() == "guide" and (repo / "tests").is_dir()
     _git(repo, "checkout", "--", "docs")
     assert _files(repo) == before
 
@@ -223,3 +234,26 @@ def test_staged_pieces_refuse_what_cannot_be_split(tmp_path):
         r = _run(repo, "--gpu", "h100", flag, f"docs/results/{folder}")
         assert r.returncode == 2 and "needs a checkpoint and a cache for h100 to split between two calls" in r.stdout
         assert _files(repo) == before and not (repo / ".aside").exists()
+
+
+def test_a_one_part_checkpoint_is_staged_and_restored_whole(tmp_path):
+    repo = _repo(tmp_path)
+    run = repo / "docs" / "results" / "run_inflight"
+    (run / "cache.tgz.aa").write_text("cache")
+    (run / "gpu-h100").mkdir()  # a model's folder without cache parts: the folder's own cache is the one
+    (run / "gpu-h100" / "aot_report.json").write_text("{}")
+    (run / "pieces").mkdir()
+    (run / "pieces" / "staged.sha256").write_text("left by a broken session")
+    _git(repo, "add", "-A")
+    _git(repo, "-c", "user.email=t@t", "-c", "user.name=t", "commit", "-qm", "parts")
+    (run / "pieces" / "staged.sha256").unlink()
+    _git(repo, "-c", "user.email=t@t", "-c", "user.name=t", "commit", "-qam", "gone")
+    before = _files(repo)
+    for flag, kept in (("--staging", ["cache.tgz.aa", "ckpt.tgz.aa"]), ("--staged", ["staged.sha256"])):
+        r = _run(repo, "--gpu", "h100", flag, "docs/results/run_inflight")
+        assert r.returncode == 0, r.stdout + r.stderr
+        assert sorted(p.name for p in run.iterdir() if p.is_file()) == kept
+        (run / "pieces" / "staged.sha256").write_text("a stray one, in a nested folder")
+        r = _run(repo, "--restore")
+        assert r.returncode == 0 and "left in" not in r.stdout, r.stdout
+        assert _files(repo) == before, flag
