@@ -19,7 +19,10 @@ env's ``light_reset=False``: the reset's physics step with its edge manifolds), 
 (the env's ``obstacles="profile"``: obstacles as the height profile's edges, the model before Box2D
 polygons), ``terrain_loop`` (the env's ``terrain_kernel="xla"``: the terrain's 200-column loop as an
 XLA loop, the generator before 2026-12-02), ``packed_6`` / ``packed_4`` (the velocity passes over the
-manifolds with points packed into 6 or 4 slots instead of all 12, ``SolverConfig.velocity_manifolds``).
+manifolds with points packed into 6 or 4 slots instead of all 12, ``SolverConfig.velocity_manifolds``),
+``toi_gated`` (``SolverConfig.toi_gate``: the time of impact's solve skipped in batch-steps where no
+walker has an impact candidate; random actions give one in every batch-step of 200, so its gain is
+for rollouts of a walking policy, experiments/toi_census.py).
 
     python -m experiments.profile_bipedal_step --batches 200 --variants default,passes_1_1 --out $OUT/profile.json
 """
@@ -50,6 +53,7 @@ VARIANTS = {
     "terrain_loop": {},  # the terrain generator as an XLA loop instead of one kernel
     "packed_6": {"velocity_manifolds": 6},  # the velocity passes over 6 packed manifold slots, not 12
     "packed_4": {"velocity_manifolds": 4},
+    "toi_gated": {"toi_gate": True},  # the time of impact's solve only in batch-steps where some walker needs it
 }
 ENV_OPTIONS = {"full_reset": {"light_reset": False}, "profile_obstacles": {"obstacles": "profile"},
                "terrain_loop": {"terrain_kernel": "xla"}}

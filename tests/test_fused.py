@@ -301,3 +301,18 @@ def test_solver_kernel_inside_per_device_shard_map_equals_xla():
         np.testing.assert_array_equal(np.asarray(k, bool), r)
     assert touching.any() and solved.any()  # contacts made, position passes ran to tolerance
     assert float(np.std(com[:, :, -1, 0, 0])) > 0.05  # the worlds really differ
+
+
+def test_batch_any_is_the_flag_alone_and_any_over_every_batch_axis_under_vmap():
+    assert bool(fused.batch_any(jnp.asarray(True))) and not bool(fused.batch_any(jnp.asarray(False)))
+    flags = jnp.asarray([[False, False, True], [False, False, False]])
+    # one value for the whole batch (vmap broadcasts it back to the batch's shape)
+    np.testing.assert_array_equal(jax.vmap(fused.batch_any)(flags[1]), [False] * 3)
+    np.testing.assert_array_equal(jax.vmap(fused.batch_any)(flags[0]), [True] * 3)
+    np.testing.assert_array_equal(jax.vmap(jax.vmap(fused.batch_any))(flags), np.ones((2, 3), bool))
+    # a cond on it stays a cond under vmap (one branch for the batch), not both branches and a select
+    f = lambda x, flag: jax.lax.cond(fused.batch_any(flag), lambda v: v + 1.0, lambda v: v, x)  # noqa: E731
+    jaxpr = str(jax.make_jaxpr(jax.vmap(f))(jnp.zeros(3), flags[0]))
+    assert "cond[" in jaxpr and "select_n" not in jaxpr
+    np.testing.assert_array_equal(jax.vmap(f)(jnp.zeros(3), flags[0]), [1.0, 1.0, 1.0])  # the branch ran for all
+    np.testing.assert_array_equal(jax.vmap(f)(jnp.zeros(3), flags[1]), [0.0, 0.0, 0.0])

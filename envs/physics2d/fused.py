@@ -113,6 +113,21 @@ def when(flag: BlockAny, fn, operand, enabled: bool = True):
     return lax.cond(flag.flag > 0.5, fn, lambda x: x, operand)
 
 
+@jax.custom_batching.custom_vmap
+def batch_any(flag):
+    """A per-world bool scalar as it is outside ``vmap``; under ``vmap`` (nested ones too), whether it is
+    set for any world of the batch, unbatched. A ``lax.cond`` on it then stays one branch for the whole
+    batch (skipped where no world needs it) instead of both branches and a select; the caller
+    guarantees the branch leaves a world whose own flag is False unchanged, so the results agree."""
+    return flag
+
+
+@batch_any.def_vmap
+def _batch_any_rule(axis_size, in_batched, flag):
+    # reduce this batch axis, then again through batch_any for any enclosing vmap's axis
+    return batch_any(jnp.any(flag, axis=0) if in_batched[0] else flag), False
+
+
 def _is_flag(x) -> bool:
     return isinstance(x, BlockAny)
 

@@ -101,6 +101,11 @@ class SolverConfig:
     # edge contacts: time-of-impact events per body and step (each searches the sweep left after the
     # previous one; Box2D allows up to 8 per contact). Each one is another copy of the search and solve.
     toi_events: int = 1
+    # edge contacts: run a time-of-impact event's solve (its manifolds at the impact pose and its
+    # passes) only when some world of the batch has an impact candidate (fused.batch_any: one branch
+    # for the whole vmapped batch). Speed knob with the same results; off until timed on a GPU, where
+    # the branch's predicate is read by the host
+    toi_gate: bool = False
     # ground contacts of solid polygons: 0 = every polygon vertex against the polyline segment under it
     # (the lander's model); k > 0 = Box2D's edge-vs-polygon manifold (b2CollideEdgeAndPolygon, up to
     # two points, face A or face B) of each polygon against every ground edge as a separate Box2D edge

@@ -547,57 +547,69 @@ def _toi_event(model: Model, sweep, end, shapes, ok, edges, valid, boxes, box_va
         crowded = crowded | jnp.any(crowd_k)
     alpha = alpha0 + (1.0 - alpha0) * beta  # the impact's time within the step
     hit = (beta < 1.0) & (alpha < 1.0 - 10.0 * float(np.finfo(np.float32).eps))  # Box2D's "no more TOI events" test
-    c_t = s_com + beta[:, None] * (com - s_com)
-    a_t = s_ang + beta * (ang - s_ang)
-    at_toi = BodyState(com=c_t, angle=a_t, vel=vel, omega=omg)
-    with jax.named_scope("manifolds"):
-        ec = edge_constraints(model, at_toi, edges, valid, boxes, box_valid)
-    body = ec["body"]
-    cb = np.asarray(body, np.int32)
-    groups = [[k for k, i in enumerate(body) if i == g] for g in range(nb)]
-    has = jnp.stack([jnp.any(jnp.stack([ec["on"][k] for k in ks])) if ks else jnp.zeros((), bool) for ks in groups])
-    hit = hit & has
-    ec = dict(ec, on=ec["on"] & hit[cb])
-    moving = [g for g in range(nb) if groups[g]]
-    inv_m = [float(model.inv_mass[g]) for g in moving]
-    inv_i = [float(model.inv_inertia[g]) for g in moving]
-    flags = tuple(fused.BlockAny(hit[g].astype(f32)) for g in moving)
 
-    # position passes at the time of impact, per body (its contacts only)
-    with jax.named_scope("position_constants"):
-        pconsts = dict(_edge_position_constants(model, at_toi, ec), hit=flags)
-    carry = (tuple(V2.of(c_t[g]) for g in moving), tuple(a_t[g] for g in moving), tuple(jnp.zeros((), f32) for _ in moving))
-    if cfg.toi_position_iterations > 0:
-        ppass = functools.partial(_toi_position_pass_polygons, cfg, [groups[g] for g in moving], inv_m, inv_i)
-        cs, as_, _ = _toi_passes(cfg, cfg.toi_position_iterations, ppass, pconsts, carry)
-        c_p = c_t.at[np.asarray(moving)].set(jnp.stack([c.array() for c in cs]))
-        a_p = a_t.at[np.asarray(moving)].set(jnp.stack(as_))
-    else:
-        c_p, a_p = c_t, a_t
+    def solve(hit):  # the impact pose's manifolds and passes; a body without an impact keeps its sweep and end
+        c_t = s_com + beta[:, None] * (com - s_com)
+        a_t = s_ang + beta * (ang - s_ang)
+        at_toi = BodyState(com=c_t, angle=a_t, vel=vel, omega=omg)
+        with jax.named_scope("manifolds"):
+            ec = edge_constraints(model, at_toi, edges, valid, boxes, box_valid)
+        body = ec["body"]
+        cb = np.asarray(body, np.int32)
+        groups = [[k for k, i in enumerate(body) if i == g] for g in range(nb)]
+        has = jnp.stack([jnp.any(jnp.stack([ec["on"][k] for k in ks])) if ks else jnp.zeros((), bool) for ks in groups])
+        hit = hit & has
+        ec = dict(ec, on=ec["on"] & hit[cb])
+        moving = [g for g in range(nb) if groups[g]]
+        inv_m = [float(model.inv_mass[g]) for g in moving]
+        inv_i = [float(model.inv_inertia[g]) for g in moving]
+        flags = tuple(fused.BlockAny(hit[g].astype(f32)) for g in moving)
 
-    # velocity passes from the corrected pose (Box2D's "leap of faith"), no warm start
-    moved = _manifolds_moved(ec, c_t[cb], a_t[cb], c_p[cb], a_p[cb])
-    at_p = BodyState(com=c_p, angle=a_p, vel=vel, omega=omg)
-    with jax.named_scope("velocity_constants"):
-        vconsts = _edge_velocity_constants(model, at_p, moved)
-    zeros = tuple(jnp.zeros((), f32) for _ in body)
-    vpass = functools.partial(_toi_velocity_pass_polygons, model, body, ec["friction"])
-    vs, ws, _, _ = _toi_passes(cfg, cfg.toi_iterations, vpass, vconsts,
-                               (tuple(V2.of(vel[g]) for g in range(nb)), tuple(omg[g] for g in range(nb)), zeros, zeros))
-    v_t = jnp.stack([v.array() for v in vs])
-    w_t = jnp.stack(ws)
-    rest = (1.0 - alpha) * cfg.dt  # the rest of the step, clamped as Box2D integrates
-    tr = rest[:, None] * v_t
-    tr2 = dot(tr, tr)
-    v_t = jnp.where((tr2 > cfg.max_translation**2)[:, None], v_t * (cfg.max_translation / jnp.sqrt(jnp.maximum(tr2, 1e-30)))[:, None], v_t)
-    rot = rest * w_t
-    w_t = jnp.where(rot * rot > cfg.max_rotation**2, w_t * (cfg.max_rotation / jnp.maximum(jnp.abs(rot), 1e-30)), w_t)
-    hit_poly = jnp.asarray([model.polygons[k].body for k in range(len(model.polygons))], jnp.int32)
-    hit_poly = hit[hit_poly][:, None]
-    new_end = (jnp.where(hit[:, None], c_p + rest[:, None] * v_t, com), jnp.where(hit, a_p + rest * w_t, ang),
-               jnp.where(hit[:, None], v_t, vel), jnp.where(hit, w_t, omg))
-    new_sweep = (jnp.where(hit[:, None], c_p, s_com), jnp.where(hit, a_p, s_ang), jnp.where(hit, alpha, alpha0))
-    return new_sweep, new_end, ec["pairs"] & hit_poly, ec["box_pairs"] & hit_poly, crowded
+        # position passes at the time of impact, per body (its contacts only)
+        with jax.named_scope("position_constants"):
+            pconsts = dict(_edge_position_constants(model, at_toi, ec), hit=flags)
+        carry = (tuple(V2.of(c_t[g]) for g in moving), tuple(a_t[g] for g in moving), tuple(jnp.zeros((), f32) for _ in moving))
+        if cfg.toi_position_iterations > 0:
+            ppass = functools.partial(_toi_position_pass_polygons, cfg, [groups[g] for g in moving], inv_m, inv_i)
+            cs, as_, _ = _toi_passes(cfg, cfg.toi_position_iterations, ppass, pconsts, carry)
+            c_p = c_t.at[np.asarray(moving)].set(jnp.stack([c.array() for c in cs]))
+            a_p = a_t.at[np.asarray(moving)].set(jnp.stack(as_))
+        else:
+            c_p, a_p = c_t, a_t
+
+        # velocity passes from the corrected pose (Box2D's "leap of faith"), no warm start
+        moved = _manifolds_moved(ec, c_t[cb], a_t[cb], c_p[cb], a_p[cb])
+        at_p = BodyState(com=c_p, angle=a_p, vel=vel, omega=omg)
+        with jax.named_scope("velocity_constants"):
+            vconsts = _edge_velocity_constants(model, at_p, moved)
+        zeros = tuple(jnp.zeros((), f32) for _ in body)
+        vpass = functools.partial(_toi_velocity_pass_polygons, model, body, ec["friction"])
+        vs, ws, _, _ = _toi_passes(cfg, cfg.toi_iterations, vpass, vconsts,
+                                   (tuple(V2.of(vel[g]) for g in range(nb)), tuple(omg[g] for g in range(nb)), zeros, zeros))
+        v_t = jnp.stack([v.array() for v in vs])
+        w_t = jnp.stack(ws)
+        rest = (1.0 - alpha) * cfg.dt  # the rest of the step, clamped as Box2D integrates
+        tr = rest[:, None] * v_t
+        tr2 = dot(tr, tr)
+        v_t = jnp.where((tr2 > cfg.max_translation**2)[:, None], v_t * (cfg.max_translation / jnp.sqrt(jnp.maximum(tr2, 1e-30)))[:, None], v_t)
+        rot = rest * w_t
+        w_t = jnp.where(rot * rot > cfg.max_rotation**2, w_t * (cfg.max_rotation / jnp.maximum(jnp.abs(rot), 1e-30)), w_t)
+        hit_poly = jnp.asarray([model.polygons[k].body for k in range(len(model.polygons))], jnp.int32)
+        hit_poly = hit[hit_poly][:, None]
+        new_end = (jnp.where(hit[:, None], c_p + rest[:, None] * v_t, com), jnp.where(hit, a_p + rest * w_t, ang),
+                   jnp.where(hit[:, None], v_t, vel), jnp.where(hit, w_t, omg))
+        new_sweep = (jnp.where(hit[:, None], c_p, s_com), jnp.where(hit, a_p, s_ang), jnp.where(hit, alpha, alpha0))
+        return new_sweep, new_end, ec["pairs"] & hit_poly, ec["box_pairs"] & hit_poly
+
+    if not cfg.toi_gate:
+        return (*solve(hit), crowded)
+    # the solve leaves every body without a hit as it was, so a batch in which no world has one skips it
+    shapes = jax.eval_shape(solve, hit)
+
+    def skip(_):
+        return (s_com, s_ang, alpha0), end, jnp.zeros(shapes[2].shape, bool), jnp.zeros(shapes[3].shape, bool)
+
+    return (*jax.lax.cond(fused.batch_any(jnp.any(hit)), solve, skip, hit), crowded)
 
 
 def _manifolds_moved(ec, com0, ang0, com1, ang1):
