@@ -207,38 +207,41 @@ def test_edge_contacts_run_in_the_fused_kernel_bitwise():
     assert abs(float(first_vy)) < 1.0, first_vy  # from 10.2 m/s: stopped by the time of impact
 
 
-@pytest.mark.optimized  # two programs
 def test_the_time_of_impact_gate_skips_only_batches_without_an_impact():
     """``SolverConfig.toi_gate``: the time of impact's solve runs for the vmapped batch only when some
     world has an impact candidate (``fused.batch_any``: a cond, not a select). A batch with a box that
-    falls fast enough for one, and a batch of resting boxes (never one), end where the ungated solver
-    ends (to float32 rounding: the solve is a branch of its own program), the fast box stopped."""
+    falls fast enough for one, and a batch of three slower ones, end where the ungated solver ends (to
+    float32 rounding: the solve is a branch of its own program), the fast box stopped in its first step."""
     box = ((-0.5, -0.25), (0.5, -0.25), (0.5, 0.25), (-0.5, 0.25))
     ground = jnp.asarray([[0.0, 1.0], [5.2, 1.0], [10.0, 1.0]], jnp.float32)
 
-    def run(gate, vy):
+    def program(gate):
         cfg = physics2d.SolverConfig(dt=1 / 50, velocity_iterations=8, position_iterations=3, edge_contacts=2,
-                                     kernel="xla", toi_position_iterations=20, toi_gate=gate)
+                                     kernel="xla", toi_loop=True, toi_position_iterations=20, toi_gate=gate)
         m = physics2d.make_model(1, [physics2d.Polygon(0, box, 2.0, 0.4)], (), cfg)
         make = lambda y, v: physics2d.init_world(m, physics2d.bodies_from_origin(  # noqa: E731
             m, jnp.stack([jnp.stack([5.0, y])]), jnp.zeros((1,)), vel=jnp.stack([jnp.stack([0.0, v])])))
-        ws = jax.vmap(make)(jnp.asarray([1.3, 1.4, 1.26]), jnp.asarray(vy, jnp.float32))
         step = lambda w, _: (physics2d.step(m, w, ground, -10.0)[0],) * 2  # noqa: E731
-        run = jax.vmap(lambda w: jax.lax.scan(step, w, None, length=10))
-        return jax.jit(run)(ws), str(jax.make_jaxpr(run)(ws))
 
-    for vy in ([0.0, -10.0, 0.0], [0.0, 0.0, 0.0]):
-        (gated, _), jaxpr = run(True, vy)
-        (plain, _), plain_jaxpr = run(False, vy)
-        assert jaxpr.count("cond[") == plain_jaxpr.count("cond[") + 1  # the gate's (the rest: per-platform code)
-        assert jaxpr.count("select_n") <= plain_jaxpr.count("select_n")  # a cond under vmap, not selects of both
-        for a, b in zip(jax.tree_util.tree_leaves(gated), jax.tree_util.tree_leaves(plain)):
+        def go(vy):
+            ws = jax.vmap(make)(jnp.asarray([1.3, 1.4, 1.26]), vy)
+            return jax.vmap(lambda w: jax.lax.scan(step, w, None, length=10)[1])(ws)
+
+        return jax.jit(go), str(jax.make_jaxpr(go)(jnp.zeros(3)))
+
+    (gated, jaxpr), (plain, plain_jaxpr) = program(True), program(False)
+    assert jaxpr.count("cond[") == plain_jaxpr.count("cond[") + 1  # the gate's (the rest: per-platform code)
+    assert jaxpr.count("select_n") <= plain_jaxpr.count("select_n")  # a cond under vmap, not selects of both
+    for vy in ([0.0, -10.0, 0.0], [0.0, 0.0, 0.0]):  # one box fast enough for an impact; three slow ones
+        vy = jnp.asarray(vy, jnp.float32)
+        g, p = gated(vy), plain(vy)
+        for a, b in zip(jax.tree_util.tree_leaves(g), jax.tree_util.tree_leaves(p)):
             if np.issubdtype(np.asarray(a).dtype, np.floating):
                 np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-5, atol=1e-6)
             else:
                 np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
-    fast, _ = run(True, [0.0, -10.0, 0.0])
-    assert abs(float(fast[0].bodies.vel[1, 0, 1])) < 1.0  # from 10.2 m/s: stopped by the time of impact
+        if vy[1]:
+            assert abs(float(g.bodies.vel[1, 0, 0, 1])) < 1.0  # from 10 m/s: stopped by the time of impact
 
 
 @pytest.mark.optimized  # bitwise: several programs
