@@ -10,6 +10,11 @@ batch at which docs/bipedal.md times a step.
 
     python experiments/eval_length.py RUN_DIR --out F.json
 
+With ``--toi-census`` it also counts, per batch-step of that rollout, the 2-D walker's time-of-impact
+searches that found a candidate (``experiments/toi_census.py``): the share of sequential steps in which
+``SolverConfig.toi_gate`` could skip the solve for the whole batch (the rollout's rows are one batch on
+a GPU, the seeds included). The count's callback makes the rollout slower, not different.
+
 Run it with the run's own sources first on the path for a carried run (its ``src.tgz`` unpacked in
 DIR: ``PYTHONPATH=DIR python experiments/eval_length.py ...``); the record names the sources it used.
 """
@@ -27,6 +32,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("run_dir", type=pathlib.Path, help="a hierarchical teacher's run directory (shed, hmdp, ...)")
     ap.add_argument("--out", type=pathlib.Path, required=True, help="the JSON record to write")
     ap.add_argument("--seed", type=int, default=123, help="the evaluation's key (default 123)")
+    ap.add_argument("--toi-census", action="store_true",
+                    help="also count the batch-steps whose time-of-impact searches found a candidate (2-D walker)")
     ap.add_argument("--note", default="", help="a line for the record (e.g. which sources, and why)")
     args = ap.parse_args(argv)
     if not (args.run_dir / "config.json").is_file():
@@ -40,6 +47,14 @@ def main(argv: list[str] | None = None) -> int:
     from shed_jax import evaluation
     from shed_jax.experiment import build, seed_keys
     from shed_jax.runtime import provenance
+
+    records = None
+    if args.toi_census:
+        try:  # run as `python -m experiments.eval_length` from this repository
+            from experiments import toi_census
+        except ImportError:  # run as a file beside a carried run's own sources, which predate it
+            import toi_census
+        records = toi_census.record_searches()
 
     t0 = time.time()
     exp, env, student, tests, seeds, step, students = evaluation.restore_students(args.run_dir)
@@ -72,10 +87,22 @@ def main(argv: list[str] | None = None) -> int:
         "jax": jax.__version__, "restore_s": round(t1 - t0, 1), "compile_and_run_s": round(t2 - t1, 1),
         "note": args.note,
     }
+    if records is not None:
+        if not records:
+            print(f"eval_length: --toi-census: the {exp.env} env ran no time-of-impact search", file=sys.stderr)
+            return 2
+        # sites in the order they first ran: the evaluation's reset of every row, then its steps (a
+        # traced site that never ran, e.g. one traced only for its shapes, has no record)
+        order = list(dict.fromkeys(site for site, _ in records))
+        record["toi_census"] = toi_census.summarise([(order.index(site), f) for site, f in records],
+                                                    names=("reset", "step"))
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(record, indent=1) + "\n")
     print(f"budget step {step}: {record['rows']} rows, steps run {record['steps_run_per_seed']}, longest episode "
           f"{record['longest_episode']} of {limit}, mean {record['mean_episode']}, {record['rows_at_the_limit']:.0%} at the limit")
+    for site, c in (record.get("toi_census") or {}).items():
+        print(f"time of impact, {site}: {c['candidate_share']:.1%} of the searches found a candidate; "
+              f"{c['batch_steps_with_any']:.1%} of {c['batch_steps']} batch-steps had one")
     print(f"wrote {args.out}")
     return 0
 

@@ -13,6 +13,10 @@ batch-steps in which any search of the batch had one.
 
     python -m experiments.toi_census --worlds 200 --steps 100 --out FILE.json
 
+The same count in a teacher's evaluation of a saved run's students: ``experiments/eval_length.py RUN_DIR
+--toi-census`` (which imports ``record_searches`` and ``summarise`` from here; this module imports
+nothing of the project at its top, so that it also runs beside a carried run's own, older sources).
+
 Measurement only (CPU is fine: the search's arithmetic is the GPU's); the callback costs time, not results.
 """
 from __future__ import annotations
@@ -27,10 +31,6 @@ import sys
 import jax
 import jax.numpy as jnp
 import numpy as np
-
-import envs
-from envs.physics2d import toi
-from experiments import manifold_census
 
 _RECORDS: list = []  # (call site, the search's candidate flags over the batch) per search run
 _SITES = itertools.count()  # a number per traced call of the search: one per place in the program
@@ -53,14 +53,29 @@ def _recording(search):
 SITE_NAMES = ("first reset", "step", "auto-reset")  # the order in which slots_on traces them
 
 
-def summarise(records: list) -> dict:
+def record_searches() -> list:
+    """Wrap ``toi.earliest_impact`` (of the ``envs`` on the path) so that every search run from now on
+    appends its (site, candidate flags) to the returned list; a site is a traced call of the search, so
+    a program must be traced after this. Clears the list and the site count."""
+    global _SITES
+    from envs.physics2d import toi
+    if not getattr(toi.earliest_impact, "_recording", False):
+        toi.earliest_impact = _recording(toi.earliest_impact)
+        toi.earliest_impact._recording = True
+    _RECORDS.clear()
+    _SITES = itertools.count()
+    return _RECORDS
+
+
+def summarise(records: list, names=SITE_NAMES) -> dict:
     """``records``: (site, flags) per search run, each flags array one batch-step's searches at that
-    site (walkers x polygons). Per site: how many ran, the share of searches with a candidate, the
-    share of batch-steps with any, and the fewest candidates in one batch-step."""
+    site (walkers x polygons, with any leading batch axes). Per site (named by ``names`` in trace order,
+    else "site N"): how many ran, the share of searches with a candidate, the share of batch-steps with
+    any, and the fewest candidates in one batch-step."""
     out = {}
     for site in sorted({s for s, _ in records}):
         runs = [np.asarray(f, bool) for s, f in records if s == site]
-        name = SITE_NAMES[site] if site < len(SITE_NAMES) else f"site {site}"
+        name = names[site] if site < len(names) else f"site {site}"
         out[name] = {"batch_steps": len(runs), "searches_per_batch_step": int(runs[0].size),
                      "candidate_share": round(float(np.mean([f.mean() for f in runs])), 4),
                      "batch_steps_with_any": round(float(np.mean([f.any() for f in runs])), 4),
@@ -70,14 +85,15 @@ def summarise(records: list) -> dict:
 
 def census(env, mode: str, worlds: int, steps: int, seed: int) -> dict:
     """``summarise`` of one batch of ``worlds`` walkers run for ``steps`` steps in ``mode``."""
-    global _SITES
-    _RECORDS.clear()
-    _SITES = itertools.count()
+    from experiments import manifold_census
+    records = record_searches()
     manifold_census.slots_on(env, mode, worlds, steps, seed)
-    return summarise(_RECORDS)
+    return summarise(records)
 
 
 def main(argv=None) -> int:
+    import envs
+    from experiments import manifold_census
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--worlds", type=int, default=200)
     p.add_argument("--steps", type=int, default=100)
@@ -91,7 +107,6 @@ def main(argv=None) -> int:
     if bad or a.worlds < 1 or a.steps < 1:
         p.error(f"modes must be among {', '.join(manifold_census.MODES)} (got {', '.join(bad)})" if bad
                 else "worlds and steps must be >= 1")
-    toi.earliest_impact = _recording(toi.earliest_impact)
     env = envs.make("bipedal")
     rec = {"device": f"{jax.devices()[0].device_kind} ({platform.processor() or platform.machine()})",
            "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
