@@ -9,6 +9,14 @@ learning student. ``--latency-batches`` adds seconds per sequential env step (ra
 ``step`` (auto-reset), ``step_without_reset`` and ``reset`` alone, at each batch.
 
     python -m experiments.profile_walker_step --seeds 5 --warm-updates 6 --out runs/profile_walker.json
+
+``--env bipedal`` profiles the 2-D walker (``envs/bipedal``, the same paper preset). ``--from-run
+RUN_DIR`` takes a hierarchical teacher's saved run instead: its experiment, its latest students (mid
+episode, on the levels the teacher gave them) and its own evaluation set, episodes and step limit, so
+that the evaluations run as long as that run's do (students that stand run them to the step limit;
+``--warm-updates`` students fall within a few hundred steps). For a carried run, put its own sources
+first on the path and run this file, as ``experiments/eval_length.py`` says. On a GPU the kernels are
+padded to the run's training batch first, as a run pads them (``runtime.pad_kernels_to``).
 """
 from __future__ import annotations
 
@@ -37,24 +45,47 @@ def _timed(fn, *args, repeats=2):
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--seeds", type=int, default=5)
+    p.add_argument("--env", default="walker", choices=("walker", "bipedal"),
+                   help="the MJX walker or the 2-D walker on physics2d (default walker); ignored with --from-run")
+    p.add_argument("--from-run", type=pathlib.Path, default=None, metavar="RUN_DIR",
+                   help="a hierarchical teacher's saved run: its latest students and its own evaluation")
     p.add_argument("--levels", type=int, default=4)
     p.add_argument("--warm-updates", type=int, default=6)
     p.add_argument("--ppo", nargs="*", default=[], metavar="KEY=VALUE", help="PPO overrides (student.config)")
     p.add_argument("--latency-batches", default="", help="comma-separated batches for the per-step latencies")
     p.add_argument("--latency-only", action="store_true", help="only the per-step latencies")
+    p.add_argument("--no-test-set", action="store_true",
+                   help="leave out the test set and the fused evaluation (a budget step that does not test)")
     p.add_argument("--out", default="runs/profile_walker.json")
     args = p.parse_args(argv)
+    if args.from_run is not None and args.ppo:
+        print("profile_walker_step: --ppo cannot change a saved run's students (--from-run); leave one out", file=sys.stderr)
+        return 2
 
     from shed_jax import eval_sets
     from shed_jax.experiment import build, seed_keys
     from shed_jax.presets import build_experiment
     from shed_jax.student.config import parse_overrides
 
-    exp = build_experiment("walker", "shed", "paper", ppo_overrides=parse_overrides(args.ppo) or None)
-    env, student, _, tests = build(exp)
+    if args.from_run is not None and not (args.from_run / "config.json").is_file():
+        print(f"profile_walker_step: {args.from_run} is not a run directory (no config.json)", file=sys.stderr)
+        return 2
+    if args.from_run is None:
+        exp = build_experiment(args.env, "shed", "paper", ppo_overrides=parse_overrides(args.ppo) or None)
+        env, student, _, tests = build(exp)
+    else:
+        from shed_jax import evaluation
+
+        exp, env, student, tests, seeds, budget_step, students = evaluation.restore_students(args.from_run)
+        _, _, method, _ = build(exp)
+        if not hasattr(method, "eval_params"):
+            print(f"profile_walker_step: the run's method ({type(method).__name__}) has no teacher evaluation", file=sys.stderr)
+            return 2
     rec = {"device": jax.devices()[0].device_kind, "date": time.strftime("%Y-%m-%d", time.gmtime()),
-           "command": "python -m experiments.profile_walker_step " + " ".join(argv if argv is not None else sys.argv[1:]),
-           "xla_flags": os.environ.get("XLA_FLAGS", "")}
+           # run as a file beside a carried run's sources, or as a module of this repository
+           "command": ("python -m experiments.profile_walker_step " if __package__ else "python experiments/profile_walker_step.py ")
+           + " ".join(argv if argv is not None else sys.argv[1:]),
+           "env": exp.env, "xla_flags": os.environ.get("XLA_FLAGS", "")}
     if args.latency_batches:
         rec["latency"] = [step_latency(env, int(b)) for b in args.latency_batches.split(",")]
         for row in rec["latency"]:
@@ -62,13 +93,28 @@ def main(argv=None) -> int:
         _write(rec, args.out)  # kept if the profile below is stopped by a time limit
     if args.latency_only:
         return 0
-    keys = seed_keys(0, args.seeds)
-    levels = env.param_space.sample(jax.random.PRNGKey(1), (args.levels,))
-    evals = eval_sets.walker_eval_set(10).to_params(env.default_params)
-    s = jax.jit(jax.vmap(lambda k: student.assign_levels(student.init(k), k, levels)))(keys)
-    s, _ = jax.jit(jax.vmap(lambda st, k: student.run_updates(st, k, args.warm_updates)))(s, keys)
-    rec.update({"seeds": args.seeds, "num_envs": student.config.num_envs, "num_steps": student.config.num_steps,
-           "epochs": student.config.update_epochs, "minibatches": student.config.num_minibatches})
+    if args.from_run is None:
+        seeds, evals, eval_episodes, eval_max = args.seeds, eval_sets.walker_eval_set(10).to_params(env.default_params), 4, 2000
+        test_episodes, test_max = 10, 2000
+    else:  # the run's own: its teacher's evaluation and its test set as its loop runs them
+        seeds, evals, eval_episodes, eval_max = seeds, method.eval_params, exp.method_config.num_eval_episodes, method.eval_max
+        test_episodes, test_max = exp.loop.test_episodes, exp.loop.test_max_steps
+        rec.update({"run": str(args.from_run), "budget_step": int(budget_step)})
+    from shed_jax import runtime
+
+    if hasattr(runtime, "pad_kernels_to"):  # a carried run's sources from before 2026-12-04 have no padding
+        rec["kernel_worlds"] = runtime.pad_kernels_to(seeds * student.train_envs)
+    keys = seed_keys(0, seeds)
+    if args.from_run is None:
+        levels = env.param_space.sample(jax.random.PRNGKey(1), (args.levels,))
+        s = jax.jit(jax.vmap(lambda k: student.assign_levels(student.init(k), k, levels)))(keys)
+        s, _ = jax.jit(jax.vmap(lambda st, k: student.run_updates(st, k, args.warm_updates)))(s, keys)
+    else:
+        s = students
+    rec.update({"seeds": seeds, "num_envs": student.config.num_envs, "num_steps": student.config.num_steps,
+                "epochs": student.config.update_epochs, "minibatches": student.config.num_minibatches,
+                "eval_levels": int(jax.tree_util.tree_leaves(evals)[0].shape[0]), "eval_episodes": eval_episodes,
+                "eval_max_steps": eval_max, "test_episodes": test_episodes, "test_max_steps": test_max})
     rollout = jax.jit(jax.vmap(student.rollout))
     rec["rollout_s"], (s2, traj) = _timed(rollout, s, keys)
     update = jax.jit(jax.vmap(student.update))
@@ -77,15 +123,18 @@ def main(argv=None) -> int:
     def ev(levels_, episodes, max_steps):
         return jax.jit(jax.vmap(lambda st, k: student.evaluate_with_info(st, k, levels_, episodes, max_steps)))
 
-    rec["teacher_eval_s"], (_, info) = _timed(ev(evals, 4, 2000), s, keys)
+    rec["teacher_eval_s"], (_, info) = _timed(ev(evals, eval_episodes, eval_max), s, keys)
     rec["teacher_eval_steps_run"] = np.asarray(info["steps_run"]).tolist()
-    rec["test_eval_s"], (_, info) = _timed(ev(tests, 10, 2000), s, keys)
-    rec["test_eval_steps_run"] = np.asarray(info["steps_run"]).tolist()
-    fused = jax.jit(jax.vmap(lambda st, k: student.evaluate_many(st, [(k, evals, 4, 2000), (jax.random.fold_in(k, 1), tests, 10, 2000)])))
-    rec["fused_eval_s"], out = _timed(fused, s, keys)
-    rec["fused_eval_steps_run"] = np.asarray(out[0][1]["steps_run"]).tolist()
     updates = exp.method_config.updates_per_step
     rec["train_s_per_budget_step"] = updates * (rec["rollout_s"] + rec["update_s"])
+    _write(rec, args.out)  # kept if the test set's programs below are stopped by a time limit
+    if not args.no_test_set:
+        rec["test_eval_s"], (_, info) = _timed(ev(tests, test_episodes, test_max), s, keys)
+        rec["test_eval_steps_run"] = np.asarray(info["steps_run"]).tolist()
+        fused = jax.jit(jax.vmap(lambda st, k: student.evaluate_many(
+            st, [(k, evals, eval_episodes, eval_max), (jax.random.fold_in(k, 1), tests, test_episodes, test_max)])))
+        rec["fused_eval_s"], out = _timed(fused, s, keys)
+        rec["fused_eval_steps_run"] = np.asarray(out[0][1]["steps_run"]).tolist()
     print(json.dumps(rec), flush=True)
     return _write(rec, args.out)
 
