@@ -44,7 +44,7 @@ def _timed(fn, *args, repeats=2):
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--seeds", type=int, default=5)
+    p.add_argument("--seeds", type=int, default=5, help="vmapped students (default 5; with --from-run, the run's)")
     p.add_argument("--env", default="walker", choices=("walker", "bipedal"),
                    help="the MJX walker or the 2-D walker on physics2d (default walker); ignored with --from-run")
     p.add_argument("--from-run", type=pathlib.Path, default=None, metavar="RUN_DIR",
