@@ -67,13 +67,16 @@ def main(argv=None) -> int:
     from shed_jax.presets import build_experiment
     from shed_jax.student.config import parse_overrides
 
-    if args.from_run is not None and not (args.from_run / "config.json").is_file():
-        print(f"profile_walker_step: {args.from_run} is not a run directory (no config.json)", file=sys.stderr)
-        return 2
-    if args.from_run is None:
+    if args.from_run is None:  # fresh students of the paper preset, on the walker's own evaluation set
         exp = build_experiment(args.env, "shed", "paper", ppo_overrides=parse_overrides(args.ppo) or None)
         env, student, _, tests = build(exp)
-    else:
+        seeds, students, run = args.seeds, None, {}
+        evals, eval_episodes, eval_max = eval_sets.walker_eval_set(10).to_params(env.default_params), 4, 2000
+        test_episodes, test_max = 10, 2000
+    else:  # a saved run's students, its teacher's evaluation and its test set as its loop runs them
+        if not (args.from_run / "config.json").is_file():
+            print(f"profile_walker_step: {args.from_run} is not a run directory (no config.json)", file=sys.stderr)
+            return 2
         from shed_jax import evaluation
 
         exp, env, student, tests, seeds, budget_step, students = evaluation.restore_students(args.from_run)
@@ -81,11 +84,14 @@ def main(argv=None) -> int:
         if not hasattr(method, "eval_params"):
             print(f"profile_walker_step: the run's method ({type(method).__name__}) has no teacher evaluation", file=sys.stderr)
             return 2
+        run = {"run": str(args.from_run), "budget_step": int(budget_step)}
+        evals, eval_episodes, eval_max = method.eval_params, exp.method_config.num_eval_episodes, method.eval_max
+        test_episodes, test_max = exp.loop.test_episodes, exp.loop.test_max_steps
     rec = {"device": jax.devices()[0].device_kind, "date": time.strftime("%Y-%m-%d", time.gmtime()),
            # run as a file beside a carried run's sources, or as a module of this repository
            "command": ("python -m experiments.profile_walker_step " if __package__ else "python experiments/profile_walker_step.py ")
            + " ".join(argv if argv is not None else sys.argv[1:]),
-           "env": exp.env, "xla_flags": os.environ.get("XLA_FLAGS", "")}
+           "env": exp.env, "xla_flags": os.environ.get("XLA_FLAGS", ""), **run}
     if args.latency_batches:
         rec["latency"] = [step_latency(env, int(b)) for b in args.latency_batches.split(",")]
         for row in rec["latency"]:
@@ -93,24 +99,16 @@ def main(argv=None) -> int:
         _write(rec, args.out)  # kept if the profile below is stopped by a time limit
     if args.latency_only:
         return 0
-    if args.from_run is None:
-        seeds, evals, eval_episodes, eval_max = args.seeds, eval_sets.walker_eval_set(10).to_params(env.default_params), 4, 2000
-        test_episodes, test_max = 10, 2000
-    else:  # the run's own: its teacher's evaluation and its test set as its loop runs them
-        seeds, evals, eval_episodes, eval_max = seeds, method.eval_params, exp.method_config.num_eval_episodes, method.eval_max
-        test_episodes, test_max = exp.loop.test_episodes, exp.loop.test_max_steps
-        rec.update({"run": str(args.from_run), "budget_step": int(budget_step)})
     from shed_jax import runtime
 
     if hasattr(runtime, "pad_kernels_to"):  # a carried run's sources from before 2026-12-04 have no padding
         rec["kernel_worlds"] = runtime.pad_kernels_to(seeds * student.train_envs)
     keys = seed_keys(0, seeds)
-    if args.from_run is None:
+    s = students
+    if s is None:
         levels = env.param_space.sample(jax.random.PRNGKey(1), (args.levels,))
         s = jax.jit(jax.vmap(lambda k: student.assign_levels(student.init(k), k, levels)))(keys)
         s, _ = jax.jit(jax.vmap(lambda st, k: student.run_updates(st, k, args.warm_updates)))(s, keys)
-    else:
-        s = students
     rec.update({"seeds": seeds, "num_envs": student.config.num_envs, "num_steps": student.config.num_steps,
                 "epochs": student.config.update_epochs, "minibatches": student.config.num_minibatches,
                 "eval_levels": int(jax.tree_util.tree_leaves(evals)[0].shape[0]), "eval_episodes": eval_episodes,
