@@ -17,6 +17,10 @@ that the evaluations run as long as that run's do (students that stand run them 
 ``--warm-updates`` students fall within a few hundred steps). For a carried run, put its own sources
 first on the path and run this file, as ``experiments/eval_length.py`` says. On a GPU the kernels are
 padded to the run's training batch first, as a run pads them (``runtime.pad_kernels_to``).
+``--parts`` picks what to time (a device call too short for every compile can take the PPO update
+alone: without the rollout it runs on a zero trajectory of the rollout's shapes, which compiles no
+environment step). The record is rewritten after each part, so a call stopped by its time limit keeps
+the parts it finished.
 """
 from __future__ import annotations
 
@@ -30,6 +34,9 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+
+PARTS = ("rollout", "update", "teacher_eval", "test")
 
 
 def _timed(fn, *args, repeats=2):
@@ -56,8 +63,18 @@ def main(argv=None) -> int:
     p.add_argument("--latency-only", action="store_true", help="only the per-step latencies")
     p.add_argument("--no-test-set", action="store_true",
                    help="leave out the test set and the fused evaluation (a budget step that does not test)")
+    p.add_argument("--parts", default=",".join(PARTS), metavar="LIST",
+                   help=f"comma-separated parts to time, of {','.join(PARTS)} (default all); an update without "
+                        "the rollout is timed on a zero trajectory of the rollout's shapes, so it compiles no environment")
     p.add_argument("--out", default="runs/profile_walker.json")
     args = p.parse_args(argv)
+    parts = [x for x in args.parts.split(",") if x]
+    bad = sorted(set(parts) - set(PARTS))
+    if bad or not parts:
+        print(f"profile_walker_step: --parts takes a comma-separated list of {', '.join(PARTS)}; got {args.parts!r}", file=sys.stderr)
+        return 2
+    if args.no_test_set:
+        parts = [x for x in parts if x != "test"]
     if args.from_run is not None and args.ppo:
         print("profile_walker_step: --ppo cannot change a saved run's students (--from-run); leave one out", file=sys.stderr)
         return 2
@@ -113,20 +130,30 @@ def main(argv=None) -> int:
                 "epochs": student.config.update_epochs, "minibatches": student.config.num_minibatches,
                 "eval_levels": int(jax.tree_util.tree_leaves(evals)[0].shape[0]), "eval_episodes": eval_episodes,
                 "eval_max_steps": eval_max, "test_episodes": test_episodes, "test_max_steps": test_max})
+    rec["parts"] = parts
     rollout = jax.jit(jax.vmap(student.rollout))
-    rec["rollout_s"], (s2, traj) = _timed(rollout, s, keys)
-    update = jax.jit(jax.vmap(student.update))
-    rec["update_s"], _ = _timed(update, s2, keys, traj)
+    if "rollout" in parts:
+        rec["rollout_s"], (s2, traj) = _timed(rollout, s, keys)
+        _write(rec, args.out)
+    elif "update" in parts:  # the rollout's output shapes, traced but never compiled
+        s2 = s
+        traj = jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), jax.eval_shape(rollout, s, keys)[1])
+        rec["update_on_zero_trajectory"] = True
+    if "update" in parts:
+        update = jax.jit(jax.vmap(student.update))
+        rec["update_s"], _ = _timed(update, s2, keys, traj)
+        _write(rec, args.out)
+    if "rollout" in parts and "update" in parts:
+        rec["train_s_per_budget_step"] = exp.method_config.updates_per_step * (rec["rollout_s"] + rec["update_s"])
 
     def ev(levels_, episodes, max_steps):
         return jax.jit(jax.vmap(lambda st, k: student.evaluate_with_info(st, k, levels_, episodes, max_steps)))
 
-    rec["teacher_eval_s"], (_, info) = _timed(ev(evals, eval_episodes, eval_max), s, keys)
-    rec["teacher_eval_steps_run"] = np.asarray(info["steps_run"]).tolist()
-    updates = exp.method_config.updates_per_step
-    rec["train_s_per_budget_step"] = updates * (rec["rollout_s"] + rec["update_s"])
-    _write(rec, args.out)  # kept if the test set's programs below are stopped by a time limit
-    if not args.no_test_set:
+    if "teacher_eval" in parts:
+        rec["teacher_eval_s"], (_, info) = _timed(ev(evals, eval_episodes, eval_max), s, keys)
+        rec["teacher_eval_steps_run"] = np.asarray(info["steps_run"]).tolist()
+        _write(rec, args.out)  # kept if the test set's programs below are stopped by a time limit
+    if "test" in parts:
         rec["test_eval_s"], (_, info) = _timed(ev(tests, test_episodes, test_max), s, keys)
         rec["test_eval_steps_run"] = np.asarray(info["steps_run"]).tolist()
         fused = jax.jit(jax.vmap(lambda st, k: student.evaluate_many(

@@ -23,3 +23,12 @@ def test_env_choices_are_the_two_walkers(capsys):
     with pytest.raises(SystemExit) as e:
         profile_walker_step.main(["--env", "lander"])
     assert e.value.code == 2 and "invalid choice: 'lander'" in capsys.readouterr().err
+
+
+def test_parts_outside_the_four_are_refused_in_one_line(tmp_path, capsys):
+    out = tmp_path / "p.json"
+    assert profile_walker_step.main(["--parts", "rollout,eval", "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == "profile_walker_step: --parts takes a comma-separated list of rollout, update, teacher_eval, test; got 'rollout,eval'"
+    assert profile_walker_step.main(["--parts", ",", "--out", str(out)]) == 2
+    assert not out.exists()
