@@ -15,6 +15,7 @@ compile:
     PY -m experiments.gpu_compile loops --out FILE.json       # each fused loop of one step, alone
     PY -m experiments.gpu_compile loops --velocity-manifolds 6 --out FILE.json  # with 6 packed slots
     PY -m experiments.gpu_compile run "RUN FLAGS" --out FILE.json  # a run's initial state and first chunk
+    PY -m experiments.gpu_compile run "RUN FLAGS" --launches 3 --out FILE.json  # and its launches per budget step
     PY -m experiments.gpu_compile launches [--variant V] --out FILE.json  # kernel launches per step
 """
 from __future__ import annotations
@@ -71,20 +72,32 @@ def _stderr_to(path: str):
         os.close(saved)
 
 
-def _compile(label: str, lower) -> dict:
-    """Lower (timed), then compile (timed) with XLA's log captured for ptxas' kernel reports."""
+def _compile(label: str, lower, launches_depth: int = 0, per: int = 1) -> dict:
+    """Lower (timed), then compile (timed) with XLA's log captured for ptxas' kernel reports; with
+    ``launches_depth``, also the program's kernel launches (``experiments.hlo_launches``) per ``per``
+    (a chunk's budget steps), overall and per JAX scope to that depth."""
     t = time.time()
     lowered = lower()
     lower_s = time.time() - t
     with tempfile.NamedTemporaryFile(suffix=".log") as log:
         t = time.time()
         with _stderr_to(log.name):
-            lowered.compile()
+            compiled = lowered.compile()
         compile_s = time.time() - t
         with open(log.name) as f:
             kernels = ptxas_report(f.read())
     row = {"program": label, "lower_s": round(lower_s, 1), "compile_s": round(compile_s, 1), "kernels": kernels}
-    print(json.dumps(row), flush=True)
+    if launches_depth:
+        from experiments import hlo_launches
+
+        text = compiled.as_text()
+        c = hlo_launches.count(text)
+        row["launches"] = {"per": per, "total": round(c["total"] / per, 1),
+                           # loops whose trip count is data-dependent (an evaluation's early stop) count one trip
+                           "unknown_trips": len(c["unknown_trips"]),
+                           "by_scope": {k: round(v / per, 1) for k, v in sorted(
+                               hlo_launches.by_scope(text, launches_depth).items(), key=lambda kv: -kv[1])}}
+    print(json.dumps({k: v for k, v in row.items() if k != "launches"}), flush=True)
     return row
 
 
@@ -147,8 +160,9 @@ def launches(device, variant: str, batch: int, steps: int, depth: int, hlo: str 
     return [row]
 
 
-def run_programs(device, flags: str) -> list[dict]:
-    """A run's initial state and its first chunk, as ``shed_jax run FLAGS`` builds them for the GPU."""
+def run_programs(device, flags: str, launches_depth: int = 0) -> list[dict]:
+    """A run's initial state and its first chunk, as ``shed_jax run FLAGS`` builds them for the GPU;
+    with ``launches_depth``, the chunk's kernel launches per budget step by scope."""
     from experiments import aot_cache
     from shed_jax import driver, runtime
 
@@ -161,7 +175,8 @@ def run_programs(device, flags: str) -> list[dict]:
     rows = []
     with aot_cache._as_gpu_host(device):
         rows.append(_compile("jit_init_point", lambda: init.trace(*ins).lower()))
-        rows.append(_compile(f"chunk of {sizes[0]}", lambda: driver.lower_from_clean_caches(run_chunk, state, sizes[0], 0)))
+        rows.append(_compile(f"chunk of {sizes[0]}", lambda: driver.lower_from_clean_caches(run_chunk, state, sizes[0], 0),
+                             launches_depth, sizes[0]))
     return rows
 
 
@@ -181,6 +196,8 @@ def main(argv=None) -> int:
     cp.add_argument("--hlo", default=None, help="also write the optimized HLO text here (gzipped)")
     rp = sub.add_parser("run", help="a run's initial state and first chunk")
     rp.add_argument("flags", help="shed_jax run's flags, one string, e.g. \"--env bipedal --method dr --preset dcd\"")
+    rp.add_argument("--launches", type=int, default=0, metavar="DEPTH",
+                    help="also count the chunk's kernel launches per budget step, by JAX scope to DEPTH levels")
     for p in (lp, cp, rp):
         p.add_argument("--target", default="h200", help="a GPU description in experiments/targets (default h200)")
         p.add_argument("--tile", type=int, default=None,
@@ -221,7 +238,9 @@ def main(argv=None) -> int:
             ap.error("--batch, --steps and --depth must be at least 1")
         rows = launches(device, a.variant, a.batch, a.steps, a.depth, a.hlo)
     else:
-        rows = run_programs(device, a.flags)
+        if a.launches < 0:
+            ap.error(f"--launches must be a depth of at least 1 (0: no count), got {a.launches}")
+        rows = run_programs(device, a.flags, a.launches)
     record = {**provenance("experiments.gpu_compile", argv), "jax": jax.__version__,
               "device": f"{_cpu_model()} ({os.cpu_count()} CPUs), compiling for {device.device_kind} (deviceless)",
               "kernel_tile": fused.TILE, "total_s": round(time.time() - t, 1), "programs": rows}

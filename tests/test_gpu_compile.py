@@ -1,5 +1,7 @@
 """experiments/gpu_compile.py reads ptxas' report of each Pallas kernel out of XLA's log (the compile
 itself needs the CUDA plugin and runs on a CPU host by hand)."""
+import pytest
+
 from experiments import gpu_compile
 
 # XLA's log of one compile, abridged: an XLA fusion, then two Pallas kernels (XLA names them 'kernel', 'kernel__1', ...)
@@ -31,3 +33,31 @@ def test_ptxas_report_reads_each_pallas_kernel_and_skips_xla_fusions():
         {"kernel": "kernel__10", "registers": 243, "spill_stores": 0, "spill_loads": 0, "stack_frame": 32},
     ]
     assert gpu_compile.ptxas_report("no kernels compiled") == []
+
+
+def test_compile_counts_a_programs_launches_per_budget_step(capsys):
+    """A program of three budget steps, each a loop of 4 trips over one kernel: the launches per
+    budget step are the HLO count over 3, whatever the host compiles for."""
+    import jax
+    import jax.numpy as jnp
+
+    from experiments import hlo_launches
+
+    def chunk(x):
+        def budget_step(x, _):
+            with jax.named_scope("evaluate"):
+                x = jax.lax.fori_loop(0, 4, lambda i, y: jnp.sin(y) * 2.0 + i, x)
+            return x, None
+        return jax.lax.scan(budget_step, x, None, length=3)[0]
+
+    lower = lambda: jax.jit(chunk).trace(jnp.ones(8)).lower()  # noqa: E731
+    row = gpu_compile._compile("chunk of 3", lower, launches_depth=2, per=3)
+    text = lower().compile().as_text()
+    total = hlo_launches.count(text)["total"]
+    assert row["launches"]["per"] == 3 and row["launches"]["total"] == round(total / 3, 1)
+    assert row["launches"]["unknown_trips"] == 0
+    assert sum(row["launches"]["by_scope"].values()) == pytest.approx(row["launches"]["total"], abs=0.2)
+    # the loop's body runs 4 times a budget step under its scope
+    assert [v >= 4 for k, v in row["launches"]["by_scope"].items() if k.endswith("evaluate")] == [True]
+    assert "launches" not in capsys.readouterr().out  # the printed line stays short
+    assert "launches" not in gpu_compile._compile("x", lower)
