@@ -16,6 +16,7 @@ compile:
     PY -m experiments.gpu_compile loops --velocity-manifolds 6 --out FILE.json  # with 6 packed slots
     PY -m experiments.gpu_compile run "RUN FLAGS" --out FILE.json  # a run's initial state and first chunk
     PY -m experiments.gpu_compile run "RUN FLAGS" --launches 3 --out FILE.json  # and its launches per budget step
+    PY -m experiments.gpu_compile update --env bipedal --out FILE.json  # launches of one PPO update
     PY -m experiments.gpu_compile launches [--variant V] --out FILE.json  # kernel launches per step
 """
 from __future__ import annotations
@@ -160,6 +161,39 @@ def launches(device, variant: str, batch: int, steps: int, depth: int, hlo: str 
     return [row]
 
 
+def update_launches(device, env_name: str, seeds: int, depth: int) -> list[dict]:
+    """Kernel launches of one PPO update (``epochs x minibatches`` SGD steps) of ``seeds`` vmapped
+    students of ``env_name``'s paper preset, on a trajectory of the rollout's shapes, compiled for the
+    GPU: the part of a budget step that compiles no environment step."""
+    import jax
+    import jax.numpy as jnp
+    from jax.sharding import SingleDeviceSharding
+
+    from experiments import aot_cache, hlo_launches
+    from shed_jax.experiment import build
+    from shed_jax.presets import build_experiment
+
+    _, student, _, _ = build(build_experiment(env_name, "hmdp", "paper"))
+    env = student.env
+    on = lambda tree: jax.tree.map(  # noqa: E731
+        lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=SingleDeviceSharding(device)), tree)
+    keys = jax.ShapeDtypeStruct((seeds, 2), jnp.uint32)
+    levels = env.param_space.sample(jax.random.PRNGKey(1), (4,))
+    with aot_cache._as_gpu_host(device):
+        state = jax.eval_shape(jax.vmap(lambda k: student.assign_levels(student.init(k), k, levels)), keys)
+        traj = jax.eval_shape(jax.vmap(student.rollout), state, keys)[1]
+        t = time.time()
+        text = jax.jit(jax.vmap(student.update)).trace(on(state), on(keys), on(traj)).lower().compile().as_text()
+        compile_s = time.time() - t
+    c = hlo_launches.count(text)
+    sgd_steps = student.config.update_epochs * student.config.num_minibatches
+    row = {"program": f"PPO update of {seeds} students ({env_name}, paper preset)", "compile_s": round(compile_s, 1),
+           "sgd_steps": sgd_steps, "launches": c["total"], "launches_per_sgd_step": round(c["total"] / sgd_steps, 2),
+           "unknown_trips": len(c["unknown_trips"]), "by_op": c["by_op"], "by_scope": hlo_launches.by_scope(text, depth)}
+    print(json.dumps({k: row[k] for k in ("program", "compile_s", "launches", "launches_per_sgd_step")}), flush=True)
+    return [row]
+
+
 def run_programs(device, flags: str, launches_depth: int = 0) -> list[dict]:
     """A run's initial state and its first chunk, as ``shed_jax run FLAGS`` builds them for the GPU;
     with ``launches_depth``, the chunk's kernel launches per budget step by scope."""
@@ -194,11 +228,15 @@ def main(argv=None) -> int:
     cp.add_argument("--steps", type=int, default=200, help="sequential steps in the program (default 200)")
     cp.add_argument("--depth", type=int, default=2, help="scope levels to group launches by (default 2)")
     cp.add_argument("--hlo", default=None, help="also write the optimized HLO text here (gzipped)")
+    up = sub.add_parser("update", help="kernel launches of one PPO update of a walker paper preset's students")
+    up.add_argument("--env", default="bipedal", choices=("bipedal", "walker"), help="the environment (default bipedal)")
+    up.add_argument("--seeds", type=int, default=5, help="vmapped students (default 5)")
+    up.add_argument("--depth", type=int, default=3, help="scope levels to group launches by (default 3)")
     rp = sub.add_parser("run", help="a run's initial state and first chunk")
     rp.add_argument("flags", help="shed_jax run's flags, one string, e.g. \"--env bipedal --method dr --preset dcd\"")
     rp.add_argument("--launches", type=int, default=0, metavar="DEPTH",
                     help="also count the chunk's kernel launches per budget step, by JAX scope to DEPTH levels")
-    for p in (lp, cp, rp):
+    for p in (lp, cp, up, rp):
         p.add_argument("--target", default="h200", help="a GPU description in experiments/targets (default h200)")
         p.add_argument("--tile", type=int, default=None,
                        help="per-world fields per kernel memory access (default: envs.physics2d.fused.TILE)")
@@ -237,6 +275,10 @@ def main(argv=None) -> int:
         if min(a.batch, a.steps, a.depth) < 1:
             ap.error("--batch, --steps and --depth must be at least 1")
         rows = launches(device, a.variant, a.batch, a.steps, a.depth, a.hlo)
+    elif a.cmd == "update":
+        if min(a.seeds, a.depth) < 1:
+            ap.error("--seeds and --depth must be at least 1")
+        rows = update_launches(device, a.env, a.seeds, a.depth)
     else:
         if a.launches < 0:
             ap.error(f"--launches must be a depth of at least 1 (0: no count), got {a.launches}")
