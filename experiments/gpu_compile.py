@@ -161,10 +161,11 @@ def launches(device, variant: str, batch: int, steps: int, depth: int, hlo: str 
     return [row]
 
 
-def update_launches(device, env_name: str, seeds: int, depth: int) -> list[dict]:
+def update_launches(device, env_name: str, seeds: int, depth: int, rollout: bool = False) -> list[dict]:
     """Kernel launches of one PPO update (``epochs x minibatches`` SGD steps) of ``seeds`` vmapped
     students of ``env_name``'s paper preset, on a trajectory of the rollout's shapes, compiled for the
-    GPU: the part of a budget step that compiles no environment step."""
+    GPU: the part of a budget step that compiles no environment step; with ``rollout``, then the
+    launches of one rollout of those students (minutes: it compiles the environment's step)."""
     import jax
     import jax.numpy as jnp
     from jax.sharding import SingleDeviceSharding
@@ -191,7 +192,19 @@ def update_launches(device, env_name: str, seeds: int, depth: int) -> list[dict]
            "sgd_steps": sgd_steps, "launches": c["total"], "launches_per_sgd_step": round(c["total"] / sgd_steps, 2),
            "unknown_trips": len(c["unknown_trips"]), "by_op": c["by_op"], "by_scope": hlo_launches.by_scope(text, depth)}
     print(json.dumps({k: row[k] for k in ("program", "compile_s", "launches", "launches_per_sgd_step")}), flush=True)
-    return [row]
+    rows = [row]
+    if rollout:
+        with aot_cache._as_gpu_host(device):
+            t = time.time()
+            text = jax.jit(jax.vmap(student.rollout)).trace(on(state), on(keys)).lower().compile().as_text()
+            compile_s = time.time() - t
+        c = hlo_launches.count(text)
+        steps = student.config.num_steps
+        rows.append({"program": f"rollout of {seeds} students ({env_name}, paper preset)", "compile_s": round(compile_s, 1),
+                     "steps": steps, "launches": c["total"], "launches_per_step": round(c["total"] / steps, 2),
+                     "unknown_trips": len(c["unknown_trips"]), "by_op": c["by_op"], "by_scope": hlo_launches.by_scope(text, depth)})
+        print(json.dumps({k: rows[-1][k] for k in ("program", "compile_s", "launches", "launches_per_step")}), flush=True)
+    return rows
 
 
 def run_programs(device, flags: str, launches_depth: int = 0) -> list[dict]:
@@ -232,6 +245,7 @@ def main(argv=None) -> int:
     up.add_argument("--env", default="bipedal", choices=("bipedal", "walker"), help="the environment (default bipedal)")
     up.add_argument("--seeds", type=int, default=5, help="vmapped students (default 5)")
     up.add_argument("--depth", type=int, default=3, help="scope levels to group launches by (default 3)")
+    up.add_argument("--rollout", action="store_true", help="also count one rollout's launches (compiles the env step)")
     rp = sub.add_parser("run", help="a run's initial state and first chunk")
     rp.add_argument("flags", help="shed_jax run's flags, one string, e.g. \"--env bipedal --method dr --preset dcd\"")
     rp.add_argument("--launches", type=int, default=0, metavar="DEPTH",
@@ -278,7 +292,7 @@ def main(argv=None) -> int:
     elif a.cmd == "update":
         if min(a.seeds, a.depth) < 1:
             ap.error("--seeds and --depth must be at least 1")
-        rows = update_launches(device, a.env, a.seeds, a.depth)
+        rows = update_launches(device, a.env, a.seeds, a.depth, a.rollout)
     else:
         if a.launches < 0:
             ap.error(f"--launches must be a depth of at least 1 (0: no count), got {a.launches}")
