@@ -183,27 +183,24 @@ def update_launches(device, env_name: str, seeds: int, depth: int, rollout: bool
     with aot_cache._as_gpu_host(device):
         state = jax.eval_shape(jax.vmap(lambda k: student.assign_levels(student.init(k), k, levels)), keys)
         traj = jax.eval_shape(jax.vmap(student.rollout), state, keys)[1]
-        t = time.time()
-        text = jax.jit(jax.vmap(student.update)).trace(on(state), on(keys), on(traj)).lower().compile().as_text()
-        compile_s = time.time() - t
-    c = hlo_launches.count(text)
-    sgd_steps = student.config.update_epochs * student.config.num_minibatches
-    row = {"program": f"PPO update of {seeds} students ({env_name}, paper preset)", "compile_s": round(compile_s, 1),
-           "sgd_steps": sgd_steps, "launches": c["total"], "launches_per_sgd_step": round(c["total"] / sgd_steps, 2),
-           "unknown_trips": len(c["unknown_trips"]), "by_op": c["by_op"], "by_scope": hlo_launches.by_scope(text, depth)}
-    print(json.dumps({k: row[k] for k in ("program", "compile_s", "launches", "launches_per_sgd_step")}), flush=True)
-    rows = [row]
-    if rollout:
+
+    def counted(what: str, fn, args, unit: str, per: int) -> dict:
+        """``fn`` vmapped, compiled for the GPU on ``args`` (abstract), and its launches counted."""
         with aot_cache._as_gpu_host(device):
             t = time.time()
-            text = jax.jit(jax.vmap(student.rollout)).trace(on(state), on(keys)).lower().compile().as_text()
+            text = jax.jit(jax.vmap(fn)).trace(*map(on, args)).lower().compile().as_text()
             compile_s = time.time() - t
         c = hlo_launches.count(text)
-        steps = student.config.num_steps
-        rows.append({"program": f"rollout of {seeds} students ({env_name}, paper preset)", "compile_s": round(compile_s, 1),
-                     "steps": steps, "launches": c["total"], "launches_per_step": round(c["total"] / steps, 2),
-                     "unknown_trips": len(c["unknown_trips"]), "by_op": c["by_op"], "by_scope": hlo_launches.by_scope(text, depth)})
-        print(json.dumps({k: rows[-1][k] for k in ("program", "compile_s", "launches", "launches_per_step")}), flush=True)
+        row = {"program": f"{what} of {seeds} students ({env_name}, paper preset)", "compile_s": round(compile_s, 1),
+               f"{unit}s": per, "launches": c["total"], f"launches_per_{unit}": round(c["total"] / per, 2),
+               "unknown_trips": len(c["unknown_trips"]), "by_op": c["by_op"], "by_scope": hlo_launches.by_scope(text, depth)}
+        print(json.dumps({k: row[k] for k in ("program", "compile_s", "launches", f"launches_per_{unit}")}), flush=True)
+        return row
+
+    cfg = student.config
+    rows = [counted("PPO update", student.update, (state, keys, traj), "sgd_step", cfg.update_epochs * cfg.num_minibatches)]
+    if rollout:
+        rows.append(counted("rollout", student.rollout, (state, keys), "step", cfg.num_steps))
     return rows
 
 
