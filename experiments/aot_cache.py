@@ -37,6 +37,9 @@ that is why it is a tool beside the runs, not part of ``shed_jax``.
     python experiments/aot_cache.py probe RUN_ARGS OUT.json          # on the GPU
     python experiments/aot_cache.py fill RUN_ARGS PROBE.json [--chunks] [--portable] [--out REPORT.json]
     python experiments/aot_cache.py run -m shed_jax run ARGS...       # on the GPU, portable keys
+
+``run`` with ``AOT_TRACE_CALL=K AOT_TRACE_OUT=FILE.json`` also profiles the K-th chunk call
+(``traced_calls``): where a piece's budget steps go, at no compile of its own.
 """
 from __future__ import annotations
 
@@ -720,6 +723,120 @@ def with_stand_ins(lower, folder, context, say):
     return lower_or_load
 
 
+class _TraceCount:
+    """Calls counted over every program one ``traced_calls`` wrapper compiled, and their walls."""
+
+    def __init__(self, call: int, out: str, say):
+        self.call, self.out, self.say = call, out, say
+        self.n, self.walls, self.summary = 0, [], None
+
+    def write(self):
+        record = dict(self.summary or {}, calls_wall_s=self.walls, traced_call=self.call)
+        with open(self.out, "w") as f:
+            json.dump(record, f, indent=1)
+
+
+class _TracedCompiled:
+    """A compiled program whose calls up to ``count.call + 1`` are waited for and timed, and whose
+    ``count.call``-th call runs under ``jax.profiler`` (its summary written to ``count.out``)."""
+
+    def __init__(self, compiled, count: _TraceCount):
+        self._compiled, self._count = compiled, count
+
+    def __call__(self, *args, **kwargs):
+        import jax
+
+        c = self._count
+        c.n += 1
+        k = c.n
+        if k > c.call + 1:
+            return self._compiled(*args, **kwargs)
+        trace_dir = None
+        if k == c.call:
+            import tempfile
+
+            trace_dir = tempfile.mkdtemp(prefix="aot_trace.")
+            opts = jax.profiler.ProfileOptions()
+            opts.python_tracer_level = 0
+            # a 2-D walker chunk launches about a million kernels: above CUPTI's default buffers (2M
+            # records, each launch a callback and an activity record)
+            opts.advanced_configuration = {"gpu_max_activity_api_events": 16 << 20,
+                                           "gpu_max_callback_api_events": 16 << 20}
+            jax.profiler.start_trace(trace_dir, profiler_options=opts)
+        t0 = time.perf_counter()
+        out = jax.block_until_ready(self._compiled(*args, **kwargs))
+        wall = time.perf_counter() - t0
+        c.walls.append(round(wall, 4))
+        if trace_dir is not None:
+            jax.profiler.stop_trace()
+            t1 = time.perf_counter()
+            try:
+                try:
+                    from experiments import trace_summary
+                except ImportError:  # a run's own experiments/ (src.tgz) predates it: the copy beside this file
+                    import trace_summary
+                try:
+                    hlo = self._compiled.as_text()
+                except Exception as err:  # noqa: BLE001 - op names are a help, the times are the result
+                    hlo = None
+                    c.say(f"aot_cache: the traced program's HLO text is not available ({type(err).__name__}: {err})")
+                c.summary = trace_summary.summarise_trace(trace_dir, hlo)
+                c.summary["traced_wall_s"] = round(wall, 4)
+                c.summary["summarised_in_s"] = round(time.perf_counter() - t1, 1)
+            except Exception as err:  # noqa: BLE001 - the run goes on without its profile
+                c.summary = {"error": f"{type(err).__name__}: {err}"}
+            import shutil
+
+            shutil.rmtree(trace_dir, ignore_errors=True)
+            c.say(f"aot_cache: call {k} traced ({wall:.2f} s; untraced calls so far {c.walls[:-1]}); "
+                  f"summary in {c.out}: {c.summary.get('kernels', '?')} kernels, busy "
+                  f"{c.summary.get('union_s', '?')} s of a {c.summary.get('span_s', '?')} s span")
+        if k >= c.call:
+            c.write()
+        return out
+
+    def __getattr__(self, name):
+        return getattr(self._compiled, name)
+
+
+class _TracedLowered:
+    def __init__(self, lowered, count: _TraceCount):
+        self._lowered, self._count = lowered, count
+
+    def compile(self, *a, **kw):
+        return _TracedCompiled(self._lowered.compile(*a, **kw), self._count)
+
+    def __getattr__(self, name):
+        return getattr(self._lowered, name)
+
+
+def traced_calls(lower, call: int, out: str, say):
+    """``lower(jitted, *args)`` wrapped so that the programs it compiles count their calls together:
+    calls 1 to ``call + 1`` are waited for and timed, call ``call`` runs under ``jax.profiler`` and
+    ``experiments/trace_summary.py`` summarises its trace into the JSON file ``out`` (with every timed
+    call's wall, rewritten after the call after it); other calls run untouched. For the driver's chunks,
+    where one call is a few budget steps: the second call is the first with nothing left to compile."""
+    count = _TraceCount(call, out, say)
+
+    def lower_traced(jitted, *args, **kwargs):
+        return _TracedLowered(lower(jitted, *args, **kwargs), count)
+
+    return lower_traced
+
+
+def _trace_request() -> tuple[int, str] | None:
+    """``AOT_TRACE_CALL`` (a call number, 1-based) and ``AOT_TRACE_OUT`` (a JSON path), or None; ValueError
+    naming what is wrong."""
+    call, out = os.environ.get("AOT_TRACE_CALL", ""), os.environ.get("AOT_TRACE_OUT", "")
+    if not call and not out:
+        return None
+    if not call.isdigit() or int(call) < 1:
+        raise ValueError(f"AOT_TRACE_CALL must be a call number from 1, got '{call}'")
+    if not out:
+        raise ValueError("AOT_TRACE_CALL needs AOT_TRACE_OUT, the summary's JSON path")
+    return int(call), out
+
+
 def _first_line(err: BaseException) -> str:
     text = str(err)
     return text.splitlines()[0] if text else ""
@@ -797,10 +914,11 @@ def _stand_in_folder() -> str:
     return os.path.join(os.path.dirname(os.path.abspath(cache)), STAND_INS)
 
 
-def _hook_stand_ins(argv: list[str], say) -> None:
+def _hook_stand_ins(argv: list[str], say, stand_ins: bool = True, trace: tuple[int, str] | None = None) -> None:
     """``shed_jax.driver.lower_from_clean_caches`` (the chunks) and ``shed_jax.evaluation.evaluation_program``
-    (the final evaluation) through stand-ins, each as its module is imported (not before: the package
-    sets things up before its first JAX computation); sources without them run as they are."""
+    (the final evaluation) through stand-ins (``stand_ins``), and the chunks' calls through
+    ``traced_calls`` (``trace``: its call and out), each as its module is imported (not before: the
+    package sets things up before its first JAX computation); sources without them run as they are."""
     import importlib.abc
     import importlib.machinery
 
@@ -810,9 +928,12 @@ def _hook_stand_ins(argv: list[str], say) -> None:
 
     def patch(module):
         if module.__name__ == "shed_jax.driver" and hasattr(module, "lower_from_clean_caches"):
-            module.lower_from_clean_caches = with_stand_ins(module.lower_from_clean_caches, _stand_in_folder,
-                                                            context, say)
-        if module.__name__ == "shed_jax.evaluation" and hasattr(module, "evaluation_program"):
+            if stand_ins:
+                module.lower_from_clean_caches = with_stand_ins(module.lower_from_clean_caches,
+                                                                _stand_in_folder, context, say)
+            if trace:
+                module.lower_from_clean_caches = traced_calls(module.lower_from_clean_caches, *trace, say)
+        if stand_ins and module.__name__ == "shed_jax.evaluation" and hasattr(module, "evaluation_program"):
             module.evaluation_program = evaluation_with_stand_ins(module.evaluation_program, load)
 
     todo = {"shed_jax.driver", "shed_jax.evaluation"}
@@ -848,9 +969,15 @@ def run_portable(argv: list[str]) -> int:
 
     sys.path.insert(0, os.getcwd())  # as ``python -m`` puts it
     say = lambda line: print(line, file=sys.stderr, flush=True)  # noqa: E731
+    try:
+        trace = _trace_request()
+    except ValueError as err:
+        print(f"aot_cache run: {err}", file=sys.stderr)
+        return 2
     hook_keys({}, portable=True, say=say)
-    if os.environ.get("AOT_STAND_INS", "1") == "1":
-        _hook_stand_ins(argv[2:], say)
+    stand_ins = os.environ.get("AOT_STAND_INS", "1") == "1"
+    if stand_ins or trace:
+        _hook_stand_ins(argv[2:], say, stand_ins, trace)
     sys.argv = [argv[1], *argv[2:]]
     runpy.run_module(argv[1], run_name="__main__", alter_sys=True)
     return 0
