@@ -9,6 +9,8 @@ to read in a trace viewer, so this reduces them to what the speed work needs:
   the last one's end: the rest is the GPU waiting for launches;
 * kernel durations and idle gaps in size buckets (a launch-bound program has many kernels of a few
   microseconds and gaps of the same order);
+* the ops grouped by how many times each ran: one loop's body runs its ops equally often, so a
+  budget step's evaluation (2,000 steps), rollouts and SGD steps come apart even without names;
 * the HLO instructions that took the most time, each with its ``op_name`` (JAX's name stack, read
   from the compiled program's HLO text), and the time summed over every prefix of those name stacks,
   so that ``jit(chunk)/while/body/...`` splits into the parts a reader recognises.
@@ -106,8 +108,11 @@ def kernel_events(xplane: str):
 
 
 def summarise(events, op_names: dict[str, str] | None = None, source: str = "device", top: int = 60,
-              scope_share: float = 0.005, scope_depth: int = 24) -> dict:
-    """The summary (module docstring) of ``kernel_events``' events."""
+              scope_share: float = 0.005, scope_depth: int = 24, min_share: float = 0.0005,
+              max_ops: int = 400) -> dict:
+    """The summary (module docstring) of ``kernel_events``' events: the ``top`` ops by time, and more
+    (up to ``max_ops``) while each has ``min_share`` of the busy time; ``by_calls``, the ops grouped by
+    how many times each ran (classes with ``min_share`` of the time)."""
     op_names = op_names or {}
     if not events:
         return {"source": source, "kernels": 0}
@@ -126,6 +131,13 @@ def summarise(events, op_names: dict[str, str] | None = None, source: str = "dev
         m[0] += 1
         m[1] += d
     ops = sorted(by_op.items(), key=lambda kv: -kv[1][1])
+    # ops that ran equally often are usually one loop's body: a program's loops told apart by count
+    by_calls = {}
+    for (module, op), (n, t, _) in ops:
+        r = by_calls.setdefault(n, [0, 0, 0.0])
+        r[0] += 1
+        r[1] += n
+        r[2] += t
     scopes = {}
     for (module, op), (n, t, _) in ops:
         stack = op_names.get(op)
@@ -148,10 +160,14 @@ def summarise(events, op_names: dict[str, str] | None = None, source: str = "dev
                     sorted(by_module.items(), key=lambda kv: -kv[1][1])},
         "ops_with_op_name": sum(1 for (_, op) in by_op if op in op_names),
         "ops": len(by_op),
+        "by_calls": [{"calls": n, "ops": k, "kernels": m, "ms": round(t / 1e6, 6), "share": round(t / busy, 5)}
+                     for n, (k, m, t) in sorted(by_calls.items(), key=lambda kv: -kv[1][2])
+                     if t >= min_share * busy],
         "top_ops": [{"module": module, "hlo_op": op, "kernel": name[:120], "count": n,
                      "ms": round(t / 1e6, 6), "mean_us": round(t / n / 1e3, 3),
                      "share": round(t / busy, 5), "op_name": op_names.get(op)}
-                    for (module, op), (n, t, name) in ops[:top]],
+                    for i, ((module, op), (n, t, name)) in enumerate(ops)
+                    if i < top or (i < max_ops and t >= min_share * busy)],
         "scopes": {k: {"kernels": n, "ms": round(t / 1e6, 6), "share": round(t / busy, 5)}
                    for k, (n, t) in sorted(scopes.items()) if t >= scope_share * busy},
     }

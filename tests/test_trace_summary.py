@@ -53,6 +53,9 @@ def test_summary_of_hand_made_kernels():
     assert s["scopes"]["jit(f)/beta"]["ms"] == pytest.approx(0.0015)
     assert s["scopes"]["(no op_name)"]["kernels"] == 1
     assert s["ops_with_op_name"] == 2 and s["ops"] == 3
+    # dot.2 ran twice (2 us), the other two once each (1.5 us and 4 ns)
+    assert s["by_calls"] == [{"calls": 2, "ops": 1, "kernels": 2, "ms": 0.002, "share": pytest.approx(0.57078, abs=1e-5)},
+                             {"calls": 1, "ops": 2, "kernels": 2, "ms": 0.001504, "share": pytest.approx(0.42922, abs=1e-5)}]
 
 
 def test_traced_call_profiles_one_call_and_keeps_results(tmp_path):
