@@ -18,6 +18,7 @@ to read in a trace viewer, so this reduces them to what the speed work needs:
 On a host without an accelerator the host plane's XLA:CPU thunk events are used instead (tests).
 
     python -m experiments.trace_summary TRACE_DIR [--hlo PROGRAM.txt] [--out SUMMARY.json]
+    python -m experiments.trace_summary SUMMARY.json --label 4000=evaluation ... --device D --command C --out RECORD.json
 """
 from __future__ import annotations
 
@@ -178,21 +179,70 @@ def summarise_trace(trace_dir: str, hlo_text: str | None = None, **kw) -> dict:
     return summarise(events, hlo_op_names(hlo_text) if hlo_text else None, source, **kw)
 
 
+def labelled(summary: dict, labels: dict[int, str]) -> dict:
+    """``summary`` with each ``by_calls`` class named by ``labels`` (calls -> what ran that often) and
+    the share of the busy time each label holds (``loops``)."""
+    out = dict(summary)
+    out["by_calls"] = [dict(b, loop=labels[b["calls"]]) if b["calls"] in labels else b
+                       for b in summary.get("by_calls", [])]
+    loops = {}
+    for b in out["by_calls"]:
+        r = loops.setdefault(b.get("loop", "(other, listed)"), {"ops": 0, "kernels": 0, "ms": 0.0})
+        r["ops"] += b["ops"]
+        r["kernels"] += b["kernels"]
+        r["ms"] += b["ms"]
+    listed = sum(r["ms"] for r in loops.values())
+    busy_ms = summary.get("busy_s", 0) * 1e3
+    loops["(other, below the listing's threshold)"] = {"ops": None, "kernels": None,
+                                                      "ms": max(busy_ms - listed, 0.0)}
+    out["loops"] = {k: dict(v, ms=round(v["ms"], 3), share=round(v["ms"] / busy_ms, 5) if busy_ms else None)
+                    for k, v in loops.items()}
+    return out
+
+
+def _labels(pairs: list[str]) -> dict[int, str]:
+    labels = {}
+    for pair in pairs:
+        calls, sep, text = pair.partition("=")
+        if not sep or not calls.isdigit() or not text:
+            raise ValueError(f"--label takes CALLS=TEXT (a whole number of calls, then what ran that often), got '{pair}'")
+        labels[int(calls)] = text
+    return labels
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("trace_dir", help="the folder jax.profiler.start_trace wrote")
+    ap.add_argument("source", help="the folder jax.profiler.start_trace wrote, or a summary (JSON) written "
+                                   "by this tool or by aot_cache.py's AOT_TRACE_CALL, to label and record")
     ap.add_argument("--hlo", help="the traced program's HLO text (Compiled.as_text()), for op names")
+    ap.add_argument("--label", action="append", default=[], metavar="CALLS=TEXT",
+                    help="name the ops that ran CALLS times (e.g. 4000='the evaluation: 2 x 2,000 steps'); repeatable")
+    ap.add_argument("--device", help="the machine the trace came from, for the record")
+    ap.add_argument("--command", help="the command that took the trace, for the record")
+    ap.add_argument("--date", help="the day the trace was taken (YYYY-MM-DD), for the record")
+    ap.add_argument("--note", help="anything else the record should say")
     ap.add_argument("--out", help="write the summary here (JSON); printed otherwise")
     a = ap.parse_args(argv)
-    if not os.path.isdir(a.trace_dir):
-        print(f"trace_summary: {a.trace_dir} is not a folder", file=sys.stderr)
-        return 2
     try:
-        hlo = open(a.hlo).read() if a.hlo else None
-        summary = summarise_trace(a.trace_dir, hlo)
-    except (OSError, FileNotFoundError) as err:
+        labels = _labels(a.label)
+        if os.path.isdir(a.source):
+            summary = summarise_trace(a.source, open(a.hlo).read() if a.hlo else None)
+        elif os.path.isfile(a.source):
+            with open(a.source) as f:
+                summary = json.load(f)
+            if "by_calls" not in summary:
+                raise ValueError(f"{a.source} is not a trace summary (no by_calls)")
+        else:
+            raise ValueError(f"{a.source} is neither a trace folder nor a summary file")
+    except (OSError, ValueError) as err:
         print(f"trace_summary: {err}", file=sys.stderr)
         return 2
+    if labels:
+        summary = labelled(summary, labels)
+    meta = {k: v for k, v in (("device", a.device), ("command", a.command), ("date", a.date), ("note", a.note)) if v}
+    if meta:
+        summary = {**meta, "recorded_by": "python -m experiments.trace_summary " + " ".join(
+            __import__("shlex").quote(x) for x in (sys.argv[1:] if argv is None else argv)), **summary}
     text = json.dumps(summary, indent=1)
     if a.out:
         with open(a.out, "w") as f:

@@ -94,3 +94,25 @@ def test_no_trace_request(monkeypatch):
     monkeypatch.delenv("AOT_TRACE_CALL", raising=False)
     monkeypatch.delenv("AOT_TRACE_OUT", raising=False)
     assert aot_cache._trace_request() is None
+
+
+def test_labelled_loops_split_the_busy_time():
+    summary = {"busy_s": 0.010, "by_calls": [{"calls": 4000, "ops": 2, "kernels": 8000, "ms": 6.0, "share": 0.6},
+                                             {"calls": 384, "ops": 1, "kernels": 384, "ms": 3.0, "share": 0.3}]}
+    out = trace_summary.labelled(summary, {4000: "evaluation"})
+    assert out["by_calls"][0]["loop"] == "evaluation" and "loop" not in out["by_calls"][1]
+    assert out["loops"]["evaluation"] == {"ops": 2, "kernels": 8000, "ms": 6.0, "share": 0.6}
+    assert out["loops"]["(other, listed)"]["ms"] == 3.0
+    assert out["loops"]["(other, below the listing's threshold)"]["ms"] == pytest.approx(1.0)
+
+
+def test_cli_records_a_summary_and_rejects_bad_labels(tmp_path, capsys):
+    src = tmp_path / "s.json"
+    src.write_text(json.dumps({"busy_s": 0.002, "by_calls": [{"calls": 2, "ops": 1, "kernels": 2, "ms": 2.0, "share": 1.0}]}))
+    out = tmp_path / "r.json"
+    assert trace_summary.main([str(src), "--label", "2=twice", "--device", "cpu", "--out", str(out)]) == 0
+    r = json.loads(out.read_text())
+    assert r["device"] == "cpu" and r["loops"]["twice"]["share"] == 1.0 and "recorded_by" in r
+    assert trace_summary.main([str(src), "--label", "two=twice"]) == 2
+    assert "CALLS=TEXT" in capsys.readouterr().err
+    assert trace_summary.main([str(tmp_path / "missing")]) == 2
