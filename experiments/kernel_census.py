@@ -82,6 +82,9 @@ def cuda_chunk(env: str, method: str, preset: str, seeds: int):
     return run_chunk, target, init, inputs, driver.kernel_worlds(batch, placed)
 
 
+DEFAULT_FRAMES = 100  # JAX's own default jax_traceback_in_locations_limit (jax 0.10 and 0.11)
+
+
 def measure(env: str, method: str, preset: str, seeds: int, full_tracebacks: bool = False,
             min_worlds: int | None = None) -> dict:
     """The census of one method's chunk, its MLIR locations as ``shed_jax`` commands make them
@@ -95,9 +98,11 @@ def measure(env: str, method: str, preset: str, seeds: int, full_tracebacks: boo
 
     t = time.perf_counter()
     before, padding = jax.config.jax_include_full_tracebacks_in_locations, fused.MIN_WORLDS
+    frames = jax.config.jax_traceback_in_locations_limit
     try:
         if full_tracebacks:
             jax.config.update("jax_include_full_tracebacks_in_locations", True)
+            jax.config.update("jax_traceback_in_locations_limit", DEFAULT_FRAMES)
         else:
             runtime.call_site_free_locations()
         with fused.auto_as("pallas"):
@@ -107,9 +112,10 @@ def measure(env: str, method: str, preset: str, seeds: int, full_tracebacks: boo
             else:  # exactly this padding, below the default too
                 fused.MIN_WORLDS = used = min_worlds
             text = driver.lower_from_clean_caches(run_chunk, target, 1, 0, lowering_platforms=("cuda",)).as_text()
-        full = jax.config.jax_include_full_tracebacks_in_locations
+        full = runtime.call_stacks_in_locations()
     finally:  # the process's settings as they were
         jax.config.update("jax_include_full_tracebacks_in_locations", before)
+        jax.config.update("jax_traceback_in_locations_limit", frames)
         fused.MIN_WORLDS = padding
     return {**census(triton_calls(text)), "full_tracebacks_in_locations": bool(full), "min_worlds": used,
             "lower_s": round(time.perf_counter() - t, 1)}

@@ -13,7 +13,9 @@ to read in a trace viewer, so this reduces them to what the speed work needs:
   budget step's evaluation (2,000 steps), rollouts and SGD steps come apart even without names;
 * the HLO instructions that took the most time, each with its ``op_name`` (JAX's name stack, read
   from the compiled program's HLO text), and the time summed over every prefix of those name stacks,
-  so that ``jit(chunk)/while/body/...`` splits into the parts a reader recognises.
+  so that ``jit(chunk)/while/body/...`` splits into the parts a reader recognises, and the same
+  summed over the program's own scope names alone (``named_scopes``: ``evaluate``,
+  ``evaluate/velocity_passes``, ...), JAX's own words in the stack left out.
 
 On a host without an accelerator the host plane's XLA:CPU thunk events are used instead (tests).
 
@@ -42,6 +44,31 @@ def hlo_op_names(hlo_text: str) -> dict[str, str]:
         if m:
             names.setdefault(m.group(1), m.group(2))
     return names
+
+
+# name-stack components that JAX's transformations and control flow add, not a program's own scopes
+_JAX_WORDS = frozenset({"while", "body", "cond", "closed_call", "core_call", "remat", "checkpoint", "scan",
+                        "pjit", "jit", "vmap", "jvp", "transpose", "shard_map", "custom_jvp_call",
+                        "custom_vjp_call", "named_call", "xla_call"})
+_WRAPPED = re.compile(r"[\w.]+\((.*)\)")
+_BRANCH = re.compile(r"branch_\d+_fun")
+
+
+def user_scopes(op_name: str) -> tuple[str, ...]:
+    """The program's own scope names in an ``op_name`` (``jax.named_scope`` and named functions), outermost
+    first: the program's own ``jit(NAME)``, the primitive, JAX's words (``while``, ``body``,
+    ``closed_call``, ...), wrappers (``vmap(x)`` counts as ``x``) and private names (``_where``) left out,
+    a name repeated at once kept once."""
+    out = []
+    for part in op_name.split("/")[1:-1]:
+        name = part
+        while (m := _WRAPPED.fullmatch(name)) is not None:
+            name = m.group(1)
+        if not name or name.startswith("_") or name in _JAX_WORDS or _BRANCH.fullmatch(name):
+            continue
+        if not out or out[-1] != name:
+            out.append(name)
+    return tuple(out)
 
 
 def merge(intervals):
@@ -139,6 +166,14 @@ def summarise(events, op_names: dict[str, str] | None = None, source: str = "dev
         r[0] += 1
         r[1] += n
         r[2] += t
+    named = {}
+    for (module, op), (n, t, _) in ops:
+        path = user_scopes(op_names[op]) if op in op_names else ()
+        keys = ["/".join(path[:d]) for d in range(1, len(path) + 1)] or ["(none)"]
+        for key in keys:
+            r = named.setdefault(key, [0, 0.0])
+            r[0] += n
+            r[1] += t
     scopes = {}
     for (module, op), (n, t, _) in ops:
         stack = op_names.get(op)
@@ -169,6 +204,9 @@ def summarise(events, op_names: dict[str, str] | None = None, source: str = "dev
                      "share": round(t / busy, 5), "op_name": op_names.get(op)}
                     for i, ((module, op), (n, t, name)) in enumerate(ops)
                     if i < top or (i < max_ops and t >= min_share * busy)],
+        "named_scopes": {k: {"kernels": n, "ms": round(t / 1e6, 6), "share": round(t / busy, 5)}
+                         for k, (n, t) in sorted(named.items(), key=lambda kv: -kv[1][1])
+                         if t >= scope_share * busy},
         "scopes": {k: {"kernels": n, "ms": round(t / 1e6, 6), "share": round(t / busy, 5)}
                    for k, (n, t) in sorted(scopes.items()) if t >= scope_share * busy},
     }

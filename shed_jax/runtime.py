@@ -113,20 +113,35 @@ def enable_compilation_cache() -> str | None:
     return str(folder)
 
 
+def call_stacks_in_locations() -> bool:
+    """Whether MLIR locations now hold call stacks (more than the innermost user frame)."""
+    import jax
+
+    return bool(jax.config.jax_include_full_tracebacks_in_locations) and \
+        jax.config.jax_traceback_in_locations_limit not in (0, 1)
+
+
 def call_site_free_locations() -> bool:
     """Give MLIR locations the innermost user frame only, not the whole Python call stack, unless
-    ``JAX_INCLUDE_FULL_TRACEBACKS_IN_LOCATIONS`` is set; return whether the setting is now off.
+    ``JAX_INCLUDE_FULL_TRACEBACKS_IN_LOCATIONS`` or ``JAX_TRACEBACK_IN_LOCATIONS_LIMIT`` is set; return
+    whether locations are now free of call stacks.
 
     Why: a Pallas kernel's Triton IR keeps its locations, and XLA compiles a Triton call once per
     distinct IR (and grid). With full call stacks the same fused loop called from a reset, a training
     step and an evaluation step embeds three different stacks, so XLA compiled it three times; on the
     2-D walker each large solver kernel compiles for minutes (``experiments.kernel_census`` counts the
-    distinct kernels of a run's program). Outside kernels the compilation cache ignores locations."""
+    distinct kernels of a run's program). Outside kernels the compilation cache ignores locations.
+
+    How: tracebacks stay on, cut to one frame (``jax_traceback_in_locations_limit`` = 1). Turning them
+    off (``jax_include_full_tracebacks_in_locations`` = False, as until 2026-12-07) gives the same
+    frame but drops JAX's name stack from the compiled HLO's ``op_name`` metadata, so a profile could
+    not tell a budget step's evaluation from its training by name."""
     import jax
 
-    if "JAX_INCLUDE_FULL_TRACEBACKS_IN_LOCATIONS" not in os.environ:
-        jax.config.update("jax_include_full_tracebacks_in_locations", False)
-    return not jax.config.jax_include_full_tracebacks_in_locations
+    if not {"JAX_INCLUDE_FULL_TRACEBACKS_IN_LOCATIONS", "JAX_TRACEBACK_IN_LOCATIONS_LIMIT"} & set(os.environ):
+        jax.config.update("jax_include_full_tracebacks_in_locations", True)
+        jax.config.update("jax_traceback_in_locations_limit", 1)
+    return not call_stacks_in_locations()
 
 
 # JAX logs each persistent-cache lookup at debug level, as "<prefix> '<program>' with key <key>"

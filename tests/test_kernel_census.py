@@ -12,8 +12,10 @@ from shed_jax import runtime
 @pytest.fixture
 def locations():
     before = jax.config.jax_include_full_tracebacks_in_locations
+    frames = jax.config.jax_traceback_in_locations_limit
     yield
     jax.config.update("jax_include_full_tracebacks_in_locations", before)
+    jax.config.update("jax_traceback_in_locations_limit", frames)
 
 
 def test_call_stacks_in_locations_split_each_kernel_by_call_site(locations, monkeypatch):
@@ -34,9 +36,43 @@ def test_call_stacks_in_locations_split_each_kernel_by_call_site(locations, monk
 
 def test_an_explicit_environment_setting_wins(locations, monkeypatch):
     jax.config.update("jax_include_full_tracebacks_in_locations", True)
+    jax.config.update("jax_traceback_in_locations_limit", kernel_census.DEFAULT_FRAMES)
     monkeypatch.setenv("JAX_INCLUDE_FULL_TRACEBACKS_IN_LOCATIONS", "1")
     assert runtime.call_site_free_locations() is False
     assert jax.config.jax_include_full_tracebacks_in_locations is True
+    assert jax.config.jax_traceback_in_locations_limit == kernel_census.DEFAULT_FRAMES
+
+
+def test_one_frame_locations_keep_the_name_stack(locations, monkeypatch):
+    """``call_site_free_locations`` cuts locations to one frame and keeps JAX's name stack in the
+    compiled HLO's op names (a profile's only way to tell a program's parts apart by name); turning
+    tracebacks off instead drops it."""
+    import re
+
+    import jax.numpy as jnp
+
+    def f(x):
+        with jax.named_scope("alpha"):
+            return jnp.tanh(x @ x)
+
+    def op_names():
+        jax.clear_caches()
+        # the persistent cache's keys ignore metadata: a hit would return the other setting's names
+        cached = jax.config.jax_enable_compilation_cache
+        jax.config.update("jax_enable_compilation_cache", False)
+        try:
+            text = jax.jit(f).lower(jnp.ones((4, 4))).compile().as_text()
+        finally:
+            jax.config.update("jax_enable_compilation_cache", cached)
+        return set(re.findall(r'op_name="([^"]*)"', text)) - {"x"}
+
+    monkeypatch.delenv("JAX_INCLUDE_FULL_TRACEBACKS_IN_LOCATIONS", raising=False)
+    monkeypatch.delenv("JAX_TRACEBACK_IN_LOCATIONS_LIMIT", raising=False)
+    assert runtime.call_site_free_locations() is True
+    assert jax.config.jax_traceback_in_locations_limit == 1 and not runtime.call_stacks_in_locations()
+    assert op_names() == {"jit(f)/alpha/dot_general", "jit(f)/alpha/tanh"}
+    jax.config.update("jax_include_full_tracebacks_in_locations", False)
+    assert op_names() == {"dot_general", "tanh"}
 
 
 def test_auto_as_is_scoped_and_checked():

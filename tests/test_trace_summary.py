@@ -29,6 +29,16 @@ def test_op_names_from_hlo_text():
                      "loop_fusion.7": "jit(f)/beta/sin"}
 
 
+def test_user_scopes_leave_out_jax_words_and_wrappers():
+    f = trace_summary.user_scopes
+    assert f("jit(chunk)/vmap()/while/body/closed_call/evaluate/while/body/closed_call/vmap(velocity_passes)/add") == \
+        ("evaluate", "velocity_passes")
+    assert f("jit(f)/alpha/dot_general") == ("alpha",)
+    assert f("jit(f)/jit(_where)/select_n") == ()
+    assert f("jit(f)/transpose(jvp(ppo_update))/cond/branch_1_fun/ppo_update/mul") == ("ppo_update",)
+    assert f("tanh") == ()
+
+
 def test_merge_intervals():
     assert trace_summary.merge([[5, 7], [0, 2], [1, 3], [6, 9], [10, 11]]) == [[0, 3], [5, 9], [10, 11]]
 
@@ -52,6 +62,8 @@ def test_summary_of_hand_made_kernels():
     assert s["scopes"]["jit(f)/alpha"]["ms"] == pytest.approx(0.002)
     assert s["scopes"]["jit(f)/beta"]["ms"] == pytest.approx(0.0015)
     assert s["scopes"]["(no op_name)"]["kernels"] == 1
+    assert s["named_scopes"]["alpha"]["ms"] == pytest.approx(0.002)
+    assert s["named_scopes"]["beta"]["kernels"] == 1 and s["named_scopes"]["(none)"]["kernels"] == 1
     assert s["ops_with_op_name"] == 2 and s["ops"] == 3
     # dot.2 ran twice (2 us), the other two once each (1.5 us and 4 ns)
     assert s["by_calls"] == [{"calls": 2, "ops": 1, "kernels": 2, "ms": 0.002, "share": pytest.approx(0.57078, abs=1e-5)},
@@ -78,6 +90,7 @@ def test_traced_call_profiles_one_call_and_keeps_results(tmp_path):
     assert r["source"] == "host" and r["kernels"] >= 2
     assert r["union_s"] <= r["span_s"] + 1e-9 and r["busy_s"] > 0
     assert any(k.endswith("/alpha") for k in r["scopes"]), r["scopes"]
+    assert r["named_scopes"]["alpha"]["ms"] > 0
     assert len(said) == 1 and "call 2 traced" in said[0]
 
 

@@ -248,6 +248,7 @@ class PPOStudent:
             episode_lengths=info["episode_length"],
         )
 
+    @jax.named_scope("rollout")  # the scopes name a budget step's parts in a profile (experiments/trace_summary.py)
     def rollout(self, state: StudentState, key, next_levels=None):
         """config.num_steps steps of all slots with the current policy -> (state, Trajectory).
 
@@ -322,6 +323,7 @@ class PPOStudent:
             traj.rewards, traj.values, traj.next_values, traj.dones, state.hparams.gamma, state.hparams.gae_lambda
         )
 
+    @jax.named_scope("ppo_update")
     def update(self, state: StudentState, key, traj: Trajectory, mask=None):
         """PPO: update_epochs passes over the rollout in num_minibatches shuffled minibatches.
 
@@ -441,6 +443,7 @@ class PPOStudent:
             raise ValueError(f"evaluate: num_episodes must be >= 1, got {num_episodes}")
         return levels, length
 
+    @jax.named_scope("evaluate")
     def evaluate_many(self, state: StudentState, requests, deterministic: bool = False, chunk: int = EVAL_CHUNK):
         """Several evaluations as ONE rollout: ``requests`` is a sequence of
         ``(key, levels, num_episodes, max_steps)``; returns a list of ``(returns, info)``, entry i

@@ -200,6 +200,7 @@ def ddpg_q(config: DDPGConfig, state: DDPGState, s, u) -> jax.Array:
     return _q1(config, critic.apply(state.critic_params, s, u))
 
 
+@jax.named_scope("ddpg_update")  # names the teacher update's kernels in a profile
 def ddpg_update(config: DDPGConfig, state: DDPGState, batch: Transition, real_mask=None):
     """One critic step, one actor step and one soft target update on ``batch`` (leading axis B).
 

@@ -299,6 +299,7 @@ class DiffusionModel:
             return state
         return state.replace(norm=buffer_state_stats(buffer, self.config.min_std))
 
+    @jax.named_scope("diffusion_train")  # names its kernels in a profile
     def train_steps(self, state: DiffusionState, key: jax.Array, buffer: RingBuffer, num_steps: int):
         """``num_steps`` (static) Adam steps on uniform batches from ``buffer`` (a lax.scan).
 
