@@ -723,88 +723,22 @@ def with_stand_ins(lower, folder, context, say):
     return lower_or_load
 
 
-class _TraceCount:
-    """Calls counted over every program one ``traced_calls`` wrapper compiled, and their walls."""
-
-    def __init__(self, call: int, out: str, say):
-        self.call, self.out, self.say = call, out, say
-        self.n, self.walls, self.summary = 0, [], None
-
-    def write(self):
-        record = dict(self.summary or {}, calls_wall_s=self.walls, traced_call=self.call)
-        with open(self.out, "w") as f:
-            json.dump(record, f, indent=1)
-
-
-class _TracedCompiled:
-    """A compiled program whose calls up to ``count.call + 1`` are waited for and timed, and whose
-    ``count.call``-th call runs under ``jax.profiler`` (its summary written to ``count.out``)."""
-
-    def __init__(self, compiled, count: _TraceCount):
-        self._compiled, self._count = compiled, count
-
-    def __call__(self, *args, **kwargs):
-        import jax
-
-        c = self._count
-        c.n += 1
-        k = c.n
-        if k > c.call + 1:
-            return self._compiled(*args, **kwargs)
-        trace_dir = None
-        if k == c.call:
-            import tempfile
-
-            trace_dir = tempfile.mkdtemp(prefix="aot_trace.")
-            opts = jax.profiler.ProfileOptions()
-            opts.python_tracer_level = 0
-            # a 2-D walker chunk launches about a million kernels: above CUPTI's default buffers (2M
-            # records, each launch a callback and an activity record)
-            opts.advanced_configuration = {"gpu_max_activity_api_events": 16 << 20,
-                                           "gpu_max_callback_api_events": 16 << 20}
-            jax.profiler.start_trace(trace_dir, profiler_options=opts)
-        t0 = time.perf_counter()
-        out = jax.block_until_ready(self._compiled(*args, **kwargs))
-        wall = time.perf_counter() - t0
-        c.walls.append(round(wall, 4))
-        if trace_dir is not None:
-            jax.profiler.stop_trace()
-            t1 = time.perf_counter()
-            try:
-                try:
-                    from experiments import trace_summary
-                except ImportError:  # a run's own experiments/ (src.tgz) predates it: the copy beside this file
-                    import trace_summary
-                try:
-                    hlo = self._compiled.as_text()
-                except Exception as err:  # noqa: BLE001 - op names are a help, the times are the result
-                    hlo = None
-                    c.say(f"aot_cache: the traced program's HLO text is not available ({type(err).__name__}: {err})")
-                c.summary = trace_summary.summarise_trace(trace_dir, hlo)
-                c.summary["traced_wall_s"] = round(wall, 4)
-                c.summary["summarised_in_s"] = round(time.perf_counter() - t1, 1)
-            except Exception as err:  # noqa: BLE001 - the run goes on without its profile
-                c.summary = {"error": f"{type(err).__name__}: {err}"}
-            import shutil
-
-            shutil.rmtree(trace_dir, ignore_errors=True)
-            c.say(f"aot_cache: call {k} traced ({wall:.2f} s; untraced calls so far {c.walls[:-1]}); "
-                  f"summary in {c.out}: {c.summary.get('kernels', '?')} kernels, busy "
-                  f"{c.summary.get('union_s', '?')} s of a {c.summary.get('span_s', '?')} s span")
-        if k >= c.call:
-            c.write()
-        return out
-
-    def __getattr__(self, name):
-        return getattr(self._compiled, name)
+def _profiling():
+    """``shed_jax.profiling``: this tree's, or for a carried run whose own ``shed_jax`` predates it, the
+    copy ``run_piece.sh`` puts beside this file."""
+    try:
+        from shed_jax import profiling
+    except ImportError:
+        import profiling
+    return profiling
 
 
 class _TracedLowered:
-    def __init__(self, lowered, count: _TraceCount):
+    def __init__(self, lowered, count):
         self._lowered, self._count = lowered, count
 
     def compile(self, *a, **kw):
-        return _TracedCompiled(self._lowered.compile(*a, **kw), self._count)
+        return _profiling().TracedCompiled(self._lowered.compile(*a, **kw), self._count)
 
     def __getattr__(self, name):
         return getattr(self._lowered, name)
@@ -813,10 +747,11 @@ class _TracedLowered:
 def traced_calls(lower, call: int, out: str, say):
     """``lower(jitted, *args)`` wrapped so that the programs it compiles count their calls together:
     calls 1 to ``call + 1`` are waited for and timed, call ``call`` runs under ``jax.profiler`` and
-    ``experiments/trace_summary.py`` summarises its trace into the JSON file ``out`` (with every timed
-    call's wall, rewritten after the call after it); other calls run untouched. For the driver's chunks,
-    where one call is a few budget steps: the second call is the first with nothing left to compile."""
-    count = _TraceCount(call, out, say)
+    its summary goes to the JSON file ``out`` (``shed_jax.profiling.TracedCompiled``); other calls run
+    untouched. For the driver's chunks, where one call is a few budget steps: the second call is the
+    first with nothing left to compile. The runs of this tree's sources have ``shed_jax run
+    --profile-chunk K`` for the same; this serves carried runs on older sources."""
+    count = _profiling().TraceCount(call, out, say)
 
     def lower_traced(jitted, *args, **kwargs):
         return _TracedLowered(lower(jitted, *args, **kwargs), count)

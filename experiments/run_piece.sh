@@ -75,14 +75,14 @@ export PYTHONUNBUFFERED=1 SHED_JAX_CACHE=$PWD/.cache/device
 probe=0 tool=
 case ${AOT_GATE:-0} in 0|1) ;; *) echo "run_piece: AOT_GATE must be 0 or 1, got '$AOT_GATE'"; exit 2;; esac
 if [ "${AOT_PROBE:-0}" = 1 ] || [ "${AOT_GATE:-0}" = 1 ]; then probe=1; fi
-# this tree's aot_cache.py (the probe, and the portable keys' runner below) and trace_summary.py (its
-# AOT_TRACE_CALL profile of a chunk), kept before the run's sources replace experiments/
+# this tree's aot_cache.py (the probe, and the portable keys' runner below) and shed_jax/profiling.py
+# (its AOT_TRACE_CALL profile of a chunk), kept before the run's sources replace this tree's
 if [ -f experiments/aot_cache.py ] || [ "$probe" = 1 ]; then
   tooldir=$(mktemp -d "${TMPDIR:-/tmp}/aot_cache.XXXXXX") || exit 4
   tool=$tooldir/aot_cache.py
   trap 'rm -rf "$tooldir"' EXIT  # the copy outlives the sources it came from, not the script
   cp experiments/aot_cache.py "$tool" || exit 4
-  [ -f experiments/trace_summary.py ] && { cp experiments/trace_summary.py "$tooldir/" || exit 4; }
+  [ -f shed_jax/profiling.py ] && { cp shed_jax/profiling.py "$tooldir/" || exit 4; }
 fi
 # this host's GPU model (before the run's sources replace experiments/); RUN_PIECE_GPU= overrides it
 gpu=${RUN_PIECE_GPU-$(bash experiments/gpu_model.sh 2>/dev/null)}

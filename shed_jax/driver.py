@@ -987,6 +987,7 @@ class RunOptions:
     checkpoint_every: float | None = None  # None: the resumed run's, else 0.0
     stop_after: int | None = None
     time_limit: float | None = None
+    profile_chunk: int | None = None  # profile this process's K-th chunk (shed_jax.profiling)
     # when the final evaluation compiles: "early", in a worker thread from the first chunk on, while
     # training runs; "late", after training; "auto": early on a GPU (the host is idle meanwhile),
     # late elsewhere (on a CPU a compile would slow the training it overlaps)
@@ -994,7 +995,7 @@ class RunOptions:
 
     #: the counts (argparse checks them too, for callers that build the options themselves)
     COUNTS = ("seeds", "episodes", "steps_per_episode", "test_episode_every", "chunk", "keep", "final_eval_episodes",
-              "stop_after", "from_step")
+              "stop_after", "from_step", "profile_chunk")
 
     #: how a run keeps its outputs: saved with the run (config.json's ``output``), so ``--resume`` goes on
     #: as the run started unless the flag is given again (the last one given is saved in turn)
@@ -1069,9 +1070,28 @@ def run(opts: RunOptions) -> int:
             resuming = plan is not None and plan.resume_step is not None
             return startup_interrupted(sig.signum, rundir.resume_command(plan.out) if resuming else None, made)
         batch, placed, progress, compiled, final_sets = started
+        count = None
+        if opts.profile_chunk is not None:
+            compiled, count = profiled(compiled, opts.profile_chunk, plan.out)
         stop = StopRules(signals, opts.stop_after, None if opts.time_limit is None else progress.t0 + opts.time_limit,
                          opts.time_limit)
-        return _train_run(opts, plan, batch, compiled, progress, final_sets, stop)
+        code = _train_run(opts, plan, batch, compiled, progress, final_sets, stop)
+        if count is not None and not count.traced:
+            _say(f"[shed_jax] --profile-chunk {count.call}: this process ran {count.n} chunk(s), so none was profiled")
+        return code
+
+
+def profiled(compiled: dict, chunk: int, out) -> tuple[dict, "profiling.TraceCount"]:
+    """The compiled chunks with this process's ``chunk``-th call of them profiled (``shed_jax.profiling``),
+    and their shared count: ``out/profile_chunkK.json`` says where that call's time went, with the walls
+    of the calls up to the one after it (waited for one by one, so they can be compared)."""
+    from shed_jax import profiling
+
+    path = str(pathlib.Path(out) / f"profile_chunk{chunk}.json")
+    count = profiling.TraceCount(chunk, path, say=_say)
+    _say(f"[shed_jax] --profile-chunk {chunk}: this process's chunk {chunk} runs under jax.profiler; "
+         f"its summary goes to {path}")
+    return {n: profiling.TracedCompiled(c, count) for n, c in compiled.items()}, count
 
 
 def _start_run(opts: RunOptions, plan: rundir.RunPlan, made: list):

@@ -723,3 +723,33 @@ def test_evaluation_heartbeat_names_its_stage(monkeypatch, capsys):
     assert driver.heartbeat_wait(lambda: time.sleep(0.35) or 9, "evaluating") == 9
     lines = [l for l in capsys.readouterr().out.splitlines() if l.startswith("[shed_jax] still evaluating")]
     assert 2 <= len(lines) <= 4, lines
+
+
+# ---- --profile-chunk ---------------------------------------------------------------------------
+
+def test_profile_chunk_writes_where_the_time_went_and_changes_no_result(finished, patched, tmp_path):
+    a, p = finished["dir"], tmp_path / "P"
+    code, out, err = run(["--out", str(p), *BASE, "--profile-chunk", "2", "--final-eval", "none", "--no-gif"])
+    assert code == 0, err
+    same_records(a, p)  # the profiled run trains exactly as run A did
+    record = json.loads((p / "profile_chunk2.json").read_text())
+    assert record["traced_call"] == 2 and len(record["calls_wall_s"]) == 3  # chunks 1-3 timed, 4 untouched
+    assert record["source"] == "host" and record["kernels"] > 0 and record["busy_s"] > 0
+    assert record["union_s"] <= record["span_s"] + 1e-9
+    assert sum(b["kernels"] for b in record["by_calls"]) <= record["kernels"]
+    assert f"summary goes to {p / 'profile_chunk2.json'}" in out and "call 2 profiled" in out
+    # a chunk this process never reaches: said, nothing written
+    q = tmp_path / "Q"
+    code, out, err = run(["--out", str(q), *BASE, "--profile-chunk", "9", "--final-eval", "none", "--no-gif"])
+    assert code == 0, err
+    assert "--profile-chunk 9: this process ran 4 chunk(s), so none was profiled" in out
+    assert not list(q.glob("profile_chunk*.json"))
+
+
+def test_profile_chunk_takes_a_count():
+    with pytest.raises(SystemExit):
+        parse(["--profile-chunk", "0"])
+    from shed_jax.errors import UsageError
+
+    with pytest.raises(UsageError, match="--profile-chunk must be an integer >= 1"):
+        driver.RunOptions(profile_chunk=0).check()

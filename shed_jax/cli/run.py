@@ -85,6 +85,10 @@ def add_arguments(p) -> None:
                    help="stop at the first chunk boundary at or after this many budget steps, save, exit 75")
     g.add_argument("--time-limit", type=errors.non_negative_float, default=None, metavar="SECONDS",
                    help="stop at the first chunk boundary after this much wall time in this process, save, exit 75")
+    g.add_argument("--profile-chunk", type=count, default=None, metavar="K",
+                   help="run this process's K-th chunk under jax.profiler and write where its time went (busy vs idle, "
+                        "time by op, loop and named scope) to DIR/profile_chunkK.json; 2 is the first chunk with "
+                        "nothing left to compile")
 
 
 def main(args) -> int:

@@ -1,5 +1,6 @@
-"""experiments/trace_summary.py and aot_cache's traced chunk calls: the summary's arithmetic on
-hand-made kernels, op names read from HLO text, and a traced call on this host's CPU."""
+"""shed_jax.profiling (a profiled call's summary), its command line experiments/trace_summary.py and
+aot_cache's traced chunk calls: the summary's arithmetic on hand-made kernels, op names read from HLO
+text, and a traced call on this host's CPU."""
 import json
 
 import jax
@@ -7,6 +8,7 @@ import jax.numpy as jnp
 import pytest
 
 from experiments import aot_cache, trace_summary
+from shed_jax import profiling
 
 HLO = """HloModule jit_f, entry_computation_layout={(f32[4]{0})->f32[4]{0}}
 
@@ -24,13 +26,13 @@ ENTRY %main (x: f32[4]) -> f32[4] {
 
 
 def test_op_names_from_hlo_text():
-    names = trace_summary.hlo_op_names(HLO)
+    names = profiling.hlo_op_names(HLO)
     assert names == {"sine.1": "jit(f)/beta/sin", "dot.2": "jit(f)/alpha/dot_general",
                      "loop_fusion.7": "jit(f)/beta/sin"}
 
 
 def test_user_scopes_leave_out_jax_words_and_wrappers():
-    f = trace_summary.user_scopes
+    f = profiling.user_scopes
     assert f("jit(chunk)/vmap()/while/body/closed_call/evaluate/while/body/closed_call/vmap(velocity_passes)/add") == \
         ("evaluate", "velocity_passes")
     assert f("jit(f)/alpha/dot_general") == ("alpha",)
@@ -40,14 +42,14 @@ def test_user_scopes_leave_out_jax_words_and_wrappers():
 
 
 def test_merge_intervals():
-    assert trace_summary.merge([[5, 7], [0, 2], [1, 3], [6, 9], [10, 11]]) == [[0, 3], [5, 9], [10, 11]]
+    assert profiling.merge([[5, 7], [0, 2], [1, 3], [6, 9], [10, 11]]) == [[0, 3], [5, 9], [10, 11]]
 
 
 def test_summary_of_hand_made_kernels():
     # two streams; times in ns: kernel A 0-1000 and 3000-4000, B 500-2000 on another stream, C 10000-10004
     events = [(0.0, 1000.0, "kA", "dot.2", "jit_f"), (3000.0, 1000.0, "kA", "dot.2", "jit_f"),
               (500.0, 1500.0, "kB", "loop_fusion.7", "jit_f"), (10000.0, 4.0, "kC", "copy.1", "jit_f")]
-    s = trace_summary.summarise(events, trace_summary.hlo_op_names(HLO), scope_share=0.0)
+    s = profiling.summarise(events, profiling.hlo_op_names(HLO), scope_share=0.0)
     assert s["kernels"] == 4
     assert s["busy_s"] == pytest.approx(3504e-9)
     assert s["union_s"] == pytest.approx((2000 + 1000 + 4) * 1e-9)  # [0,2000], [3000,4000], [10000,10004]
@@ -91,7 +93,13 @@ def test_traced_call_profiles_one_call_and_keeps_results(tmp_path):
     assert r["union_s"] <= r["span_s"] + 1e-9 and r["busy_s"] > 0
     assert any(k.endswith("/alpha") for k in r["scopes"]), r["scopes"]
     assert r["named_scopes"]["alpha"]["ms"] > 0
-    assert len(said) == 1 and "call 2 traced" in said[0]
+    assert len(said) == 1 and "call 2 profiled" in said[0] and str(out) in said[0]
+
+
+@pytest.mark.parametrize("call", [0, -1, 1.5, True])
+def test_trace_count_takes_a_call_number(call, tmp_path):
+    with pytest.raises(ValueError, match="whole number >= 1"):
+        profiling.TraceCount(call, str(tmp_path / "x.json"))
 
 
 @pytest.mark.parametrize("call,out,msg", [("0", "x.json", "call number from 1"), ("two", "x.json", "call number"),
@@ -112,7 +120,7 @@ def test_no_trace_request(monkeypatch):
 def test_labelled_loops_split_the_busy_time():
     summary = {"busy_s": 0.010, "by_calls": [{"calls": 4000, "ops": 2, "kernels": 8000, "ms": 6.0, "share": 0.6},
                                              {"calls": 384, "ops": 1, "kernels": 384, "ms": 3.0, "share": 0.3}]}
-    out = trace_summary.labelled(summary, {4000: "evaluation"})
+    out = profiling.labelled(summary, {4000: "evaluation"})
     assert out["by_calls"][0]["loop"] == "evaluation" and "loop" not in out["by_calls"][1]
     assert out["loops"]["evaluation"] == {"ops": 2, "kernels": 8000, "ms": 6.0, "share": 0.6}
     assert out["loops"]["(other, listed)"]["ms"] == 3.0
