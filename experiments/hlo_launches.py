@@ -111,26 +111,14 @@ def count(text: str) -> dict:
     return {"total": total, "by_op": dict(ops.most_common()), "unknown_trips": unknown}
 
 
-# jnp's element-wise helpers: scopes that say nothing of where a launch comes from
-_HELPERS = frozenset({"_where", "clip", "_roll_static", "_pad"})
-
-
-# components of an op_name that are not scopes: program structure and transformations
-_STRUCTURE = re.compile(r"^(while|body|cond|eval_jaxpr|checkpoint|remat|branch_\d+|(jvp|transpose|vmap|jit)\(\))$")
-
-
 def scopes(line: str, depth: int) -> str:
-    """The first ``depth`` JAX scopes of an instruction's op_name: ``jax.named_scope`` names and
-    jitted functions (``jit(f)``, ``vmap(f)`` unwrapped), without the program's own jit (the first
-    component), the primitive (the last), program structure and ``_HELPERS``."""
+    """The first ``depth`` JAX scopes of an instruction's op_name (``shed_jax.profiling.user_scopes``:
+    ``jax.named_scope`` names and jitted functions' names, without the program's own jit, the
+    primitive, JAX's structure and jnp's helpers)."""
+    from shed_jax.profiling import user_scopes
+
     m = re.search(r'op_name="([^"]*)"', line)
-    out = []
-    for part in (m.group(1).split("/")[1:-1] if m else []):
-        while (w := re.match(r"^(?:vmap|jit|jvp|transpose)\((.*)\)$", part)):
-            part = w.group(1)
-        if part and part not in _HELPERS and not _STRUCTURE.match(part):
-            out.append(part)
-    return "/".join(out[:depth]) or "(no scope)"
+    return "/".join(user_scopes(m.group(1))[:depth] if m else ()) or "(no scope)"
 
 
 def by_scope(text: str, depth: int = 2) -> dict[str, float]:

@@ -4,10 +4,11 @@
 # the tree's, so two runs cannot share one), seen at the tree's own path through a private mount
 # (unshare -m; the compilation cache's keys hold the sources' and the cache's absolute paths, so a
 # copy elsewhere would miss every carried program), with its share of the GPU's memory. At 200
-# walkers a 2-D walker step is mostly kernel launches (docs/bipedal.md, "Where the launches are"),
-# so one run leaves the GPU idle between them; whether a second run fills those gaps is what a call
-# of this measures. Run from the repository root, as root, on the device machine (a disposable
-# copy: OUT must be set):
+# walkers a 2-D walker step is mostly small kernels (docs/bipedal.md, "Where the launches are"),
+# which was expected to leave the GPU idle between them for a second run to fill; it does not (each
+# of two runs got about half the GPU, 2026-12-06), and a trace found one run's GPU busy 92 % of the
+# time (docs/log/benchmarks.md, 2026-12-07). What a call of this still saves is a machine start.
+# Run from the repository root, as root, on the device machine (a disposable copy: OUT must be set):
 #   OUT=DIR bash experiments/run_pieces.sh SECONDS FOLDER [FOLDER ...]
 # SECONDS counts from this script's start, its set-up included, as run_piece.sh's does: give the
 # call's limit less about 30 s. Each piece returns run_piece.sh's files as one archive of its own in

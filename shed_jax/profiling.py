@@ -51,6 +51,7 @@ def hlo_op_names(hlo_text: str) -> dict[str, str]:
 _JAX_WORDS = frozenset({"while", "body", "cond", "closed_call", "core_call", "remat", "checkpoint", "scan",
                         "pjit", "jit", "vmap", "jvp", "transpose", "shard_map", "custom_jvp_call",
                         "custom_vjp_call", "named_call", "xla_call"})
+_HELPERS = frozenset({"clip"})  # jnp's jitted helpers without a leading underscore
 _WRAPPED = re.compile(r"[\w.]+\((.*)\)")
 _BRANCH = re.compile(r"branch_\d+_fun")
 
@@ -58,14 +59,14 @@ _BRANCH = re.compile(r"branch_\d+_fun")
 def user_scopes(op_name: str) -> tuple[str, ...]:
     """The program's own scope names in an ``op_name`` (``jax.named_scope`` and named functions), outermost
     first: the program's own ``jit(NAME)``, the primitive, JAX's words (``while``, ``body``,
-    ``closed_call``, ...), wrappers (``vmap(x)`` counts as ``x``) and private names (``_where``) left out,
+    ``closed_call``, ...), wrappers (``vmap(x)`` counts as ``x``) and jnp's helpers (``_where``, ``clip``) left out,
     a name repeated at once kept once."""
     out = []
     for part in op_name.split("/")[1:-1]:
         name = part
         while (m := _WRAPPED.fullmatch(name)) is not None:
             name = m.group(1)
-        if not name or name.startswith("_") or name in _JAX_WORDS or _BRANCH.fullmatch(name):
+        if not name or name.startswith("_") or name in _JAX_WORDS or name in _HELPERS or _BRANCH.fullmatch(name):
             continue
         if not out or out[-1] != name:
             out.append(name)
