@@ -50,10 +50,10 @@ def hlo_op_names(hlo_text: str) -> dict[str, str]:
 # name-stack components that JAX's transformations and control flow add, not a program's own scopes
 _JAX_WORDS = frozenset({"while", "body", "cond", "closed_call", "core_call", "remat", "checkpoint", "scan",
                         "pjit", "jit", "vmap", "jvp", "transpose", "shard_map", "custom_jvp_call",
-                        "custom_vjp_call", "named_call", "xla_call"})
+                        "custom_vjp_call", "named_call", "xla_call", "eval_jaxpr"})
 _HELPERS = frozenset({"clip"})  # jnp's jitted helpers without a leading underscore
 _WRAPPED = re.compile(r"[\w.]+\((.*)\)")
-_BRANCH = re.compile(r"branch_\d+_fun")
+_BRANCH = re.compile(r"branch_\d+(_fun)?")
 
 
 def user_scopes(op_name: str) -> tuple[str, ...]:
