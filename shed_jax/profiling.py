@@ -29,6 +29,7 @@ import glob
 import json
 import os
 import re
+import shutil
 import tempfile
 import time
 
@@ -137,6 +138,19 @@ def kernel_events(xplane: str):
     return source, events
 
 
+def _prefix_totals(ops, path_of, depth: int | None = None) -> dict:
+    """``{prefix: [kernels, ns]}`` summed over every prefix (up to ``depth`` parts) of each op's path
+    ``path_of(op)`` (an empty path counts as ``(none)``); ``ops`` as ``summarise`` sorts them."""
+    totals = {}
+    for (_, op), (n, t, _) in ops:
+        path = path_of(op) or ("(none)",)
+        for d in range(1, min(len(path), depth or len(path)) + 1):
+            r = totals.setdefault("/".join(path[:d]), [0, 0.0])
+            r[0] += n
+            r[1] += t
+    return totals
+
+
 def summarise(events, op_names: dict[str, str] | None = None, source: str = "device", top: int = 60,
               scope_share: float = 0.005, scope_depth: int = 24, min_share: float = 0.0005,
               max_ops: int = 400) -> dict:
@@ -168,22 +182,13 @@ def summarise(events, op_names: dict[str, str] | None = None, source: str = "dev
         r[0] += 1
         r[1] += n
         r[2] += t
-    named = {}
-    for (module, op), (n, t, _) in ops:
-        path = user_scopes(op_names[op]) if op in op_names else ()
-        keys = ["/".join(path[:d]) for d in range(1, len(path) + 1)] or ["(none)"]
-        for key in keys:
-            r = named.setdefault(key, [0, 0.0])
-            r[0] += n
-            r[1] += t
-    scopes = {}
-    for (module, op), (n, t, _) in ops:
-        stack = op_names.get(op)
-        parts = stack.split("/")[:-1] if stack else ["(no op_name)"]  # the primitive itself dropped
-        for depth in range(1, min(len(parts), scope_depth) + 1):
-            r = scopes.setdefault("/".join(parts[:depth]), [0, 0.0])
-            r[0] += n
-            r[1] += t
+    def user_path(op):
+        return user_scopes(op_names[op]) if op in op_names else ("(none)",)
+
+    def stack_path(op):  # the whole name stack, the primitive itself dropped
+        return tuple(op_names[op].split("/")[:-1]) if op in op_names else ("(no op_name)",)
+
+    named, scopes = _prefix_totals(ops, user_path), _prefix_totals(ops, stack_path, scope_depth)
     return {
         "source": source,
         "kernels": len(events),
@@ -304,8 +309,6 @@ class TracedCompiled:
                 c.summary["summarised_in_s"] = round(time.perf_counter() - t1, 1)
             except Exception as err:  # noqa: BLE001 - the program's caller goes on without its profile
                 c.summary = {"error": f"{type(err).__name__}: {err}"}
-            import shutil
-
             shutil.rmtree(trace_dir, ignore_errors=True)
             c.say(f"[shed_jax] call {k} profiled ({wall:.2f} s; untraced calls so far {c.walls[:-1]}): "
                   f"{c.summary.get('kernels', '?')} kernels, busy {c.summary.get('union_s', '?')} s of a "
