@@ -18,6 +18,8 @@ import sys
 _GPU = re.compile(r"backend gpu: (\d+) x ([^;]+);")
 _JAX = re.compile(r"\[shed_jax\] jax ([0-9.]+),")
 _RESUME = re.compile(r"resuming \S+ from budget step (\d+)/(\d+)")
+_FRESH = re.compile(r"\[shed_jax\] \S+ on \S+: .*?(\d+) seed\(s\)")  # a run's start (its first piece)
+_SEEDS = re.compile(r"(\d+) seed\(s\)")
 _STOP = re.compile(r"stopped at budget step (\d+)/(\d+)")
 _DONE = re.compile(r"training done \((\d+)/(\d+) budget steps\)")  # the last piece: no stop, the run's end
 _COMPILED = re.compile(r"\[shed_jax\] compiled in ([0-9.]+) s")
@@ -29,14 +31,17 @@ _BAR = re.compile(r"(\d+)/(\d+) \[(?:(\d+):)?(\d+):(\d+)<")
 
 
 def parse(text: str) -> dict:
-    """One piece's facts from its log; ValueError naming what the log lacks."""
+    """One piece's facts from its log (a resumed run's, or the run's first piece: from budget step 0);
+    ValueError naming what the log lacks."""
     text = text.replace("\r", "\n")
     resume, stop, done = _RESUME.search(text), _STOP.search(text), _DONE.search(text)
     stop = stop or done
-    if resume is None or stop is None:
-        raise ValueError("the log names no resumed budget step, and no stop or end of training (a piece that "
-                         "started the run, or one cut off before it saved, is not one this reads)")
-    start, end, total = int(resume.group(1)), int(stop.group(1)), int(stop.group(2))
+    if (resume is None and _FRESH.search(text) is None) or stop is None:
+        raise ValueError("the log names no resumed budget step or run start, or no stop or end of training "
+                         "(a piece cut off before it saved is not one this reads)")
+    start = int(resume.group(1)) if resume else 0
+    end, total = int(stop.group(1)), int(stop.group(2))
+    seeds = _SEEDS.search(text)
     bars = _BAR.findall(text)
     if not bars:
         raise ValueError("the log holds no progress bar")
@@ -48,6 +53,7 @@ def parse(text: str) -> dict:
     return {
         "gpu": f"{gpu.group(1)} x {gpu.group(2).strip()}" if gpu else None,
         "jax": jax.group(1) if jax else None,
+        "seeds": int(seeds.group(1)) if seeds else None,
         "budget_steps": [start, end],
         "of": total,
         "finished": stop is done,  # the run's training ended in this piece (its final evaluation may follow)
