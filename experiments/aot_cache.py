@@ -100,6 +100,7 @@ def _without_program_shape(options):
 # GPU topology, which holds the driver's version, the clocks and the memory size). Two hosts with one
 # GPU model can differ in those and still run each other's executables; a portable key names an entry
 # by the parts below and the device kinds, so that a carried cache serves every such host.
+HOST_PARTS = ("backend version", "accelerator_config")  # what only the GPU host knows
 PORTABLE_PARTS = ("computation", "jax_lib version", "XLA flags", "compile_options", "compression", "custom_hook")
 PORTABLE_TAG = "portable"
 
@@ -375,11 +376,62 @@ def probe(args_file: str, out: str) -> int:
     return 0
 
 
+def _cuda_plugin() -> None:
+    """JAX's CUDA plugin, loaded without a GPU to run on (deviceless compiles and topologies)."""
+    from jax._src import xla_bridge
+    from jax._src.lib import xla_client
+
+    xla_bridge._discover_and_register_pjrt_plugins()
+    if not xla_client.pjrt_plugin_initialized("cuda"):
+        xla_client.initialize_pjrt_plugin("cuda")
+
+
+def target_probe(probe_file: str, target_file: str, out: str) -> int:
+    """A probe for a GPU model that no piece has probed: ``probe_file`` (a real probe, of any GPU model,
+    for its software: jax, the tree's root, the cache folder, compression, flags and the initial
+    state's key parts) with the GPU of ``target_file`` (a GPU description, as ``experiments/targets``
+    holds) in place of the probed one. A portable key holds no part that only the GPU host knows, so
+    such a probe serves ``fill --portable`` (and nothing else): the probe's host parts (``HOST_PARTS``)
+    are dropped, and the fill compares the rest. Whether the GPU host then finds the programs is for
+    its first piece to say (``AOT_GATE=1`` stops one that does not, at the cost of a start)."""
+    os.environ.setdefault("JAX_PLATFORMS", "cpu")  # no GPU here: the CUDA plugin only describes the target
+    import jax
+    from jax.experimental import topologies
+
+    rec = json.load(open(probe_file))
+    if rec.get("jax") != jax.__version__:
+        print(f"aot_cache target-probe: {probe_file} is of jax {rec.get('jax')}, this host has {jax.__version__}",
+              file=sys.stderr)
+        return 2
+    try:
+        config = open(target_file).read()
+    except OSError as err:
+        print(f"aot_cache target-probe: cannot read {target_file}: {err.strerror}", file=sys.stderr)
+        return 2
+    _cuda_plugin()
+    topo = topologies.get_topology_desc(platform="cuda", target_config=config, topology="1x1x1")
+    kinds = sorted({d.device_kind for d in topo.devices})
+    rec.update(device_kind=kinds[0], topology=base64.b64encode(topo.serialize()).decode(),
+               target_probe={"from_probe": probe_file, "probed_gpu": rec.get("device_kind"), "target": target_file})
+    for prog in rec.get("programs", {}).values():
+        for part in HOST_PARTS:
+            prog.get("parts", {}).pop(part, None)
+        prog.pop("key", None)  # a key over the probed host's parts: no GPU of the target's asks for it
+    with open(out, "w") as f:
+        json.dump(rec, f, indent=1)
+    print(f"aot_cache target-probe: {rec['target_probe']['probed_gpu']}'s probe as {kinds[0]} -> {out}")
+    return 0
+
+
 def fill(args_file: str, probe_file: str, chunks: bool, out: str | None, portable: bool = False) -> int:
     import jax
     from jax.experimental import topologies
 
     rec = json.load(open(probe_file))
+    if rec.get("target_probe") and not portable:
+        print(f"aot_cache fill: {probe_file} was made from a target description (target-probe), which knows no "
+              f"GPU host's own key parts: fill with --portable", file=sys.stderr)
+        return 2
     if jax.__version__ != rec["jax"]:
         print(f"aot_cache fill: this host has jax {jax.__version__}, the GPU host {rec['jax']}: install the GPU's "
               f"version (its CUDA plugin too)", file=sys.stderr)
@@ -393,12 +445,7 @@ def fill(args_file: str, probe_file: str, chunks: bool, out: str | None, portabl
         print(f"aot_cache fill: the cache folder is {cache}, the GPU host's {rec['cache']}: set SHED_JAX_CACHE as "
               f"run_piece.sh does", file=sys.stderr)
         return 2
-    from jax._src import xla_bridge
-    from jax._src.lib import xla_client
-
-    xla_bridge._discover_and_register_pjrt_plugins()  # the CUDA plugin, loaded without a GPU to run on
-    if not xla_client.pjrt_plugin_initialized("cuda"):
-        xla_client.initialize_pjrt_plugin("cuda")
+    _cuda_plugin()
     topo = topologies.TopologyDescription.deserialize(base64.b64decode(rec["topology"]))
     device = topo.devices[0]
     seen: dict = {}
@@ -935,11 +982,18 @@ def main(argv=None) -> int:
     f.add_argument("--out", default=None, help="a JSON report: compile times, keys, differing key parts")
     f.add_argument("--portable", action="store_true",
                    help="file the GPU programs under portable keys (entries under the probed host's keys renamed)")
+    t = sub.add_parser("target-probe", help="on a CPU host: a probe for a GPU model no piece has probed, from a real "
+                                             "probe and a target description (fill --portable only)")
+    t.add_argument("probe", help="a probe written on a GPU host (any model, this jax version)")
+    t.add_argument("target", help="a GPU description, e.g. experiments/targets/h200.txtpb")
+    t.add_argument("out")
     # listed for --help only: main() hands "run" and its arguments to run_portable before parsing
     sub.add_parser("run", help="-m MODULE ARGS...: run a module as python -m does, its GPU programs under portable keys")
     a = ap.parse_args(argv)
     if a.cmd == "probe":
         return probe(a.args_file, a.out)
+    if a.cmd == "target-probe":
+        return target_probe(a.probe, a.target, a.out)
     return fill(a.args_file, a.probe, a.chunks, a.out, a.portable)
 
 

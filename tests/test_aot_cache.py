@@ -494,3 +494,31 @@ def test_the_stand_in_check_reads_the_runs_compile_time_and_refuses_a_missing_so
     assert stand_in_check._compiled_s(log + "[shed_jax] compiled in 12.25 s (the final evaluation)\n") == 12.25
     assert stand_in_check.main(["--src", str(tmp_path / "none.tgz")]) == 2
     assert "no file" in capsys.readouterr().err
+
+
+def test_a_target_probe_serves_only_a_portable_fill(tmp_path, capsys):
+    """A probe made from a target description (``target-probe``) knows no GPU host's own key parts, so a
+    fill that would file programs under them is refused, in one line, before any work."""
+    import json
+
+    probe = tmp_path / "probe.json"
+    probe.write_text(json.dumps({"jax": jax.__version__, "target_probe": {"target": "experiments/targets/h200.txtpb"},
+                                 "programs": {}}))
+    assert aot_cache.main(["fill", str(tmp_path / "run.args"), str(probe)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("aot_cache fill: ") and "--portable" in err and "\n" not in err
+
+
+def test_a_target_probe_needs_this_hosts_jax_and_a_readable_target(tmp_path, capsys):
+    import json
+
+    probe = tmp_path / "probe.json"
+    probe.write_text(json.dumps({"jax": "0.0.1", "programs": {}}))
+    assert aot_cache.main(["target-probe", str(probe), "experiments/targets/h200.txtpb", str(tmp_path / "o.json")]) == 2
+    assert capsys.readouterr().err.strip() == (f"aot_cache target-probe: {probe} is of jax 0.0.1, this host has "
+                                               f"{jax.__version__}")
+    probe.write_text(json.dumps({"jax": jax.__version__, "programs": {}}))
+    missing = tmp_path / "none.txtpb"
+    assert aot_cache.main(["target-probe", str(probe), str(missing), str(tmp_path / "o.json")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"aot_cache target-probe: cannot read {missing}: ") and not (tmp_path / "o.json").exists()
