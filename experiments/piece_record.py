@@ -18,8 +18,8 @@ import sys
 _GPU = re.compile(r"backend gpu: (\d+) x ([^;]+);")
 _JAX = re.compile(r"\[shed_jax\] jax ([0-9.]+),")
 _RESUME = re.compile(r"resuming \S+ from budget step (\d+)/(\d+)")
-_FRESH = re.compile(r"\[shed_jax\] \S+ on \S+: .*?(\d+) seed\(s\)")  # a run's start (its first piece)
-_SEEDS = re.compile(r"(\d+) seed\(s\)")
+# the line every piece prints as its run starts or resumes; in a run's first piece, the only start it has
+_START = re.compile(r"\[shed_jax\] \S+ on \S+: .*?(\d+) seed\(s\)")
 _STOP = re.compile(r"stopped at budget step (\d+)/(\d+)")
 _DONE = re.compile(r"training done \((\d+)/(\d+) budget steps\)")  # the last piece: no stop, the run's end
 _COMPILED = re.compile(r"\[shed_jax\] compiled in ([0-9.]+) s")
@@ -36,12 +36,12 @@ def parse(text: str) -> dict:
     text = text.replace("\r", "\n")
     resume, stop, done = _RESUME.search(text), _STOP.search(text), _DONE.search(text)
     stop = stop or done
-    if (resume is None and _FRESH.search(text) is None) or stop is None:
+    started = _START.search(text)
+    if (resume is None and started is None) or stop is None:
         raise ValueError("the log names no resumed budget step or run start, or no stop or end of training "
                          "(a piece cut off before it saved is not one this reads)")
     start = int(resume.group(1)) if resume else 0
     end, total = int(stop.group(1)), int(stop.group(2))
-    seeds = _SEEDS.search(text)
     bars = _BAR.findall(text)
     if not bars:
         raise ValueError("the log holds no progress bar")
@@ -53,7 +53,7 @@ def parse(text: str) -> dict:
     return {
         "gpu": f"{gpu.group(1)} x {gpu.group(2).strip()}" if gpu else None,
         "jax": jax.group(1) if jax else None,
-        "seeds": int(seeds.group(1)) if seeds else None,
+        "seeds": int(started.group(1)) if started else None,
         "budget_steps": [start, end],
         "of": total,
         "finished": stop is done,  # the run's training ended in this piece (its final evaluation may follow)

@@ -121,14 +121,6 @@ def summarise(arrays: dict, velocity_passes: int, position_passes: int, block: i
     return out
 
 
-def _cpu_model() -> str:
-    try:
-        with open("/proc/cpuinfo") as f:
-            return next(line.split(":", 1)[1].strip() for line in f if line.startswith("model name"))
-    except (OSError, StopIteration):
-        return "unknown CPU"
-
-
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m experiments.solver_convergence", description=__doc__.split("\n\n")[0])
     ap.add_argument("--steps", type=int, default=200, help="steps per level (default 200)")
@@ -142,6 +134,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from envs.bipedal import model as M
     from envs.physics2d import fused
+    from experiments.aot_cache import _cpu_model
 
     arrays = measure(args.steps, args.seed)
     record = {
