@@ -14,7 +14,8 @@ access of the kernel's inputs and outputs (``fused.TILE``; 1 is one field per ac
 2026-12-05 though in the (worlds, fields) layout; the compile time falls as T grows:
 ``experiments.gpu_compile``), ``lower2`` (the velocity / position
 pass over the lower legs' first two manifolds only: what a block whose worlds touch nothing else
-would need). ``ms`` is the wall time of a call (with the stacking and slicing around the kernel);
+would need), ``libtrig`` (the kernels' sines and cosines from ``jnp.sin`` / ``jnp.cos``, the GPU's
+library calls, instead of ``envs.physics2d.vec.sincos``). ``ms`` is the wall time of a call (with the stacking and slicing around the kernel);
 ``--trace`` adds the kernels' device time.
 """
 from __future__ import annotations
@@ -47,6 +48,22 @@ def _patched(fn):
         yield orig
     finally:
         fused.per_world_fori_loop = orig
+
+
+@contextlib.contextmanager
+def _library_trig():
+    """Within the block, the solver's ``sincos`` is ``(jnp.sin, jnp.cos)`` (what it was before 2026-12-07)."""
+    from envs.physics2d import toi, vec, world
+
+    mods = (vec, world, toi)
+    saved = [m.sincos for m in mods]
+    for m in mods:
+        m.sincos = lambda a: (jnp.sin(a), jnp.cos(a))
+    try:
+        yield
+    finally:
+        for m, f in zip(mods, saved):
+            m.sincos = f
 
 
 def _env_and_inputs(batch: int, steps: int, concrete: bool = True, **options):
@@ -184,7 +201,8 @@ def bench(inputs: str, variants: list[str], repeats: int, out: str, mode: str = 
             fn = loop_program(n, b, done, mode)
             t = time.perf_counter()
             try:
-                res = jax.block_until_ready(fn(c, s))
+                with _library_trig() if "libtrig" in opts else contextlib.nullcontext():
+                    res = jax.block_until_ready(fn(c, s))  # traced and compiled here
             except Exception as e:  # noqa: BLE001 - a variant that does not compile is a result
                 rec["rows"].append({"loop": name, "variant": v, "error": str(e)[:400]})
                 print(json.dumps(rec["rows"][-1]), flush=True)

@@ -30,7 +30,7 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
-from envs.physics2d.vec import V2, dot, rotate
+from envs.physics2d.vec import V2, dot, rotate, sincos
 
 
 def point_segment_distance(p, a, b):
@@ -103,7 +103,7 @@ def _sweep_distance_points(local, c0, a0, c1, a1, t, shapes):
     t = jnp.asarray(t)
     cx, cy = c0[0] + t * (c1[0] - c0[0]), c0[1] + t * (c1[1] - c0[1])
     a = a0 + t * (a1 - a0)
-    cos, sin = jnp.cos(a), jnp.sin(a)
+    sin, cos = sincos(a)
     p = [V2(cx + (cos * local[i, 0] - sin * local[i, 1]), cy + (sin * local[i, 0] + cos * local[i, 1]))
          for i in range(local.shape[0])]
     q = [V2(shapes[:, j, 0], shapes[:, j, 1]) for j in range(shapes.shape[1])]

@@ -28,7 +28,7 @@ from envs.physics2d import toi
 from envs.physics2d.collision import polyline_points_in_polygon, vertex_segment_touching, vertex_vs_polyline
 from envs.physics2d.mass import polygon_mass
 from envs.physics2d.model import BodyState, Model, WorldState
-from envs.physics2d.vec import V2, cross, cross_sv2, dot, rotate, rotate2, rotate_cs
+from envs.physics2d.vec import V2, cross, cross_sv2, dot, rotate, rotate2, rotate_cs, sincos
 
 
 def slot_points(model: Model, bodies: BodyState):
@@ -1131,7 +1131,7 @@ def _point_position(cfg, c, k, inv_m, inv_i, state, baumgarte=None):
     ``baumgarte``: ``_position_impulse``'s."""
     com, ang, min_sep = state
     on, fb = c["on"][k] > 0.5, c["fb"][k] > 0.5
-    cos, sin = jnp.cos(ang), jnp.sin(ang)  # once for the three vectors (a GPU kernel need not merge them)
+    sin, cos = sincos(ang)  # once for the three vectors
     ra_ = rotate_cs(cos, sin, c["a"][k])
     rn_ = rotate_cs(cos, sin, c["nrm"][k])
     rp_ = rotate_cs(cos, sin, c["pt"][k])
