@@ -20,6 +20,7 @@ import numpy as np
 from flax import struct
 
 from envs.physics2d.mass import polygon_mass
+from envs.physics2d.vec import sincos
 
 
 @dataclasses.dataclass(frozen=True)
@@ -266,7 +267,7 @@ class WorldState:
 def body_origin(model: Model, bodies: BodyState) -> jax.Array:
     """World position of each body's origin (B, 2)."""
     lc = jnp.asarray(model.local_com, jnp.float32)
-    c, s = jnp.cos(bodies.angle), jnp.sin(bodies.angle)
+    s, c = sincos(bodies.angle)
     return bodies.com - jnp.stack([c * lc[:, 0] - s * lc[:, 1], s * lc[:, 0] + c * lc[:, 1]], -1)
 
 
@@ -275,7 +276,7 @@ def bodies_from_origin(model: Model, origin, angle, vel=None, omega=None) -> Bod
     origin = jnp.asarray(origin, jnp.float32)
     angle = jnp.asarray(angle, jnp.float32)
     lc = jnp.asarray(model.local_com, jnp.float32)
-    c, s = jnp.cos(angle), jnp.sin(angle)
+    s, c = sincos(angle)
     com = origin + jnp.stack([c * lc[:, 0] - s * lc[:, 1], s * lc[:, 0] + c * lc[:, 1]], -1)
     vel = jnp.zeros_like(origin) if vel is None else jnp.asarray(vel, jnp.float32)
     omega = jnp.zeros_like(angle) if omega is None else jnp.asarray(omega, jnp.float32)
