@@ -338,6 +338,12 @@ def _start():
     from shed_jax.xla_cpu import apply_cpu_guard
 
     apply_cpu_guard()
+    try:  # as the run's own sources start (those before 2026-12-07 have no shed_jax.xla_gpu, and no FMA flag)
+        from shed_jax.xla_gpu import apply_gpu_codegen
+    except ImportError:
+        pass
+    else:
+        apply_gpu_codegen()
     from shed_jax import runtime
 
     cache = runtime.enable_compilation_cache()

@@ -103,6 +103,9 @@ def student_latency(env, env_name: str, ppo_overrides: dict | None = None, parts
 
 
 def main(argv=None) -> int:
+    from shed_jax.xla_gpu import apply_gpu_codegen
+
+    apply_gpu_codegen()  # as python -m shed_jax compiles (before the backend starts)
     import envs
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])

@@ -255,6 +255,9 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     if a.tile is not None and (a.tile < 1 or a.tile & (a.tile - 1)):
         ap.error(f"--tile must be a power of two (1, 2, 4, ...), got {a.tile}")
+    from shed_jax.xla_gpu import apply_gpu_codegen
+
+    apply_gpu_codegen()  # the GPU code a run compiles (shed_jax/xla_gpu.py)
     for k, v in _LOG.items():
         os.environ.setdefault(k, v)
     os.environ["JAX_ENABLE_COMPILATION_CACHE"] = "false"  # cold compiles only

@@ -181,7 +181,7 @@ def bench(inputs: str, variants: list[str], repeats: int, out: str, mode: str = 
     env, ins = _env_and_inputs(batch, 1, concrete=False)  # only the loops' structures
     structs = _structures(env, ins)
     rec = {**provenance("experiments.solver_kernel_bench", None), "inputs": inputs, "batch": batch,
-           "captured_after_steps": steps, "rows": []}
+           "captured_after_steps": steps, "xla_flags": os.environ.get("XLA_FLAGS", ""), "rows": []}
     for name in loops:
         n, body, c_tree, s_tree, done = structs[name]
         leaves = [jnp.asarray(data[f"{name}/{i}"]) for i in range(c_tree.num_leaves + s_tree.num_leaves)]
@@ -232,6 +232,9 @@ def bench(inputs: str, variants: list[str], repeats: int, out: str, mode: str = 
 
 
 def main(argv=None) -> int:
+    from shed_jax.xla_gpu import apply_gpu_codegen
+
+    apply_gpu_codegen()  # as python -m shed_jax compiles (before the backend starts)
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="cmd", required=True)
     c = sub.add_parser("capture")

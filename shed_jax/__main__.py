@@ -15,8 +15,10 @@ import sys
 import threading
 
 from shed_jax.xla_cpu import apply_cpu_guard
+from shed_jax.xla_gpu import apply_gpu_codegen
 
 apply_cpu_guard()  # before any JAX computation (shed_jax/xla_cpu.py says why)
+apply_gpu_codegen()  # fused multiply-adds on a GPU, as on a CPU (shed_jax/xla_gpu.py)
 
 COMMANDS = {
     "demo": "roll out a built-in controller (or a saved 2-D walker student) on a few levels; print a table and write GIFs",

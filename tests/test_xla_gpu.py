@@ -1,0 +1,63 @@
+"""shed_jax.xla_gpu: the GPU's fused multiply-add flag, and the CPU rounding it matches."""
+import os
+
+import jax
+import numpy as np
+import pytest
+
+from shed_jax import xla_gpu
+
+
+def test_flag_added_only_with_a_cuda_plugin(monkeypatch):
+    monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_use_xnnpack=false")
+    assert not xla_gpu.apply_gpu_codegen(plugin=False)
+    assert xla_gpu.FLAG not in os.environ["XLA_FLAGS"]
+    assert xla_gpu.apply_gpu_codegen(plugin=True)
+    assert os.environ["XLA_FLAGS"] == "--xla_cpu_use_xnnpack=false " + xla_gpu.FLAG
+    assert not xla_gpu.apply_gpu_codegen(plugin=True)  # once
+    assert os.environ["XLA_FLAGS"].count("xla_backend_extra_options") == 1
+
+
+def test_a_users_backend_options_are_left_alone(monkeypatch):
+    monkeypatch.setenv("XLA_FLAGS", "--xla_backend_extra_options=-nvptx-fma-level=0")
+    assert not xla_gpu.apply_gpu_codegen(plugin=True)
+    assert os.environ["XLA_FLAGS"] == "--xla_backend_extra_options=-nvptx-fma-level=0"
+    monkeypatch.delenv("XLA_FLAGS")
+    assert xla_gpu.apply_gpu_codegen(plugin=True)
+    assert os.environ["XLA_FLAGS"] == xla_gpu.FLAG
+
+
+def test_plugin_lookup_finds_a_cuda_plugin_in_the_jax_plugins_namespace(tmp_path, monkeypatch):
+    import importlib
+    import sys
+
+    installed = xla_gpu.cuda_plugin_installed()  # this machine's answer (no plugin on the CI machine)
+    (tmp_path / "jax_plugins" / "xla_cuda13").mkdir(parents=True)  # a namespace package, as the wheels lay it out
+    (tmp_path / "jax_plugins" / "xla_cuda13" / "__init__.py").write_text("")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    for name in [m for m in sys.modules if m == "jax_plugins" or m.startswith("jax_plugins.")]:
+        monkeypatch.delitem(sys.modules, name)
+    importlib.invalidate_caches()
+    assert xla_gpu.cuda_plugin_installed()
+    (tmp_path / "jax_plugins" / "xla_cuda13" / "__init__.py").unlink()
+    (tmp_path / "jax_plugins" / "xla_cuda13").rmdir()
+    (tmp_path / "jax_plugins" / "other_plugin").mkdir()
+    (tmp_path / "jax_plugins" / "other_plugin" / "__init__.py").write_text("")
+    importlib.invalidate_caches()
+    assert xla_gpu.cuda_plugin_installed() == installed  # another plugin is not a CUDA one
+
+
+def test_cpu_programs_already_round_a_multiply_add_once():
+    """The premise of the flag: XLA:CPU at its default optimisation level (a run's, and the parity
+    harness's; the suite compiles most tests at level 0, which does not contract) fuses a * b + c."""
+    with open("/proc/cpuinfo") as f:
+        if " fma " not in f.read():
+            pytest.skip("this CPU has no fused multiply-add instruction")
+    rng = np.random.default_rng(0)
+    a, b, c = (rng.standard_normal(4096).astype(np.float32) for _ in range(3))
+    default = {"xla_backend_optimization_level": 2, "xla_llvm_disable_expensive_passes": False}
+    got = np.asarray(jax.jit(lambda a, b, c: a * b + c, compiler_options=default)(a, b, c))
+    fused = (a.astype(np.float64) * b + c).astype(np.float32)  # exact product, one rounding
+    separate = a * b + c  # numpy: two roundings
+    assert np.mean(got == fused) == 1.0
+    assert np.mean(separate == fused) < 0.95  # the two roundings do differ on these inputs
