@@ -340,7 +340,7 @@ def _start():
     apply_cpu_guard()
     try:  # as the run's own sources start (those before 2026-12-07 have no shed_jax.xla_gpu, and no FMA flag)
         from shed_jax.xla_gpu import apply_gpu_codegen
-    except ImportError:
+    except ModuleNotFoundError:
         pass
     else:
         apply_gpu_codegen()

@@ -122,19 +122,26 @@ def xla_knows(options: list[str]) -> list[bool]:
     where jaxlib 0.10-0.11 keep it.
     """
     import importlib.util
-    import mmap
     import pathlib
 
-    found = [False] * len(options)
     if not options:
-        return found
+        return []
     spec = importlib.util.find_spec("jaxlib")
     if spec is None or not spec.origin:
-        return found
-    for lib in sorted(pathlib.Path(spec.origin).parent.glob("libjax_common*.so*")):
+        return [False] * len(options)
+    return names_in_libraries(sorted(pathlib.Path(spec.origin).parent.glob("libjax_common*.so*")), options)
+
+
+def names_in_libraries(paths, names: list[str]) -> list[bool]:
+    """Whether any of the shared libraries ``paths`` holds each of ``names`` as bytes (memory-mapped,
+    nothing loaded); unreadable paths are skipped."""
+    import mmap
+
+    found = [False] * len(names)
+    for lib in paths:
         try:
             with open(lib, "rb") as f, mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as m:
-                found = [k or m.find(o.encode()) >= 0 for k, o in zip(found, options)]
+                found = [k or m.find(o.encode()) >= 0 for k, o in zip(found, names)]
         except (OSError, ValueError):
             continue
     return found

@@ -1,7 +1,8 @@
 """The solver's branch-free ``sincos`` against float64 references."""
+import jax
 import numpy as np
 
-from envs.physics2d.vec import rotate2, sincos, V2
+from envs.physics2d.vec import LARGEST_ANGLE, V2, rotate2, sincos
 
 
 def _points():
@@ -11,11 +12,25 @@ def _points():
                            [0.0, 1e-30, 1e-8, 1.0, np.pi / 2, np.pi]]).astype(np.float32)
 
 
+def _error(s, c, x):
+    x = x.astype(np.float64)
+    return max(np.abs(np.asarray(s, np.float64) - np.sin(x)).max(), np.abs(np.asarray(c, np.float64) - np.cos(x)).max())
+
+
 def test_absolute_error_within_float32_rounding_of_unit_values():
     x = _points()
-    s, c = (np.asarray(v, np.float64) for v in sincos(x))
-    err = max(np.abs(s - np.sin(x.astype(np.float64))).max(), np.abs(c - np.cos(x.astype(np.float64))).max())
-    assert err < 1e-7, err  # 2**-24 ~ 6e-8 is half an ulp at 1; jnp.sin is within about that
+    assert _error(*sincos(x), x) < 1e-7  # 2**-24 ~ 6e-8 is half an ulp at 1; jnp.sin is within about that
+    # compiled as runs compile it (XLA:CPU's default level fuses the polynomials' multiply-adds)
+    default = {"xla_backend_optimization_level": 2, "xla_llvm_disable_expensive_passes": False}
+    assert _error(*jax.jit(sincos, compiler_options=default)(x), x) < 1e-7
+
+
+def test_huge_angles_stay_bounded():
+    x = np.array([1e5, -3e6, 1e9, 1.7e9, -3e38, LARGEST_ANGLE], np.float32)
+    s, c = (np.asarray(v) for v in sincos(x))
+    assert np.all(np.isfinite(s)) and np.all(np.isfinite(c))
+    assert np.all(np.abs(s) <= 1.0) and np.all(np.abs(c) <= 1.0)
+    np.testing.assert_array_equal(s[2:5], np.asarray(sincos(np.sign(x[2:5]) * LARGEST_ANGLE)[0]))
 
 
 def test_exact_symmetry_and_special_values():

@@ -5,7 +5,7 @@ import jax
 import numpy as np
 import pytest
 
-from shed_jax import xla_gpu
+from shed_jax import xla_cpu, xla_gpu
 
 
 def test_flag_added_only_with_a_cuda_plugin(monkeypatch):
@@ -39,6 +39,13 @@ def test_plugin_lookup_finds_a_cuda_plugin_in_the_jax_plugins_namespace(tmp_path
         monkeypatch.delitem(sys.modules, name)
     importlib.invalidate_caches()
     assert xla_gpu.cuda_plugin_installed()
+    assert not xla_gpu.llvm_knows_fma_level()  # a plugin without libraries names no LLVM option
+    lib = tmp_path / "jax_plugins" / "xla_cuda13" / "xla_cuda_plugin.so"
+    lib.write_bytes(b"\0-nvptx-fma-level\0")
+    assert xla_gpu.llvm_knows_fma_level() == xla_cpu.xla_knows([xla_gpu.LLVM_OPTION])[0]  # and jaxlib's must too
+    lib.write_bytes(b"\0-nvptx-sched4reg\0")
+    assert not xla_gpu.llvm_knows_fma_level()
+    lib.unlink()
     (tmp_path / "jax_plugins" / "xla_cuda13" / "__init__.py").unlink()
     (tmp_path / "jax_plugins" / "xla_cuda13").rmdir()
     (tmp_path / "jax_plugins" / "other_plugin").mkdir()
@@ -50,9 +57,13 @@ def test_plugin_lookup_finds_a_cuda_plugin_in_the_jax_plugins_namespace(tmp_path
 def test_cpu_programs_already_round_a_multiply_add_once():
     """The premise of the flag: XLA:CPU at its default optimisation level (a run's, and the parity
     harness's; the suite compiles most tests at level 0, which does not contract) fuses a * b + c."""
-    with open("/proc/cpuinfo") as f:
-        if " fma " not in f.read():
-            pytest.skip("this CPU has no fused multiply-add instruction")
+    try:
+        with open("/proc/cpuinfo") as f:
+            has_fma = " fma " in f.read()
+    except OSError:
+        has_fma = False
+    if not has_fma:
+        pytest.skip("no fused multiply-add instruction named in /proc/cpuinfo")
     rng = np.random.default_rng(0)
     a, b, c = (rng.standard_normal(4096).astype(np.float32) for _ in range(3))
     default = {"xla_backend_optimization_level": 2, "xla_llvm_disable_expensive_passes": False}

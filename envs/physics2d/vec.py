@@ -12,6 +12,7 @@ _FOUR_OVER_PI = np.float32(1.27323954473516)
 _PI4 = tuple(np.float32(x) for x in (0.78515625, 2.4187564849853515625e-4, 3.77489497744594108e-8))
 _SIN = tuple(np.float32(x) for x in (-1.9515295891e-4, 8.3321608736e-3, -1.6666654611e-1))
 _COS = tuple(np.float32(x) for x in (2.443315711809948e-5, -1.388731625493765e-3, 4.166664568298827e-2))
+LARGEST_ANGLE = np.float32(65536.0)  # radians: sincos's argument is clamped to this magnitude
 
 
 def sincos(angle):
@@ -20,12 +21,15 @@ def sincos(angle):
     Why not ``jnp.sin`` / ``jnp.cos``: on a GPU each is a library call with a slow path for huge
     arguments (a branch and a local-memory table), which splits a fused solver kernel's straight-line
     body into many blocks; here both share one reduction and the body stays one block. Absolute error
-    below 1e-7 for |angle| <= 8192 (tests/test_vec.py; the solver's angles stay far below), against
-    about 6e-8 for ``jnp.sin`` (so near a zero of sin, relative errors are larger); exactly odd (sin)
-    and even (cos); the same rounding on every backend as long as no multiply-add is contracted.
+    below 1e-7 for |angle| <= 8192 (tests/test_vec.py), against about 6e-8 for ``jnp.sin`` (so near a
+    zero of sin the relative error is larger); odd (sin) and even (cos) but for the sign of a zero.
+    Beyond 8192 the error grows, and from ``LARGEST_ANGLE`` on the result is that of
+    ``±LARGEST_ANGLE``: bounded, and meaningless, as a body turned ten thousand times has diverged.
+    Backends round the polynomials as they contract multiply-adds (XLA:CPU and, with
+    ``shed_jax/xla_gpu.py``, GPUs fuse them), so results differ between backends in the last bits.
     """
     x = jnp.asarray(angle, jnp.float32)
-    ax = jnp.abs(x)
+    ax = jnp.minimum(jnp.abs(x), LARGEST_ANGLE)  # keeps the octant count an int32 and the result in [-1, 1]
     j = (ax * _FOUR_OVER_PI).astype(jnp.int32)
     j = j + (j & 1)  # the nearest even octant: the reduced argument lies in [-pi/4, pi/4]
     y = j.astype(jnp.float32)
