@@ -1,6 +1,7 @@
 """The solver's branch-free ``sincos`` against float64 references."""
 import jax
 import numpy as np
+import pytest
 
 from envs.physics2d.vec import LARGEST_ANGLE, V2, rotate2, sincos
 
@@ -17,12 +18,11 @@ def _error(s, c, x):
     return max(np.abs(np.asarray(s, np.float64) - np.sin(x)).max(), np.abs(np.asarray(c, np.float64) - np.cos(x)).max())
 
 
+@pytest.mark.optimized  # the jit below at LLVM level 1, which fuses the polynomials' multiply-adds as runs do
 def test_absolute_error_within_float32_rounding_of_unit_values():
     x = _points()
     assert _error(*sincos(x), x) < 1e-7  # 2**-24 ~ 6e-8 is half an ulp at 1; jnp.sin is within about that
-    # compiled as runs compile it (XLA:CPU's default level fuses the polynomials' multiply-adds)
-    default = {"xla_backend_optimization_level": 2, "xla_llvm_disable_expensive_passes": False}
-    assert _error(*jax.jit(sincos, compiler_options=default)(x), x) < 1e-7
+    assert _error(*jax.jit(sincos)(x), x) < 1e-7
 
 
 def test_huge_angles_stay_bounded():
