@@ -97,6 +97,9 @@ def _kernel_shape(text: str) -> tuple[int, int]:
 
 
 def main(argv=None) -> int:
+    from shed_jax.xla_gpu import apply_gpu_codegen
+
+    apply_gpu_codegen()  # as python -m shed_jax compiles (before the backend starts)
     p = argparse.ArgumentParser(description="lander env steps/s")
     p.add_argument("--batches", default="1024,16384,131072,1048576", help="comma-separated batch sizes")
     p.add_argument("--steps", type=int, default=100, help="scanned steps per timed call")
