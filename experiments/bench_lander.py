@@ -139,7 +139,12 @@ def main(argv=None) -> int:
                           f"{r['speedup_vs_gym_core'] or float('nan'):9.1f} {r['compile_s']:10.1f}", flush=True)
     finally:
         fused.BLOCK, fused.NUM_WARPS = default_shape
-    result = dict(device=str(jax.devices()[0]), backend=jax.default_backend(), gym_steps_per_s=gym_sps,
+    from shed_jax.runtime import provenance
+
+    # the record says where, when and from which sources it was measured, and with which XLA flags
+    # (the GPU multiply-add flag changes the kernels); a missing anchor is null, not NaN (strict JSON)
+    result = dict(**provenance("experiments.bench_lander", argv), xla_flags=os.environ.get("XLA_FLAGS", ""),
+                  backend=jax.default_backend(), gym_steps_per_s=gym_sps if gym_sps == gym_sps else None,
                   continuous=args.continuous, rows=rows, memory=peak_memory())
     if args.out:
         os.makedirs(args.out, exist_ok=True)

@@ -32,3 +32,16 @@ def test_each_row_runs_under_its_shape_and_the_default_comes_back(monkeypatch, t
     rows = json.loads((tmp_path / "bench_lander.json").read_text())["rows"]
     assert [(r["kernel_block"], r["kernel_warps"], r["steps_per_s"]) for r in rows] == [
         (64, 2, 64e6), (64, 2, 64e6), (256, 8, 256e6), (256, 8, 256e6)]
+
+
+def test_the_record_says_where_when_and_how_it_was_measured(monkeypatch, tmp_path):
+    monkeypatch.setattr(bench_lander, "jax_throughput",
+                        lambda batch, steps, continuous, unroll=1: dict(batch=batch, steps_per_s=1.0, compile_s=0.0))
+    monkeypatch.setenv("XLA_FLAGS", "--xla_dump_to=/nowhere")
+    bench_lander.main(["--batches", "8", "--gym-seconds", "0", "--out", str(tmp_path)])
+    text = (tmp_path / "bench_lander.json").read_text()
+    rec = json.loads(text)
+    assert "NaN" not in text and rec["gym_steps_per_s"] is None  # no anchor: null, strict JSON
+    assert rec["command"] == f"python -m experiments.bench_lander --batches 8 --gym-seconds 0 --out {tmp_path}"
+    assert rec["device"].startswith("cpu: ") and rec["date"].endswith(" UTC") and "commit" in rec
+    assert rec["xla_flags"].startswith("--xla_dump_to=/nowhere")
