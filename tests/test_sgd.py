@@ -70,3 +70,30 @@ def test_too_few_samples():
     batch, params = _problem(3)
     with pytest.raises(ValueError, match="3 samples cannot fill 4 minibatches"):
         minibatch_sgd(_loss(3), optax.sgd(0.1), params, optax.sgd(0.1).init(params), batch, jax.random.PRNGKey(0), 1, 4)
+
+
+def test_scalar_aux_leaves_the_scan_stacked_with_the_same_values():
+    """Float32 scalar aux (PPO's losses) leave the scan as one vector a step; unstacked after, they are
+    what the per-leaf path (forced here by an int leaf) gives, bit for bit, in their own tree."""
+    n, k, epochs = 12, 3, 2
+    batch, params = _problem(n)
+    tx = optax.adam(0.1)
+
+    def loss_fn(params, mb, extra=False):
+        err = mb["x"] @ params["w"] + params["b"] - mb["y"]
+        loss = jnp.mean(err**2)
+        aux = {"loss": loss, "inner": {"bias": params["b"], "err": jnp.mean(err)}}
+        return loss, (dict(aux, count=jnp.int32(mb["i"].shape[0])) if extra else aux)
+
+    def run(extra):
+        f = lambda p, b: minibatch_sgd(lambda q, mb: loss_fn(q, mb, extra), tx, p, tx.init(p), b,  # noqa: E731
+                                       jax.random.PRNGKey(4), epochs, k, grad_norm=True)
+        return jax.jit(f)(params, batch)
+
+    (p_stacked, _), stacked = run(False)
+    (p_leafwise, _), leafwise = run(True)
+    assert set(stacked) == {"loss", "inner", "grad_norm"} and set(stacked["inner"]) == {"bias", "err"}
+    assert int(leafwise.pop("count")[0, 0]) == n // k
+    jax.tree_util.tree_map(lambda a, b: np.testing.assert_array_equal(np.asarray(a), np.asarray(b)), stacked, leafwise)
+    jax.tree_util.tree_map(lambda a, b: np.testing.assert_array_equal(np.asarray(a), np.asarray(b)), p_stacked, p_leafwise)
+    assert stacked["loss"].shape == (epochs, k) and stacked["loss"].dtype == jnp.float32

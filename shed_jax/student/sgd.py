@@ -10,6 +10,8 @@ from __future__ import annotations
 from typing import Any, Callable
 
 import jax
+import jax.numpy as jnp
+import numpy as np
 import optax
 
 
@@ -30,12 +32,36 @@ def minibatch_sgd(loss_fn: Callable, tx: optax.GradientTransformation, params: A
         raise ValueError(f"minibatch_sgd: {n} samples cannot fill {num_minibatches} minibatches")
     used = size * num_minibatches
 
+    aux_tree = []  # the aux pytree's structure, seen when ``step`` is traced
+    # a batch of float32 leaves travels as one (n, fields) array: one shuffle and one minibatch read
+    # per step instead of one per leaf (on a GPU each is a kernel launch); the loss sees the leaves
+    b_leaves, b_tree = jax.tree_util.tree_flatten(batch)
+    packed = len(b_leaves) > 1 and all(jnp.ndim(x) >= 1 and jnp.result_type(x) == jnp.float32 for x in b_leaves)
+    if packed:
+        shapes = [jnp.shape(x)[1:] for x in b_leaves]
+        widths = [int(np.prod(sh, dtype=np.int64)) for sh in shapes]
+        starts = np.concatenate([[0], np.cumsum(widths)]).tolist()
+        batch = jnp.concatenate([jnp.reshape(x, (n, w)) for x, w in zip(b_leaves, widths)], axis=1)
+
+    def unpack(mb):
+        if not packed:
+            return mb
+        return jax.tree_util.tree_unflatten(b_tree, [mb[:, a:a + w].reshape((mb.shape[0],) + sh)
+                                                     for a, w, sh in zip(starts, widths, shapes)])
+
     def step(carry, mb):
         params, opt_state = carry
+        mb = unpack(mb)
         grads, aux = jax.grad(loss_fn, has_aux=True)(params, mb)
         updates, opt_state = tx.update(grads, opt_state, params)
         if grad_norm:
             aux = dict(aux, grad_norm=optax.tree.norm(grads))
+        leaves, tree = jax.tree_util.tree_flatten(aux)
+        if leaves and all(jnp.shape(x) == () and jnp.result_type(x) == jnp.float32 for x in leaves):
+            # float32 scalars leave the scan as one vector: one write per step into the stacked
+            # output instead of one per scalar (on a GPU each write is a kernel launch)
+            aux_tree[:] = [tree]
+            aux = jnp.stack(leaves)
         return (optax.apply_updates(params, updates), opt_state), aux
 
     def epoch(carry, k):
@@ -45,4 +71,7 @@ def minibatch_sgd(loss_fn: Callable, tx: optax.GradientTransformation, params: A
         mbs = jax.tree_util.tree_map(lambda x: x[perm].reshape((num_minibatches, size) + x.shape[1:]), batch)
         return jax.lax.scan(step, carry, mbs)
 
-    return jax.lax.scan(epoch, (params, opt_state), jax.random.split(key, epochs))
+    carry, aux = jax.lax.scan(epoch, (params, opt_state), jax.random.split(key, epochs))
+    if aux_tree:
+        aux = jax.tree_util.tree_unflatten(aux_tree[0], [aux[..., i] for i in range(aux.shape[-1])])
+    return carry, aux
