@@ -123,12 +123,15 @@ def loops(device, worlds: int, **options) -> list[dict]:
     return rows
 
 
-def launches(device, variant: str, batch: int, steps: int, depth: int, hlo: str | None = None) -> list[dict]:
+def launches(device, variant: str, batch: int, steps: int, depth: int, hlo: str | None = None,
+             step: str = "step") -> list[dict]:
     """The kernel launches per step of ``steps`` sequential steps of ``batch`` walkers with random
     actions (``bench_latency.random_action_scan``, the program ``profile_bipedal_step --step step``
     traces on a GPU; its reset amortized over the steps), counted in the optimized HLO
     (``experiments.hlo_launches``), overall, per opcode and per JAX scope to ``depth``; ``hlo``: a
-    file to keep the optimized HLO in (gzipped), to count it again another way."""
+    file to keep the optimized HLO in (gzipped), to count it again another way; ``step``: ``"step"``
+    (``env.step``, its auto-reset included) or ``"without-reset"`` (``env.step_without_reset``, as a
+    teacher's evaluation steps)."""
     import jax
     import jax.numpy as jnp
     from jax.sharding import SingleDeviceSharding
@@ -137,7 +140,8 @@ def launches(device, variant: str, batch: int, steps: int, depth: int, hlo: str 
     from experiments.bench_latency import random_action_scan
     from experiments.profile_bipedal_step import make_env
 
-    run = random_action_scan(make_env(variant), batch, steps)
+    env = make_env(variant)
+    run = random_action_scan(env, batch, steps, env.step_without_reset if step == "without-reset" else None)
     key = jax.ShapeDtypeStruct((2,), jnp.uint32, sharding=SingleDeviceSharding(device))
     with aot_cache._as_gpu_host(device):
         t = time.time()
@@ -153,7 +157,7 @@ def launches(device, variant: str, batch: int, steps: int, depth: int, hlo: str 
             f.write(text)
     c = hlo_launches.count(text)
     per = lambda d: {k: round(v / steps, 2) for k, v in d.items()}  # noqa: E731
-    row = {"program": f"{batch} walkers x {steps} steps ({variant})", "lower_s": round(lower_s, 1),
+    row = {"program": f"{batch} walkers x {steps} steps ({variant}, {step})", "lower_s": round(lower_s, 1),
            "compile_s": round(compile_s, 1), "launches_per_step": round(c["total"] / steps, 2),
            "by_op": per(c["by_op"]), "by_scope": per(hlo_launches.by_scope(text, depth)),
            "unknown_trips": len(c["unknown_trips"])}
@@ -238,6 +242,8 @@ def main(argv=None) -> int:
     cp.add_argument("--steps", type=int, default=200, help="sequential steps in the program (default 200)")
     cp.add_argument("--depth", type=int, default=2, help="scope levels to group launches by (default 2)")
     cp.add_argument("--hlo", default=None, help="also write the optimized HLO text here (gzipped)")
+    cp.add_argument("--step", default="step", choices=["step", "without-reset"],
+                    help="env.step (with its auto-reset, default) or env.step_without_reset (as evaluations step)")
     up = sub.add_parser("update", help="kernel launches of one PPO update of a walker paper preset's students")
     up.add_argument("--env", default="bipedal", choices=("bipedal", "walker"), help="the environment (default bipedal)")
     up.add_argument("--seeds", type=int, default=5, help="vmapped students (default 5)")
@@ -288,7 +294,7 @@ def main(argv=None) -> int:
             ap.error(f"--variant must be one of {', '.join(VARIANTS)}, got {a.variant!r}")
         if min(a.batch, a.steps, a.depth) < 1:
             ap.error("--batch, --steps and --depth must be at least 1")
-        rows = launches(device, a.variant, a.batch, a.steps, a.depth, a.hlo)
+        rows = launches(device, a.variant, a.batch, a.steps, a.depth, a.hlo, a.step)
     elif a.cmd == "update":
         if min(a.seeds, a.depth) < 1:
             ap.error("--seeds and --depth must be at least 1")
