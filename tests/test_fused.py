@@ -176,9 +176,9 @@ def test_kernel_reads_and_writes_tiles_of_fields_in_order(tile, monkeypatch):
 @pytest.mark.parametrize("tile", [1, 4, 8])
 def test_consts_read_again_every_iteration_give_the_same_numbers(tile, monkeypatch):
     """``RELOAD_CONSTS`` (experimental): the kernel reads the consts from memory in each iteration, at
-    an offset of 0 the compiler cannot see; the values, and so the results, are the loop's. Block flags
-    keep their reduction from before the loop (``when`` still skips per block), and a loop with
-    ``done`` still stops per block."""
+    an offset of 0 the compiler cannot see; the values read are the loop's, and where no multiply-adds
+    are contracted (this suite's LLVM level 0) so are the results, bit for bit. Block flags keep their
+    reduction from before the loop (``when`` still skips per block)."""
     monkeypatch.setattr(fused, "TILE", tile)
     monkeypatch.setattr(fused, "RELOAD_CONSTS", True)
     worlds, n = 130, 3
