@@ -331,3 +331,57 @@ def test_edge_constraints_of_several_polygons_are_each_polygons_own_in_polygon_o
     assert bare["box_pairs"].shape == (4, 0) and not bool(jnp.any(bare["on"][8:]))  # body 3 stands on the box
     for name in per_point + ["pairs"]:
         np.testing.assert_array_equal(np.asarray(bare[name]), np.asarray(gone[name]), err_msg=name)
+
+
+def test_edge_constraints_equal_the_array_manifolds_selected_by_gathers():
+    """``edge_constraints`` computes every (polygon, edge) and (polygon, box) manifold in per-world
+    scalars and picks each polygon's first ``edge_contacts`` touching ones by an unrolled loop of
+    selects. Over random walker-like poses among edges and stumps it must equal the array path: each
+    polygon's ``polygon_edges_manifolds`` and ``polygon_obstacles_manifolds`` concatenated, then
+    ``select_edges`` (gathers), laid out per point; ids, flags and keys exactly, the rest to rounding."""
+    from envs.physics2d import polygon as PG
+    from envs.physics2d.model import BodyState
+    from envs.physics2d.world import edge_constraints, fixture_keys
+
+    shin, thigh = (0.0853, 0.567), (0.133, 0.567)
+    rect = lambda hx, hy: ((-hx, -hy), (hx, -hy), (hx, hy), (-hx, hy))  # noqa: E731
+    polys = [physics2d.Polygon(b, rect(*(thigh if b % 2 == 0 else shin)), 1.0, 0.2) for b in range(4)]
+    cfg = physics2d.SolverConfig(dt=1 / 50, velocity_iterations=4, position_iterations=2, edge_contacts=3)
+    model = physics2d.make_model(4, polys, (), cfg)
+    rng = np.random.default_rng(11)
+    f = lambda a: jnp.asarray(a, jnp.float32)  # noqa: E731
+    xs = np.cumsum(rng.uniform(0.3, 0.6, 13)) - 2.0
+    ys = rng.uniform(-0.15, 0.15, 13)
+    pts = np.stack([xs, ys], -1)
+    edges = f(np.stack([pts[:-1], pts[1:]], 1))  # 12 edges
+    valid = jnp.asarray(rng.random(12) < 0.9)
+    boxes = f([[-0.5, -0.2, -0.1, 0.35], [0.6, 0.9, -0.1, 0.25], [1.5, 1.8, -0.1, 0.4]])
+    box_valid = jnp.asarray([True, True, False])
+    n_cases, found = 60, 0
+    for case in range(n_cases):
+        com = np.stack([rng.uniform(-1.5, 2.0, 4), rng.uniform(0.0, 0.9, 4)], -1)
+        bodies = BodyState(com=f(com), angle=f(rng.uniform(-1.2, 1.2, 4)), vel=f(np.zeros((4, 2))), omega=f(np.zeros(4)))
+        got = edge_constraints(model, bodies, edges, valid, boxes, box_valid)
+        keys = jnp.concatenate([fixture_keys(edges[:, 0, 0]), fixture_keys(boxes[:, 0], box=True)])
+        for k, p in enumerate(polys):
+            c, s = np.cos(float(bodies.angle[k])), np.sin(float(bodies.angle[k]))
+            rot = np.array([[c, -s], [s, c]], np.float32)
+            verts = f(np.asarray(p.vertices) @ rot.T + com[k])
+            normals = f(E.polygon_normals(p.vertices) @ rot.T)
+            m = E.polygon_edges_manifolds(edges, valid, verts, normals, f(com[k]), 0.02)
+            mb = PG.polygon_obstacles_manifolds(boxes, box_valid, verts, normals, f(com[k]), 0.02)
+            sel = E.select_edges({n: jnp.concatenate([m[n], mb[n]]) for n in m}, 3)
+            two = lambda a: np.repeat(np.asarray(a), 2, axis=0)  # noqa: E731
+            key = np.where(np.asarray(sel["edge"]) >= 0, np.asarray(keys)[np.maximum(np.asarray(sel["edge"]), 0)], 0)
+            want = dict(on=np.asarray(sel["on"]).reshape(-1), face_b=two(sel["face_b"]),
+                        key=np.stack([two(key), np.asarray(sel["id"]).reshape(-1)], -1),
+                        normal=two(sel["normal"]), point=np.asarray(sel["point"]).reshape(-1, 2),
+                        ref_normal=two(sel["ref_normal"]), ref_point=two(sel["ref_point"]),
+                        clip=np.asarray(sel["clip"]).reshape(-1, 2))
+            rows = slice(6 * k, 6 * k + 6)
+            for name in ("on", "face_b", "key"):
+                np.testing.assert_array_equal(np.asarray(got[name][rows]), want[name], err_msg=f"{name} case {case}")
+            for name in ("normal", "point", "ref_normal", "ref_point", "clip"):
+                np.testing.assert_allclose(np.asarray(got[name][rows]), want[name], atol=2e-6, err_msg=f"{name} {case}")
+            found += int(want["on"].sum())
+    assert found > 50  # the poses put legs on edges and stumps, not only in the air
