@@ -116,9 +116,6 @@ def main(argv=None) -> int:
                    help="walkers: columns per iteration of the terrain generator's loop (an auto-reset's terrain)")
     p.add_argument("--solver-kernel", default="auto", choices=["auto", "xla", "pallas", "interpret"],
                    help="physics2d solver loops (lander, bipedal): fused Pallas kernel or plain XLA (auto: Pallas on GPU)")
-    p.add_argument("--reload-consts", action="store_true",
-                   help="physics2d's fused kernels read their consts in every iteration (experimental: "
-                        "envs.physics2d.fused.RELOAD_CONSTS)")
     p.add_argument("--step", default="step", choices=["step", "without-reset"],
                    help="time env.step (with its auto-reset) or env.step_without_reset")
     p.add_argument("--env", default="lander")
@@ -150,16 +147,11 @@ def main(argv=None) -> int:
     if args.terrain_unroll is not None:  # an env without a terrain (the lander) refuses it by name
         solver["terrain_unroll"] = args.terrain_unroll
     unroll = {"unroll": args.unroll} if args.unroll != 1 else {}  # likewise: the MJX walker takes none
-    if args.reload_consts:  # read when the kernels are traced, so set before the first step compiles
-        from envs.physics2d import fused
-
-        fused.RELOAD_CONSTS = True
     env = envs.make(args.env, **unroll, **solver)
     res = dict(**provenance("experiments.bench_latency", argv), unroll=args.unroll, env=args.env, tag=args.tag,
                **solver, xla_flags=os.environ.get("XLA_FLAGS", ""), env_rows=[])
     res["solver_kernel"] = args.solver_kernel
     res["step"] = args.step
-    res["reload_consts"] = args.reload_consts
     step_fn = env.step if args.step == "step" else env.step_without_reset
     for b in (int(x) for x in args.batches.split(",") if x):  # "": no env rows (student timings only)
         row = env_latency(env, b, args.steps, step_fn)

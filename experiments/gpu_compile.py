@@ -233,8 +233,6 @@ def main(argv=None) -> int:
     sub = ap.add_subparsers(dest="cmd", required=True)
     lp = sub.add_parser("loops", help="each fused loop of a 2-D walker step, alone")
     lp.add_argument("--worlds", type=int, default=1024, help="worlds per loop (default: the kernels' least padding)")
-    lp.add_argument("--reload-consts", action="store_true",
-                    help="the kernels read their consts in every iteration (envs.physics2d.fused.RELOAD_CONSTS)")
     lp.add_argument("--velocity-manifolds", type=int, default=0,
                     help="the env's velocity_manifolds: manifold slots of the velocity passes (0: all 12)")
     cp = sub.add_parser("launches", help="kernel launches per 2-D walker step (optimized HLO), by op and scope")
@@ -286,7 +284,6 @@ def main(argv=None) -> int:
     t = time.time()
     if a.cmd == "loops":
         try:
-            fused.RELOAD_CONSTS = a.reload_consts
             rows = loops(device, a.worlds, velocity_manifolds=a.velocity_manifolds)
         except ValueError as e:  # the env's own check of the option, one line
             raise SystemExit(f"gpu_compile: {e}") from None

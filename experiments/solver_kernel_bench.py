@@ -15,8 +15,7 @@ access of the kernel's inputs and outputs (``fused.TILE``; 1 is one field per ac
 ``experiments.gpu_compile``), ``lower2`` (the velocity / position
 pass over the lower legs' first two manifolds only: what a block whose worlds touch nothing else
 would need), ``libtrig`` (the kernels' sines and cosines from ``jnp.sin`` / ``jnp.cos``, the GPU's
-library calls, instead of ``envs.physics2d.vec.sincos``), ``reload`` (the kernels read their consts
-in every iteration instead of holding them in registers: ``fused.RELOAD_CONSTS``). ``ms`` is the wall time of a call (with the stacking and slicing around the kernel);
+library calls, instead of ``envs.physics2d.vec.sincos``). ``ms`` is the wall time of a call (with the stacking and slicing around the kernel);
 ``--trace`` adds the kernels' device time.
 """
 from __future__ import annotations
@@ -199,7 +198,6 @@ def bench(inputs: str, variants: list[str], repeats: int, out: str, mode: str = 
             fused.BLOCK = int(opts.get("block", 128))
             fused.NUM_WARPS = max(1, fused.BLOCK // 32)
             fused.TILE = int(opts.get("tile", tile))
-            fused.RELOAD_CONSTS = "reload" in opts  # the consts read in every iteration (experimental)
             fn = loop_program(n, b, done, mode)
             t = time.perf_counter()
             try:
@@ -229,7 +227,7 @@ def bench(inputs: str, variants: list[str], repeats: int, out: str, mode: str = 
             print(json.dumps(row), flush=True)
             with open(out, "w") as f:
                 json.dump(rec, f, indent=1)
-    fused.BLOCK, fused.NUM_WARPS, fused.TILE, fused.RELOAD_CONSTS = 128, 4, tile, False
+    fused.BLOCK, fused.NUM_WARPS, fused.TILE = 128, 4, tile
     return rec
 
 

@@ -173,37 +173,6 @@ def test_kernel_reads_and_writes_tiles_of_fields_in_order(tile, monkeypatch):
     assert _kernel_accesses(run("interpret"), c, s0) == -(-48 // tile) + -(-11 // tile)
 
 
-@pytest.mark.parametrize("tile", [1, 4, 8])
-def test_consts_read_again_every_iteration_give_the_same_numbers(tile, monkeypatch):
-    """``RELOAD_CONSTS`` (experimental): the kernel reads the consts from memory in each iteration, at
-    an offset of 0 the compiler cannot see; the values read are the loop's, and where no multiply-adds
-    are contracted (this suite's LLVM level 0) so are the results, bit for bit. Block flags keep their
-    reduction from before the loop (``when`` still skips per block)."""
-    monkeypatch.setattr(fused, "TILE", tile)
-    monkeypatch.setattr(fused, "RELOAD_CONSTS", True)
-    worlds, n = 130, 3
-    c = jax.random.uniform(jax.random.PRNGKey(0), (37, worlds), jnp.float32, 0.5, 1.0)
-    s0 = jax.random.normal(jax.random.PRNGKey(1), (11, worlds), jnp.float32)
-    run = lambda mode: jax.vmap(lambda c, s: fused.per_world_fori_loop(  # noqa: E731
-        n, many_fields, tuple(c), tuple(s), mode=mode), in_axes=(1, 1))
-    np.testing.assert_array_equal(np.asarray(run("interpret")(c, s0)), np.asarray(run("xla")(c, s0)))
-    # before its loop the kernel reads only the tiles of the carry and of the zero field (columns 37 to
-    # 48: the consts, columns 0 to 36, are read inside the loop), and writes the 11 outputs after it
-    assert _kernel_accesses(run("interpret"), c, s0) == -(-49 // tile) - 37 // tile + -(-11 // tile)
-
-    def body(c, x):  # ``when`` on a block flag among consts that are read again
-        return fused.when(c["flag"], lambda v: v * c["a"] + 1.0, x)
-
-    flags = jnp.zeros(130, jnp.float32).at[129].set(1.0)
-    a = jnp.linspace(0.5, 1.5, 130, dtype=jnp.float32)
-    one = lambda f, a, x: fused.per_world_fori_loop(3, body, dict(flag=fused.BlockAny(f), a=a), x,  # noqa: E731
-                                                    mode="interpret")
-    got = np.asarray(jax.vmap(one)(flags, a, jnp.zeros(130, jnp.float32)))
-    a_ = np.asarray(a)
-    expect = np.where(np.arange(130) >= 128, ((0 * a_ + 1) * a_ + 1) * a_ + 1, 0.0)
-    np.testing.assert_allclose(got, expect, rtol=1e-6)
-
-
 def test_scan_matches_lax_scan_unbatched_vmapped_and_nested():
     """``per_world_scan``: the kernel (through the interpreter) stores every iteration's outputs where
     ``lax.scan`` stacks them, over more worlds than one block (130 = 128 + 2), with an unbatched

@@ -38,10 +38,6 @@ _TRACING = threading.local()  # .in_kernel: True while this thread traces a kern
 BLOCK = 128  # worlds per kernel instance (one per thread with 4 warps)
 NUM_WARPS = 4  # Triton warps per kernel instance (32 threads each)
 TILE = 4  # per-world fields per memory access of the kernel's inputs and outputs (a power of two)
-# Experimental (off): the kernel reads a loop's consts from memory in every iteration instead of holding
-# them in registers for all iterations, so the registers hold the carry (the 2-D walker's velocity loop
-# spills past 255 registers); the values are the same. Read when a kernel is traced.
-RELOAD_CONSTS = False
 # Compiled kernels pad their worlds to at least MIN_WORLDS, so that loops run at different batches (a
 # teacher's evaluation, a test set, the training rollout) are one kernel to XLA, which compiles a
 # Triton call once per grid: a kernel of 8 or 40 blocks takes the same time on a GPU with more
@@ -276,17 +272,11 @@ def _kernel(n, step, c_tree, s_tree, x_tree, y_tree, nc, ns, leaves, interpret, 
     # with ``done``, one more input field says which worlds are real (1) or padding (0): as data, not as
     # a constant ``w``, so calls at different batches of one grid are the same kernel
     f_real = f_in + (done is not None)
-    # RELOAD_CONSTS: one more field, a per-world 0, whose block minimum times the iteration offsets the
-    # consts' reads, so the compiler cannot hoist them out of the loop (at run time the offset is 0)
-    reload = RELOAD_CONSTS and nc > 0
-    f_zero = f_real
-    f_real += reload
     # Triton wants power-of-two block shapes: pad fields, iterations and worlds (padding worlds are
     # zeros, computed and dropped; the solver's divisions are guarded, so they stay finite).
     tile = min(TILE, _pow2(max(f_real, f_out)))
     cols_in, cols_out, wp = _tiles(f_real, tile), _tiles(f_out, tile), _blocks(w, interpret) * BLOCK
     per_world = list(leaves[:f_in]) + ([jnp.ones((w,), jnp.float32)] if done is not None else [])
-    per_world += [jnp.zeros((w,), jnp.float32)] if reload else []
     # stacked as rows, then one transpose (XLA's tiled transpose, not a strided gather per field)
     x = jnp.pad(jnp.stack(per_world, 0), ((0, cols_in - f_real), (0, wp - w))).T
     in_specs = [pl.BlockSpec((BLOCK, cols_in), lambda i: (i, 0))]
@@ -312,20 +302,10 @@ def _kernel(n, step, c_tree, s_tree, x_tree, y_tree, nc, ns, leaves, interpret, 
         # block-uniform flags: reduced once, before the loop
         c = jax.tree_util.tree_map(lambda x: BlockAny(jnp.max(x.flag)) if _is_flag(x) else x, c, is_leaf=_is_flag)
         s = jax.tree_util.tree_unflatten(s_tree, rows[nc:f_in])
-        zero = jnp.min(rows[f_zero]).astype(jnp.int32) if reload else None
-
-        def consts(i):
-            if not reload:
-                return c
-            off = zero * i  # 0 at run time; not known to the compiler
-            again = [r for j in range(0, nc, tile) for r in _tile_split(x_ref[:, pl.ds(off + j, tile)], tile)][:nc]
-            fresh = jax.tree_util.tree_unflatten(c_tree, again)
-            # block flags keep their reduction from before the loop
-            return jax.tree_util.tree_map(lambda old, new: old if _is_flag(old) else new, c, fresh, is_leaf=_is_flag)
 
         def iteration(i, s):
             xi = jax.tree_util.tree_unflatten(x_tree, [seq_ref[f, i, :] for f in range(f_x)])
-            s, y = step(consts(i), s, xi)
+            s, y = step(c, s, xi)
             for g, v in enumerate(jax.tree_util.tree_leaves(y)):
                 ys_ref[g, i, :] = jnp.broadcast_to(jnp.asarray(v, jnp.float32), (BLOCK,))
             return s
