@@ -1,9 +1,9 @@
-"""The solver's branch-free ``sincos`` against float64 references; the unrolled short reductions."""
+"""The solver's branch-free ``sincos`` against float64 references."""
 import jax
 import numpy as np
 import pytest
 
-from envs.physics2d.vec import LARGEST_ANGLE, V2, argmax_of, argmin_of, max_of, min_of, pick_of, rotate2, sincos
+from envs.physics2d.vec import LARGEST_ANGLE, V2, rotate2, sincos
 
 
 def _points():
@@ -51,23 +51,3 @@ def test_rotation_by_quarter_turns():
     for k, (ex, ey) in enumerate([(2.0, -1.0), (1.0, 2.0), (-2.0, 1.0), (-1.0, -2.0)]):
         r = rotate2(np.float32(k * np.pi / 2), v)
         np.testing.assert_allclose([float(r.x), float(r.y)], [ex, ey], atol=5e-7)
-
-
-def test_unrolled_reductions_equal_numpys_ties_and_signed_zeros_included():
-    """``min_of`` / ``max_of`` / ``argmax_of`` / ``argmin_of`` / ``pick_of`` over a list of 4 arrays equal
-    numpy's reductions over the stacked axis: the first index on ties, every value exactly."""
-    rng = np.random.default_rng(3)
-    x = rng.integers(-2, 3, size=(4, 500)).astype(np.float32)  # small integers: many ties
-    x[:, :50] = rng.normal(size=(4, 50)).astype(np.float32)
-    xs = [jax.numpy.asarray(r) for r in x]
-    np.testing.assert_array_equal(np.asarray(min_of(xs)), x.min(0))
-    np.testing.assert_array_equal(np.asarray(max_of(xs)), x.max(0))
-    np.testing.assert_array_equal(np.asarray(argmax_of(xs)), x.argmax(0))
-    np.testing.assert_array_equal(np.asarray(argmin_of(xs)), x.argmin(0))
-    assert np.asarray(argmax_of(xs)).dtype == np.int32
-    i = rng.integers(0, 4, size=500)
-    got = pick_of(xs, jax.numpy.asarray(i))
-    assert np.asarray(got).tobytes() == x[i, np.arange(500)].tobytes()
-    z = np.array([-0.0, 1.0], np.float32)  # a picked -0.0 stays -0.0 (a one-hot sum would give +0.0)
-    v = pick_of([V2(z, z), V2(-z, z)], jax.numpy.asarray([0, 1]))
-    assert np.signbit(np.asarray(v.x)).tolist() == [True, True] and np.asarray(v.y).tolist() == [-0.0, 1.0]

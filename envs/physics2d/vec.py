@@ -105,9 +105,6 @@ class V2:
     def __rmul__(self, s):
         return V2(s * self.x, s * self.y)
 
-    def __neg__(self):
-        return V2(-self.x, -self.y)
-
     def dot(self, o):
         return self.x * o.x + self.y * o.y
 
@@ -134,51 +131,3 @@ def rotate2(angle, v: V2) -> V2:
 def rotate_cs(c, s, v: V2) -> V2:
     """R @ v for a V2, R given by its cosine and sine (to rotate several vectors by one angle)."""
     return V2(c * v.x - s * v.y, s * v.x + c * v.y)
-
-
-# Reductions over a short list of per-world values (a polygon's vertices or faces), unrolled into
-# elementwise ops: a reduce over a small axis is a GPU kernel of its own, while these stay inside the
-# surrounding elementwise fusion (``edge.py``, ``polygon.py``).
-def min_of(xs):
-    """The elementwise minimum of a list of arrays."""
-    out = xs[0]
-    for x in xs[1:]:
-        out = jnp.minimum(out, x)
-    return out
-
-
-def max_of(xs):
-    """The elementwise maximum of a list of arrays."""
-    out = xs[0]
-    for x in xs[1:]:
-        out = jnp.maximum(out, x)
-    return out
-
-
-def argmax_of(xs):
-    """Elementwise, the index (int32) of the largest of a list of finite arrays, the first on ties
-    (``jnp.argmax`` over a stacked axis)."""
-    best, at = xs[0], jnp.zeros(jnp.shape(xs[0]), jnp.int32)
-    for i, x in enumerate(xs[1:], 1):
-        take = x > best
-        best, at = jnp.where(take, x, best), jnp.where(take, jnp.int32(i), at)
-    return at
-
-
-def argmin_of(xs):
-    """Elementwise, the index (int32) of the smallest of a list of finite arrays, the first on ties."""
-    best, at = xs[0], jnp.zeros(jnp.shape(xs[0]), jnp.int32)
-    for i, x in enumerate(xs[1:], 1):
-        take = x < best
-        best, at = jnp.where(take, x, best), jnp.where(take, jnp.int32(i), at)
-    return at
-
-
-def pick_of(xs, i):
-    """Elementwise ``xs[i]`` of a list of arrays or ``V2`` for an int array ``i`` in range: a chain of
-    selects, no gather."""
-    out = xs[-1]
-    for k in range(len(xs) - 2, -1, -1):
-        hit = i == k
-        out = xs[k].where(hit, out) if isinstance(out, V2) else jnp.where(hit, xs[k], out)
-    return out

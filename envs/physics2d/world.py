@@ -80,51 +80,47 @@ def edge_constraints(model: Model, bodies: BodyState, edges, valid, boxes=None, 
     plus ``pairs`` (num_polygons, S) bool: polygon k's manifold with edge s has points, and
     ``box_pairs`` (num_polygons, K) the same per box.
 
-    Polygons with the same vertex count are one computation (the walker's four leg boxes: one set of
-    GPU kernels and a quarter of the program instead of one copy per leg), in per-world scalars over
-    (polygon, fixture) pairs, and each polygon's first touching manifolds are picked by an unrolled
-    loop of selects: in a 2-D walker step on a GPU they are 5 kernel launches, against 32 when each
-    polygon was vmapped over (N, 2) arrays and each leaf gathered (``experiments.gpu_compile launches``).
+    Polygons with the same vertex count are one vmapped computation (the walker's four leg boxes: one
+    set of GPU kernels and a quarter of the program instead of one copy per leg).
     """
     cfg = model.config
     k_edges = cfg.edge_contacts
     lc = np.asarray(model.local_com, np.float64)
     n_box = 0 if boxes is None else boxes.shape[0]
     keys = fixture_keys(edges[:, 0, 0])
-    e1, e2 = V2.of(edges[None, :, 0]), V2.of(edges[None, :, 1])  # (1, S): against (G, 1) polygons
     if n_box:
-        box_keys = fixture_keys(boxes[:, 0], box=True)
-        bv, bn, bc = pg.box_corners(boxes[None])  # (1, K)
+        keys = jnp.concatenate([keys, fixture_keys(boxes[:, 0], box=True)])
+
+    def manifolds(verts, normals, centroid):  # one polygon against every edge and box
+        m = edg.polygon_edges_manifolds(edges, valid, verts, normals, centroid, cfg.contact_radius)
+        pairs, box_pairs = m["on"][:, 0], jnp.zeros((0,), bool)
+        if n_box:
+            mb = pg.polygon_obstacles_manifolds(boxes, box_valid, verts, normals, centroid, cfg.contact_radius)
+            box_pairs = mb["on"][:, 0]
+            m = {name: jnp.concatenate([m[name], mb[name]]) for name in m}
+        sel = edg.select_edges(m, k_edges)  # leaves (K, 2, ...) per point or (K, ...) per manifold
+        edge_key = jnp.sum(jnp.where(jnp.arange(keys.shape[0])[None] == sel["edge"][:, None], keys[None], 0), 1)
+        two = lambda a: jnp.repeat(a, 2, axis=0)  # per manifold -> per point
+        part = dict(on=sel["on"].reshape(-1), normal=two(sel["normal"]), point=sel["point"].reshape(-1, 2),
+                    face_b=two(sel["face_b"]), ref_normal=two(sel["ref_normal"]), ref_point=two(sel["ref_point"]),
+                    clip=sel["clip"].reshape(-1, 2), key=jnp.stack([two(edge_key), sel["id"].reshape(-1)], -1))
+        return pairs, box_pairs, part
 
     order, pairs, box_pairs, parts = [], [], [], []
     for ks in _by_vertex_count(model):
         polys = [model.polygons[k] for k in ks]
         i = np.asarray([p.body for p in polys], np.int32)
-        local = np.stack([np.asarray(p.vertices, np.float64) - lc[p.body] for p in polys]).astype(np.float32)
-        normals = np.stack([edg.polygon_normals(p.vertices) for p in polys]).astype(np.float32)
-        centroid = np.stack([polygon_mass(np.asarray(p.vertices, np.float64), 1.0)[1] - lc[p.body]  # Box2D's m_centroid
-                             for p in polys]).astype(np.float32)
-        com, angle = bodies.com[i][:, None], bodies.angle[i][:, None]  # (G, 1)
-        sin_, cos_ = sincos(angle)
-        at = V2(com[..., 0], com[..., 1])
-        world = lambda p: rotate_cs(cos_, sin_, V2(p[:, 0, None], p[:, 1, None]))  # noqa: E731  (G, 1)
-        verts = [at + world(local[:, v]) for v in range(local.shape[1])]
-        norms = [world(normals[:, v]) for v in range(normals.shape[1])]
-        cent = at + world(centroid)
-        m = edg.edge_manifold(e1, e2, verts, norms, cent, cfg.contact_radius)  # leaves (G, S)
-        m["on0"], m["on1"] = m["on0"] & valid[None], m["on1"] & valid[None]
-        cands = [({k: v[:, s] for k, v in m.items()}, keys[s]) for s in range(edges.shape[0])]
-        pairs.append(m["on0"])
-        if n_box:
-            mb = pg.polygon_manifold(bv, bn, bc, verts, norms, cent, cfg.contact_radius)  # (G, K)
-            mb["on0"], mb["on1"] = mb["on0"] & box_valid[None], mb["on1"] & box_valid[None]
-            cands += [({k: v[:, s] for k, v in mb.items()}, box_keys[s]) for s in range(n_box)]
-            box_pairs.append(mb["on0"])
-        else:
-            box_pairs.append(jnp.zeros((len(ks), 0), bool))
-        slots = edg.first_manifolds(cands, k_edges)  # k_edges dicts of (G,) leaves, "key" included
+        local = jnp.asarray(np.stack([np.asarray(p.vertices, np.float64) - lc[p.body] for p in polys]), jnp.float32)
+        normals = jnp.asarray(np.stack([edg.polygon_normals(p.vertices) for p in polys]), jnp.float32)
+        centroid = jnp.asarray(np.stack([polygon_mass(np.asarray(p.vertices, np.float64), 1.0)[1] - lc[p.body]  # Box2D's m_centroid
+                                         for p in polys]), jnp.float32)
+        com, angle = bodies.com[i], bodies.angle[i]
+        p_g, bp_g, part_g = jax.vmap(manifolds)(com[:, None] + rotate(angle[:, None], local),
+                                               rotate(angle[:, None], normals), com + rotate(angle, centroid))
         order += ks
-        parts.append(_contact_layout(slots))
+        pairs.append(p_g)
+        box_pairs.append(bp_g)
+        parts.append(part_g)
     # back to polygon order: contacts follow edge_polygons, and pair rows of polygons without edge
     # contacts are False
     cat = lambda xs: jnp.concatenate(xs) if len(xs) > 1 else xs[0]  # noqa: E731
@@ -145,28 +141,9 @@ def edge_constraints(model: Model, bodies: BodyState, edges, valid, boxes=None, 
     return out
 
 
-def _contact_layout(slots):
-    """Selected manifolds (``edge.first_manifolds``: per slot a dict of (G,) leaves) as (G, 2 slots, ...)
-    contact points: leaves ``on``, ``normal``, ``point``, ``face_b``, ``ref_normal``, ``ref_point``,
-    ``clip``, ``key`` (fixture key, feature id)."""
-    def per_point(a, b):  # (G,) per point 0 and 1 of each slot -> (G, 2 slots)
-        return jnp.stack([x for m in slots for x in (m[a], m[b])], 1)
-
-    def per_slot(a):  # a manifold's leaf for both its points
-        return per_point(a, a)
-
-    vec = lambda x, y: jnp.stack([x, y], -1)  # noqa: E731
-    return dict(on=per_point("on0", "on1"), normal=vec(per_slot("nx"), per_slot("ny")),
-                point=vec(per_point("point0x", "point1x"), per_point("point0y", "point1y")),
-                face_b=per_slot("face_b"), ref_normal=vec(per_slot("ref_nx"), per_slot("ref_ny")),
-                ref_point=vec(per_slot("ref_px"), per_slot("ref_py")),
-                clip=vec(per_point("clip0x", "clip1x"), per_point("clip0y", "clip1y")),
-                key=vec(per_slot("key"), per_point("id0", "id1")))
-
-
 def _by_vertex_count(model: Model) -> list[list[int]]:
     """The solid polygons (``model.edge_polygons``) grouped by vertex count, each group in polygon order:
-    one computation per group gives fewer, larger GPU kernels than one copy per polygon."""
+    one vmapped computation per group gives fewer, larger GPU kernels than one copy per polygon."""
     groups: dict[int, list[int]] = {}
     for k in model.edge_polygons:
         groups.setdefault(len(model.polygons[k].vertices), []).append(k)
