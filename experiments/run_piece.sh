@@ -87,6 +87,7 @@ fi
 # this host's GPU model (before the run's sources replace experiments/); RUN_PIECE_GPU= overrides it
 gpu=${RUN_PIECE_GPU-$(bash experiments/gpu_model.sh 2>/dev/null)}
 rm -rf shed_jax envs experiments && tar xzf "$dir/src.tgz" || exit 4
+rm -f .source_commit  # the tree's commit (experiments/slim_tree.sh) does not describe the run's sources
 # a warm machine keeps ignored paths between calls: another run's cache, or this run's directory as
 # an earlier piece left it, would be packed with this piece's; it starts from the folder's parts alone
 rm -rf .cache/device "$run"

@@ -29,6 +29,7 @@ git rev-parse --git-dir >/dev/null 2>&1 && [ -d docs ] || { echo "slim_tree: run
 grep -qx "/$aside/" .git/info/exclude 2>/dev/null || echo "/$aside/" >> .git/info/exclude
 if [ "${1:-}" = --restore ]; then
   find docs/results -name staged.sha256 -type f -delete 2>/dev/null  # written by --staged for one call
+  rm -f .source_commit  # written by the slim for the call
   [ -d "$aside" ] || { echo "slim_tree: nothing is aside"; exit 0; }
   # docs/ back; the carried folder's entries set aside (its caches for other GPU models) back into it.
   # Nothing in the tree is overwritten: an entry there already (a part the piece replaced) wins, and
@@ -98,6 +99,9 @@ for folder in "${folders[@]}"; do excl+=(":(exclude)$folder"); done
 dirty=$(git status --porcelain -- docs "${excl[@]}" | head -3)
 [ -z "$dirty" ] || { echo "slim_tree: docs/ has uncommitted changes outside ${folders[*]} (commit them first): $(echo "$dirty" | tr '\n' ' ')"; exit 2; }
 kept() { local f; for f in "${folders[@]}"; do [ "$1" = "$f" ] && return 0; done; return 1; }
+# the commit the call's records name (shed_jax.runtime.source_commit): the device's copy of the tree
+# may carry older git metadata; untracked and not ignored, the file travels with the call
+git describe --always --dirty > .source_commit
 mkdir -p "$aside/docs/results"
 for p in docs/*; do [ "$p" = docs/results ] || mv "$p" "$aside/docs/"; done
 for p in docs/results/*; do kept "$p" || mv "$p" "$aside/docs/results/"; done

@@ -225,13 +225,23 @@ def describe_devices(devices) -> str:
     return ", ".join(f"{n} x {kind}" for kind, n in kinds.items())
 
 
+SOURCE_COMMIT_FILE = ".source_commit"
+
+
 def source_commit(repo: pathlib.Path | None = None) -> str | None:
     """The commit of this project's checkout, or of ``repo``: ``git describe --always --dirty``, whose
     ``-dirty`` suffix says tracked files differ from that commit. None outside a git checkout of the
-    project itself (an installed wheel, a copied tree, no git)."""
+    project itself (an installed wheel, a copied tree, no git).
+
+    A ``.source_commit`` file at the checkout's root wins: ``experiments/slim_tree.sh`` writes the
+    tree's ``git describe`` there for a device call, whose copy of the tree can carry git metadata
+    older than the tree (its records then named a commit of hours before)."""
     import subprocess
 
     repo = pathlib.Path(__file__).resolve().parents[1] if repo is None else pathlib.Path(repo)
+    pinned = repo / SOURCE_COMMIT_FILE
+    if pinned.is_file():
+        return pinned.read_text().strip() or None
     if not (repo / ".git").exists():  # not a checkout of its own (never the git repository of a folder above)
         return None
     try:

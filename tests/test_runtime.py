@@ -108,6 +108,10 @@ def test_source_commit_names_the_checkouts_commit_and_marks_edits(tmp_path, monk
     assert first and sha.startswith(first)
     (tmp_path / "a.py").write_text("x = 2\n")
     assert runtime.source_commit(tmp_path) == first + "-dirty"
+    # a device call's copy: the commit slim_tree.sh wrote wins over the copy's (older) git metadata
+    (tmp_path / runtime.SOURCE_COMMIT_FILE).write_text("abc1234-dirty\n")
+    assert runtime.source_commit(tmp_path) == "abc1234-dirty"
+    (tmp_path / runtime.SOURCE_COMMIT_FILE).unlink()
     # a resumed run names the commit it started at when the code has moved on, and nothing otherwise
     monkeypatch.setattr(rundir, "source_commit", lambda: first + "-dirty")
     assert rundir.commit_note({"commit": first}) == f"this run started at commit {first} and continues at {first}-dirty"

@@ -54,6 +54,7 @@ def test_slim_keeps_one_folder_and_restore_gives_the_tree_back(tmp_path):
     repo = _repo(tmp_path)
     before = _files(repo)
     mjx = (repo / ".whl" / MJX).read_bytes()
+    commit = _git(repo, "describe", "--always", "--dirty").strip()  # the tree's, before the slim moves files
     r = _run(repo, "--bipedal-wheels", "docs/results/run_inflight/")
     assert r.returncode == 0, r.stdout + r.stderr
     assert sorted(str(p.relative_to(repo)) for p in (repo / "docs").rglob("*") if p.is_file()) == ["docs/results/run_inflight/ckpt.tgz.aa"]
@@ -68,8 +69,10 @@ def test_slim_keeps_one_folder_and_restore_gives_the_tree_back(tmp_path):
             "mujoco/mjx/__init__.py,sha256=a,31", "mujoco/mjx/_src/x.py,sha256=b,6", "mujoco_mjx-3.17.0.dist-info/RECORD,,"]
     assert (repo / ".whl" / MJX).stat().st_size < len(mjx) - 3000
     # what the call carries: README, .gitignore, the scripts, the folder and the wheels left
+    # and the tree's commit for the call's records (the device's copy of .git may be older)
+    assert (repo / ".source_commit").read_text().strip() == commit and not commit.endswith("-dirty")
     carried = sum(p.stat().st_size for p in (repo / "README.md", repo / ".gitignore", repo / "experiments/slim_tree.sh",
-                                             repo / "experiments/carried_size.sh",
+                                             repo / "experiments/carried_size.sh", repo / ".source_commit",
                                              repo / "docs/results/run_inflight/ckpt.tgz.aa", *(repo / ".whl").iterdir()))
     assert f"carries {carried} bytes" in r.stdout
     assert ".aside" not in _git(repo, "status", "--porcelain", "--untracked-files=all")  # ignored, so not carried
