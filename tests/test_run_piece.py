@@ -83,8 +83,10 @@ def folder(tmp_path):
 def test_start_then_resume_from_the_returned_parts(tmp_path, folder):
     first = tmp_path / "first"
     repo = _tree(first, folder)
+    (repo / ".source_commit").write_text("abc1234\n")  # the tree's commit, from slim_tree.sh
     r = _piece(first, repo, 1)
     assert r.returncode == 75, r.stdout + r.stderr
+    assert not (repo / ".source_commit").exists()  # it does not describe the run's sources
     call = (first / "stub.log").read_text().split()
     # started with the folder's flags, the script's own, and a limit that leaves the piece's last
     # 45 s to the run's checkpoint and the packing
