@@ -32,7 +32,6 @@ def minibatch_sgd(loss_fn: Callable, tx: optax.GradientTransformation, params: A
         raise ValueError(f"minibatch_sgd: {n} samples cannot fill {num_minibatches} minibatches")
     used = size * num_minibatches
 
-    aux_tree = []  # the aux pytree's structure, seen when ``step`` is traced
     # a batch of float32 leaves travels as one (n, fields) array: one shuffle and one minibatch read
     # per step instead of one per leaf (on a GPU each is a kernel launch); the loss sees the leaves
     b_leaves, b_tree = jax.tree_util.tree_flatten(batch)
@@ -49,19 +48,24 @@ def minibatch_sgd(loss_fn: Callable, tx: optax.GradientTransformation, params: A
         return jax.tree_util.tree_unflatten(b_tree, [mb[:, a:a + w].reshape((mb.shape[0],) + sh)
                                                      for a, w, sh in zip(starts, widths, shapes)])
 
-    def step(carry, mb):
-        params, opt_state = carry
-        mb = unpack(mb)
-        grads, aux = jax.grad(loss_fn, has_aux=True)(params, mb)
-        updates, opt_state = tx.update(grads, opt_state, params)
+    def grads_and_aux(params, mb):
+        grads, aux = jax.grad(loss_fn, has_aux=True)(params, unpack(mb))
         if grad_norm:
             aux = dict(aux, grad_norm=optax.tree.norm(grads))
-        leaves, tree = jax.tree_util.tree_flatten(aux)
-        if leaves and all(jnp.shape(x) == () and jnp.result_type(x) == jnp.float32 for x in leaves):
-            # float32 scalars leave the scan as one vector: one write per step into the stacked
-            # output instead of one per scalar (on a GPU each write is a kernel launch)
-            aux_tree[:] = [tree]
-            aux = jnp.stack(leaves)
+        return grads, aux
+
+    # float32 scalar aux leave the scan as one vector: one write per step into the stacked output
+    # instead of one per scalar (on a GPU each write is a kernel launch)
+    _, aux_shape = jax.eval_shape(grads_and_aux, params, jax.tree_util.tree_map(lambda x: x[:size], batch))
+    aux_leaves, aux_tree = jax.tree_util.tree_flatten(aux_shape)
+    stacked = bool(aux_leaves) and all(x.shape == () and x.dtype == jnp.float32 for x in aux_leaves)
+
+    def step(carry, mb):
+        params, opt_state = carry
+        grads, aux = grads_and_aux(params, mb)
+        updates, opt_state = tx.update(grads, opt_state, params)
+        if stacked:
+            aux = jnp.stack(jax.tree_util.tree_leaves(aux))
         return (optax.apply_updates(params, updates), opt_state), aux
 
     def epoch(carry, k):
@@ -72,6 +76,6 @@ def minibatch_sgd(loss_fn: Callable, tx: optax.GradientTransformation, params: A
         return jax.lax.scan(step, carry, mbs)
 
     carry, aux = jax.lax.scan(epoch, (params, opt_state), jax.random.split(key, epochs))
-    if aux_tree:
-        aux = jax.tree_util.tree_unflatten(aux_tree[0], [aux[..., i] for i in range(aux.shape[-1])])
+    if stacked:
+        aux = jax.tree_util.tree_unflatten(aux_tree, [aux[..., i] for i in range(aux.shape[-1])])
     return carry, aux
