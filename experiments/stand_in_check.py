@@ -8,7 +8,7 @@ record names each resume's "compiled in" seconds, whether the stand-in was read,
 ``metrics.jsonl`` is byte for byte the same.
 
     python -m experiments.stand_in_check --out docs/results/stand_in_check_cpu.json
-    python -m experiments.stand_in_check --src docs/results/bipedal_paper_hmdp_inflight/src.tgz --out F.json
+    python -m experiments.stand_in_check --src docs/results/bipedal_paper_shedx_inflight/src.tgz --out F.json
 """
 from __future__ import annotations
 
