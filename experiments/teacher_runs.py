@@ -462,8 +462,19 @@ def record(files, out, device, command, date, notes=(), paper_csv=None, dr=None,
               f"{f1(e['paired_gain_se'])}, late gain {f1(e.get('paired_late_gain_mean'))} ± {f1(e.get('paired_late_gain_se'))}, at a bound {e['at_bound_fraction']}, final episodes {e.get('final_episode')}")
 
 
-PLOT_PANELS = (("test return", None), ("critic TD error, held-out", "td_error_heldout"),
-               ("mean |u| of the actor", "action_abs_mean"), ("box width", "box_width"))
+#: the figure's panels after the test return, each drawn only where some run logged it (the paper
+#: teachers log no actor or box diagnostics, the learning teachers all of them)
+PLOT_DIAGNOSTICS = (("fraction of level parameters at a bound", "at_bound_fraction"),
+                    ("teacher reward", "teacher_reward"), ("critic TD error, held-out", "td_error_heldout"),
+                    ("mean |u| of the actor", "action_abs_mean"), ("box width", "box_width"))
+
+
+def plot_panels(runs: list[dict]) -> list[tuple[str, str | None]]:
+    """(title, diagnostic key) per panel: the test return, then each of :data:`PLOT_DIAGNOSTICS`
+    that holds a value for some teacher episode of some run."""
+    def logged(key):
+        return any(v is not None for r in runs for v in r["diagnostics_by_episode"].get(key, {}).values())
+    return [("test return", None)] + [(title, key) for title, key in PLOT_DIAGNOSTICS if logged(key)]
 
 
 def plot_labels(runs: list[dict]) -> list[str]:
@@ -481,18 +492,20 @@ def plot(files, out, only=()):
     runs = [r for r in runs if not only or r.get("group", r["method"]) in only]
     if not runs:
         raise SystemExit(f"plot: no run named {', '.join(only)} in {', '.join(map(str, files))}")
-    fig, axes = plt.subplots(1, len(PLOT_PANELS), figsize=(4.2 * len(PLOT_PANELS), 3.4))
+    panels = plot_panels(runs)
+    fig, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels), 3.4), squeeze=False)
+    axes = axes[0]
     for r, label in zip(runs, plot_labels(runs)):
         eps = sorted({int(e) for d in r["test_by_seed_episode"].values() for e in d})
         stats = [_mean_se([d[str(e)] for d in r["test_by_seed_episode"].values() if str(e) in d]) for e in eps]
         m, se = np.array([x[0] for x in stats]), np.nan_to_num(np.array([x[1] for x in stats]))
         (line,) = axes[0].plot(eps, m, marker="o", label=label)
         axes[0].fill_between(eps, m - se, m + se, color=line.get_color(), alpha=0.2)
-        for ax, (_, key) in zip(axes[1:], PLOT_PANELS[1:]):
+        for ax, (_, key) in zip(axes[1:], panels[1:]):
             d = r["diagnostics_by_episode"].get(key, {})
             xs = sorted(int(e) for e, v in d.items() if v is not None)
             ax.plot(xs, [d[str(e)] for e in xs], color=line.get_color())
-    for ax, (title, key) in zip(axes, PLOT_PANELS):
+    for ax, (title, key) in zip(axes, panels):
         ax.set_title(title)
         ax.set_xlabel("teacher episode")
         if key == "td_error_heldout":

@@ -166,6 +166,16 @@ def test_plot_labels_tell_apart_runs_of_one_pooled_group():
     assert plot_labels(runs) == ["g (a)", "g (b)", "shed-x"]
 
 
+def test_plot_panels_are_the_test_return_and_the_diagnostics_some_run_logged():
+    from experiments.teacher_runs import plot_panels
+    paper = {"diagnostics_by_episode": {"at_bound_fraction": {"0": 0.1, "1": 0.5}, "box_width": {"0": None},
+                                        "teacher_reward": {"0": None, "1": 150.0}}}
+    learning = {"diagnostics_by_episode": {"box_width": {"0": None, "1": 0.4}}}
+    assert [k for _, k in plot_panels([paper])] == [None, "at_bound_fraction", "teacher_reward"]
+    assert [k for _, k in plot_panels([paper, learning])] == [None, "at_bound_fraction", "teacher_reward", "box_width"]
+    assert plot_panels([{"diagnostics_by_episode": {}}]) == [("test return", None)]
+
+
 def test_plot_writes_a_figure_and_names_what_is_missing(tmp_path):
     from experiments.teacher_runs import plot
     a = tmp_path / "s" / "hmdp-x" / "default"
