@@ -98,8 +98,12 @@ class ConfigMismatchError(CheckpointError):
 
 
 def jsonable(obj: Any) -> Any:
-    """``obj`` as it reads back from JSON (tuples become lists, unknown objects strings)."""
-    return json.loads(json.dumps(obj, default=str))
+    """``obj`` as it reads back from strict JSON: tuples become lists, unknown objects strings, and
+    non-finite floats their names (``configs.finite_json``), so a saved ``-Infinity`` and a saved
+    ``"-inf"`` compare equal."""
+    from shed_jax.configs import finite_json
+
+    return finite_json(json.loads(json.dumps(obj, default=str)))
 
 
 def _flat_items(obj: Any, prefix: str = "") -> dict[str, Any]:

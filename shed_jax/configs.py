@@ -7,7 +7,9 @@ field whose default is itself a config (PLR's ``sampler``, the teacher's ``rewar
 
 * :func:`from_dict` rebuilds a config from its JSON form (``dataclasses.asdict`` as ``config.json``
   and checkpoints hold it): nested dicts become their dataclasses, lists become tuples, and fields
-  missing from the dict keep their defaults.
+  missing from the dict keep their defaults. That form is strict JSON: :func:`finite_json` names
+  a non-finite float (e.g. an unbounded ``PPOConfig.log_std_max``) ``"inf"``, and :func:`from_dict`
+  reads the name back.
 * :func:`check_number` checks a numeric field against a bound, with the one-line message every
   config uses.
 * :func:`with_overrides` replaces fields by name; a dict given for a nested field is merged into it.
@@ -87,15 +89,38 @@ def _nested_class(cls, name: str):
     return type(f.default) if is_config(f.default) else None
 
 
+#: how the JSON form names a non-finite float (strict JSON has no Infinity or NaN)
+NONFINITE_NAMES = {"inf": math.inf, "-inf": -math.inf, "nan": math.nan}
+
+
+def finite_json(value):
+    """``value`` (already of JSON's types) with each non-finite float replaced by its name in
+    :data:`NONFINITE_NAMES`, so that ``json.dumps(..., allow_nan=False)`` writes it; :func:`from_dict`
+    reads a float field's name back. Other values pass through."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return "nan" if math.isnan(value) else ("inf" if value > 0 else "-inf")
+    if isinstance(value, dict):
+        return {k: finite_json(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [finite_json(v) for v in value]
+    return value
+
+
 def from_dict(cls, values: dict | None, where: str = ""):
     """``cls`` built from ``values`` (its JSON form, possibly partial): nested configs from their
-    dicts, lists as tuples, missing fields at their defaults. Unknown fields: ValueError."""
+    dicts, lists as tuples, a float field's ``"inf"``, ``"-inf"`` or ``"nan"`` as that float,
+    missing fields at their defaults. Unknown fields: ValueError."""
     values = dict(values or {})
     _unknown(cls, values, where)
     kwargs = {}
     for name, value in values.items():
         sub = _nested_class(cls, name)
-        kwargs[name] = from_dict(sub, value, f"{where}{name}: ") if sub is not None and isinstance(value, dict) else _tuples(value)
+        if sub is not None and isinstance(value, dict):
+            kwargs[name] = from_dict(sub, value, f"{where}{name}: ")
+        elif isinstance(_default(cls, name), float) and value in NONFINITE_NAMES:
+            kwargs[name] = NONFINITE_NAMES[value]
+        else:
+            kwargs[name] = _tuples(value)
     return cls(**kwargs)
 
 
@@ -173,4 +198,4 @@ def to_dict(obj) -> dict:
     return dataclasses.asdict(obj)
 
 
-__all__ = ["check_modes", "from_dict", "is_config", "modes", "to_dict", "with_overrides"]
+__all__ = ["NONFINITE_NAMES", "check_modes", "finite_json", "from_dict", "is_config", "modes", "to_dict", "with_overrides"]

@@ -238,6 +238,14 @@ def discard_newer(plan: RunPlan) -> None:
           f"to {dest} (delete them when no longer needed)")
 
 
+def config_json(config: dict) -> str:
+    """A run configuration as ``config.json`` holds it: strict JSON (a non-finite float by its name,
+    ``configs.finite_json``), so that any JSON reader takes it."""
+    from shed_jax.checkpoint import jsonable
+
+    return json.dumps(jsonable(config), indent=2, allow_nan=False)
+
+
 def create_run_dir(plan: RunPlan, made: list) -> None:
     """Clear (--restart), make ``out`` and write config.json; ``made`` collects what is new (removed if start-up is cut)."""
     out = plan.out
@@ -248,7 +256,7 @@ def create_run_dir(plan: RunPlan, made: list) -> None:
         if not out.exists():
             out.mkdir(parents=True)
             made.append(out)
-        (out / "config.json").write_text(json.dumps(plan.config, indent=2, default=str))
+        (out / "config.json").write_text(config_json(plan.config))
     except OSError as err:
         raise UsageError(f"--out {out}: cannot write there ({err.strerror or err})") from err
     made.append(out / "config.json")

@@ -353,7 +353,7 @@ def run_group(built: BuiltGroup, *, out: pathlib.Path, mesh, pad: bool = True, p
         config = {**rundir.run_config(exp, S, batch.root_seed, jax.default_backend(), mesh.devices.flat, batch.chunk),
                   "sweep_point": {"name": p.name, "values": p.values, "group": group.label,
                                   "method_hparams": p.method_hparams, "student_hparams": p.student_hparams}}
-        (d / "config.json").write_text(json.dumps(config, indent=2, default=str))
+        (d / "config.json").write_text(rundir.config_json(config))
         made is not None and made.append(d / "config.json")
     group_config = {"group": group.label, "points": [p.name for p in group.points], "experiment": exp.to_dict(),
                     "seeds": S, "root_seed": batch.root_seed, "chunk": batch.chunk, "batch": placed.size}

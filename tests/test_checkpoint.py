@@ -187,7 +187,7 @@ def test_straight_run_writes_run_dir(run_a):
     for name in ("config.json", "metrics.jsonl", "summary.json", "test_return.png", "test_return_per_level.png",
                  "generated_levels.png", "student_training.png"):
         assert (a / name).exists(), name
-    config = json.loads((a / "config.json").read_text())
+    config = json.loads((a / "config.json").read_text(), parse_constant=pytest.fail)  # strict JSON: no Infinity/NaN
     assert config["seeds"] == SEEDS and config["root_seed"] == 0 and config["chunk"] == 1
     assert config["commit"] == runtime.source_commit()  # the code the run started with (None in a copied tree)
     assert config["experiment"]["method_config"]["sampler"]["capacity"] == 4

@@ -21,6 +21,30 @@ def test_every_method_config_round_trips_through_json(method):
     assert back == cfg and type(back) is cls
 
 
+def test_the_json_form_is_strict_json_and_reads_back_unbounded_floats():
+    import math
+    cfg = PPOConfig()  # log-std bounds off by default: -inf and inf
+    assert math.isinf(cfg.log_std_min) and math.isinf(cfg.log_std_max)
+    text = json.dumps(configs.finite_json(configs.to_dict(cfg)), allow_nan=False)  # raises on Infinity/NaN
+    saved = json.loads(text)
+    assert saved["log_std_min"] == "-inf" and saved["log_std_max"] == "inf"
+    assert configs.from_dict(PPOConfig, saved) == cfg
+    # names stay strings for string fields, and non-finite values inside lists are named too
+    assert configs.finite_json({"a": [1.0, float("nan"), -math.inf], "b": "inf", "c": (2, 3)}) == \
+        {"a": [1.0, "nan", "-inf"], "b": "inf", "c": [2, 3]}
+    # a config.json written before the names (json's -Infinity) still reads
+    old = json.loads(json.dumps(configs.to_dict(cfg)))
+    assert configs.from_dict(PPOConfig, old) == cfg
+
+
+def test_a_saved_infinity_and_its_name_compare_equal_on_resume():
+    from shed_jax.checkpoint import check_config, jsonable
+    old = json.loads(json.dumps({"experiment": {"ppo": {"log_std_max": float("inf")}}}))  # an older config.json
+    new = jsonable({"experiment": {"ppo": {"log_std_max": float("inf")}}})  # today's checkpoint meta
+    assert new == {"experiment": {"ppo": {"log_std_max": "inf"}}}
+    check_config(new, old, ["experiment"])  # no ConfigMismatchError
+
+
 def test_from_dict_builds_nested_configs_and_keeps_defaults_for_missing_fields():
     cfg = configs.from_dict(SHEDConfig, {"psi": 0.5, "reward": {"eta": 10}, "low": [1, 2, 3]})
     assert cfg.reward == RewardConfig(eta=10) and cfg.psi == 0.5 and cfg.low == (1, 2, 3)
