@@ -48,7 +48,7 @@ def measure(steps: int, seed: int = 0) -> dict:
     def keep(name, *xs):
         rec[name].append(np.stack([np.asarray(x).ravel() for x in xs], -1))
 
-    def loop(n, body, consts, carry, *, mode="auto", unroll=1, done=None):
+    def loop(n, body, consts, carry, *, mode="auto", unroll=1, done=None, lanes=1):
         name = _name(body)
         if name == POSITION and done is not None:
             def it(i, st):
@@ -59,7 +59,7 @@ def measure(steps: int, seed: int = 0) -> dict:
             jax.debug.callback(lambda a: keep("solved_at", a), at)
             return x
         if name != VELOCITY or "on" not in consts:  # (the reset's step has no manifolds: left out)
-            return orig(n, body, consts, carry, mode=mode, unroll=unroll, done=done)
+            return orig(n, body, consts, carry, mode=mode, unroll=unroll, done=done, lanes=lanes)
         on = jnp.stack(consts["on"]) > 0.5  # per contact point, two per manifold
         jax.debug.callback(lambda m: keep("manifolds", m), jnp.sum(on[0::2] | on[1::2]))
 

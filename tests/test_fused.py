@@ -217,6 +217,58 @@ def test_scan_bad_inputs_raise():
         fused.per_world_scan(leaky, {}, jnp.float32(0.0), (), mode="interpret")
 
 
+def lanes_body(c, s):
+    """A loop with lane vectors (``lanes=4``): a per-world counter ``a`` and a lane vector ``v`` that feed
+    each other through ``fused.lane`` and ``fused.lanes_of``."""
+    a, v = s
+    v = v * c["k"] + 0.5 * a
+    a = 0.9 * a + fused.lane(v, 2) - 0.1 * fused.lane(v, 0)
+    return a, v + 1e-3 * fused.lanes_of(a, 2 * a, 3 * a, 4.0)
+
+
+def lanes_reference(k, a, v, n):
+    """``lanes_body`` in numpy float32, one world at a time."""
+    a, v = np.float32(a), v.astype(np.float32)
+    for _ in range(n):
+        v = v * k + np.float32(0.5) * a
+        a = np.float32(0.9) * a + v[2] - np.float32(0.1) * v[0]
+        v = v + np.float32(1e-3) * np.asarray([a, 2 * a, 3 * a, 4.0], np.float32)
+    return a, v
+
+
+def test_lanes_loop_matches_numpy_through_xla_and_the_kernels_interpreter():
+    rng = np.random.default_rng(0)
+    w, n = 37, 20  # not a whole number of blocks: the kernel pads and drops worlds
+    k = rng.uniform(0.5, 1.0, (w, 4)).astype(np.float32)
+    a0, v0 = rng.normal(size=w).astype(np.float32), rng.normal(size=(w, 4)).astype(np.float32)
+    ref = [lanes_reference(k[i], a0[i], v0[i], n) for i in range(w)]
+    out = {}
+    for mode in ("xla", "interpret"):
+        run = jax.vmap(lambda c, s, m=mode: fused.per_world_fori_loop(n, lanes_body, c, s, mode=m, lanes=4))
+        out[mode] = jax.jit(run)({"k": jnp.asarray(k)}, (jnp.asarray(a0), jnp.asarray(v0)))
+        a, v = (np.asarray(x) for x in out[mode])
+        assert a.shape == (w,) and v.shape == (w, 4)
+        np.testing.assert_allclose(a, [r[0] for r in ref], rtol=1e-5)
+        np.testing.assert_allclose(v, np.stack([r[1] for r in ref]), rtol=1e-5, atol=1e-6)
+    for x, y in zip(out["xla"], out["interpret"]):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
+def test_lane_helpers_are_exact_and_lanes_are_checked():
+    v = jnp.asarray([-0.0, 1.5, np.float32(np.pi), -2.0], jnp.float32)
+    got = [fused.lane(v, j) for j in range(4)]
+    assert [np.asarray(g).shape for g in got] == [()] * 4
+    np.testing.assert_array_equal(np.asarray(got), np.asarray(v))
+    assert not np.signbit(np.asarray(got[0]))  # the sum starts from +0.0: the sign of zero is not kept
+    np.testing.assert_array_equal(np.asarray(fused.lanes_of(*got)), np.asarray(v))
+    with pytest.raises(ValueError, match="lanes must be 1 or 4"):
+        fused.per_world_fori_loop(2, lambda c, s: s, {}, jnp.zeros(()), lanes=3)
+    with pytest.raises(ValueError, match="lanes and done"):
+        fused.per_world_fori_loop(2, lambda c, s: s, {}, jnp.zeros(()), lanes=4, done=lambda s: s)
+    with pytest.raises(TypeError, match="per-world scalars or lane vectors"):
+        fused.per_world_fori_loop(2, lambda c, s: s, {}, jnp.zeros(3), mode="interpret", lanes=4)
+
+
 def test_bad_leaves_and_modes_raise():
     with pytest.raises(ValueError, match="solver kernel"):
         fused.resolve_mode("cuda")

@@ -331,3 +331,55 @@ def test_edge_constraints_of_several_polygons_are_each_polygons_own_in_polygon_o
     assert bare["box_pairs"].shape == (4, 0) and not bool(jnp.any(bare["on"][8:]))  # body 3 stands on the box
     for name in per_point + ["pairs"]:
         np.testing.assert_array_equal(np.asarray(bare[name]), np.asarray(gone[name]), err_msg=name)
+
+
+def test_velocity_passes_in_lanes_equal_the_sequential_passes(monkeypatch):
+    """``SolverConfig.velocity_lanes``: four boxes of different masses on ground edges, two of them across
+    a junction (2 manifolds each), so each body's manifolds run in a lane of their own (``fused`` lanes,
+    4 threads per world in the kernel). A body's manifolds touch no other dynamic body, so the lanes do
+    each body's operations in Box2D's order: the trajectories are the sequential passes', through XLA
+    loops and through the kernel's interpreter, to float32 rounding (XLA fuses, and so contracts, the
+    lane programs' multiply-adds apart: a few ulps per step, where a manifold on the wrong body or
+    point would be off by the impulse itself). A layout other than 4 bodies with as many manifolds
+    each keeps the sequential passes."""
+    from envs.physics2d import world as W
+
+    box = ((-0.5, -0.25), (0.5, -0.25), (0.5, 0.25), (-0.5, 0.25))
+    ground = jnp.asarray([[0.0, 1.0], [5.2, 1.0], [10.0, 1.0], [15.1, 1.0], [30.0, 1.0]], jnp.float32)
+    xs = (5.0, 9.0, 15.0, 21.0)  # the first and third across a junction
+    assert W.lane_layout((0, 0, 0, 0, 1, 1, 1, 1, 2, 2, 2, 2, 3, 3, 3, 3)) == tuple(
+        (b, (2 * b, 2 * b + 1)) for b in range(4))
+    assert W.lane_layout((0, 0, 1, 1, 2, 2)) is None and W.lane_layout((0, 0, 0, 0, 1, 1, 2, 2, 3, 3)) is None
+    calls = []
+    lanes_pass = W._velocity_pass_lanes
+    monkeypatch.setattr(W, "_velocity_pass_lanes", lambda *a: calls.append(1) or lanes_pass(*a))
+
+    def run(lanes, kernel):
+        cfg = physics2d.SolverConfig(dt=1 / 50, velocity_iterations=8, position_iterations=3, edge_contacts=2,
+                                     velocity_lanes=lanes, kernel=kernel, continuous=False)
+        m = physics2d.make_model(4, [physics2d.Polygon(b, box, 1.0 + 0.5 * b, 0.2 + 0.1 * b) for b in range(4)], (), cfg)
+
+        def make(y, a):
+            pos = jnp.stack([jnp.stack([x, y + 0.01 * b]) for b, x in enumerate(xs)])
+            return physics2d.init_world(m, physics2d.bodies_from_origin(
+                m, pos, jnp.stack([a, -a, 0.5 * a, 0.0]), vel=jnp.asarray([[0.3, 0.0], [-0.2, 0.0], [0.1, -1.0], [0.0, 0.0]], jnp.float32)))
+
+        ws = jax.vmap(make)(jnp.asarray([1.3, 1.26, 1.28]), jnp.asarray([0.0, 0.02, -0.01]))
+        step = lambda w, _: (physics2d.step(m, w, ground, -10.0)[0],) * 2  # noqa: E731
+        return jax.jit(jax.vmap(lambda w: jax.lax.scan(step, w, None, length=12)[1]))(ws)
+
+    seq = run(False, "xla")
+    assert not calls
+    touching = np.asarray(seq.touching).reshape(3, 12, 4, 2, 2).any(-1).sum(-1)  # manifolds with points per body
+    assert touching[..., 0].max() == 2 and touching[..., 2].max() == 2 and touching[:, -1].min() >= 1, touching
+    lanes = {kernel: run(True, kernel) for kernel in ("xla", "interpret")}
+    assert calls
+    for a, b, c in zip(*(jax.tree_util.tree_leaves(x) for x in (seq, lanes["xla"], lanes["interpret"]))):
+        for got in (b, c):
+            if np.issubdtype(np.asarray(a).dtype, np.floating):  # rounding, against each quantity's own scale
+                np.testing.assert_allclose(np.asarray(got), np.asarray(a), rtol=2e-5,
+                                           atol=1e-5 * float(np.abs(np.asarray(a)).max(initial=0.0)) + 1e-7)
+            else:
+                np.testing.assert_array_equal(np.asarray(got), np.asarray(a))
+    impulses = np.abs(np.asarray(seq.normal_impulse))
+    assert impulses.max() > 0.05  # the tolerance is far below what a misplaced manifold would move

@@ -18,6 +18,13 @@ captured from outside; Python / numpy scalars are fine). The same body then runs
 Nested vmaps (seeds x environments) are flattened into one world axis by ``custom_vmap`` rules, so
 the kernel always sees a flat (fields, worlds) array.
 
+Lanes (experimental, ``lanes=4``): a const or carry leaf may also be a *lane vector*, shape (4,)
+per world, e.g. one entry per leg body for constraints that touch one body each and so commute. The
+kernel then gives each world 4 threads, one per lane: lane vectors are (worlds, 4) tiles, per-world
+scalars (worlds, 1) columns that every lane holds alike, so elementwise ops between them broadcast as
+() and (4,) do on the XLA paths. :func:`lane` takes one entry of a lane vector as a per-world scalar,
+:func:`lanes_of` makes a lane vector of per-world scalars; neither moves data between worlds.
+
 Skipping work no world needs: a const leaf wrapped in ``BlockAny`` (a per-world 0/1 flag, e.g. "this
 contact touches") and ``when(flag, fn, operand)`` in the body. On the XLA paths ``when`` is plain
 ``fn(operand)``; in the kernel the flag is reduced once over the block's worlds before the loop and
@@ -128,18 +135,44 @@ def _batch_any_rule(axis_size, in_batched, flag):
     return batch_any(jnp.any(flag, axis=0) if in_batched[0] else flag), False
 
 
+def lane(x, j: int):
+    """Entry ``j`` of a lane vector ``x`` as a per-world scalar: a sum in which the other entries are
+    -0.0, so exact but for the sign of zero (the sum starts from +0.0, so a -0.0 entry comes back 0.0)."""
+    in_kernel = getattr(_TRACING, "in_kernel", False)
+    idx = lax.broadcasted_iota(jnp.int32, jnp.shape(x), jnp.ndim(x) - 1)
+    return jnp.sum(jnp.where(idx == j, x, -0.0), axis=-1, keepdims=in_kernel)
+
+
+def lanes_of(*scalars):
+    """The lane vector whose entry j is per-world scalar ``scalars[j]``."""
+    in_kernel = getattr(_TRACING, "in_kernel", False)
+    k = len(scalars)
+    shape = (1, k) if in_kernel else (k,)
+    idx = lax.broadcasted_iota(jnp.int32, shape, len(shape) - 1)
+    out = jnp.asarray(scalars[-1], jnp.float32)
+    for j in range(k - 2, -1, -1):
+        out = jnp.where(idx == j, scalars[j], out)
+    return jnp.broadcast_to(out, jnp.broadcast_shapes(jnp.shape(out), shape))
+
+
 def _is_flag(x) -> bool:
     return isinstance(x, BlockAny)
 
 
-def per_world_fori_loop(n: int, body, consts, carry, *, mode: str = "auto", unroll: int = 1, done=None):
+def per_world_fori_loop(n: int, body, consts, carry, *, mode: str = "auto", unroll: int = 1, done=None,
+                        lanes: int = 1):
     """``carry = body(consts, carry)`` ``n`` times, for one world; see the module docstring.
 
     ``done(carry)``, optional: a per-world 0/1 flag (e.g. Box2D's "position solved"). The caller
     guarantees that once it is 1, ``body`` returns the carry unchanged and it stays 1; the loop may then
     stop early with the same result. The XLA paths stop a batch when every world is done (a vmapped
     ``while_loop``), the kernel a block of ``BLOCK`` worlds when all of its worlds are. ``unroll``
-    applies only without ``done``."""
+    applies only without ``done``. ``lanes=4``: leaves may be lane vectors (module docstring); not
+    with ``done``."""
+    if lanes not in (1, TILE):
+        raise ValueError(f"per_world_fori_loop: lanes must be 1 or {TILE} (the kernel's tile), got {lanes!r}")
+    if lanes > 1 and done is not None:
+        raise ValueError("per_world_fori_loop: lanes and done do not go together")
     if done is None:
         xla = lambda c, s, _: (lax.fori_loop(0, n, lambda _, x: body(c, x), s, unroll=unroll), ())  # noqa: E731
     else:
@@ -147,7 +180,7 @@ def per_world_fori_loop(n: int, body, consts, carry, *, mode: str = "auto", unro
             cond = lambda x: (x[0] < n) & (done(x[1]) < 0.5)  # noqa: E731
             return lax.while_loop(cond, lambda x: (x[0] + 1, body(c, x[1])), (jnp.int32(0), s))[1], ()
     step = lambda c, s, _: (body(c, s), ())  # noqa: E731
-    return _per_world(n, step, xla, consts, carry, (), mode, done)[0]
+    return _per_world(n, step, xla, consts, carry, (), mode, done, lanes)[0]
 
 
 def per_world_scan(body, consts, carry, xs, *, mode: str = "auto"):
@@ -167,7 +200,7 @@ def per_world_scan(body, consts, carry, xs, *, mode: str = "auto"):
     return _per_world(n, body, xla, consts, carry, xs, mode)
 
 
-def _per_world(n, step, xla, consts, carry, xs, mode, done=None):
+def _per_world(n, step, xla, consts, carry, xs, mode, done=None, lanes=1):
     """Shared by the loop and the scan: ``xla(consts, carry, xs)`` is the reference, ``step`` one
     iteration ``(consts, carry, x_i) -> (carry, y_i)`` for the kernel, ``done`` the loop's early stop."""
     mode = resolve_mode(mode)
@@ -176,10 +209,12 @@ def _per_world(n, step, xla, consts, carry, xs, mode, done=None):
     c_leaves, c_tree = jax.tree_util.tree_flatten(consts)
     s_leaves, s_tree = jax.tree_util.tree_flatten(carry)
     x_leaves, x_tree = jax.tree_util.tree_flatten(xs)
+    shapes = ((), (lanes,)) if lanes > 1 else ((),)
     for x in c_leaves + s_leaves:
-        if jnp.shape(x) != () or jnp.result_type(x) != jnp.float32:
-            raise TypeError(f"per_world_fori_loop needs float32 per-world scalars, got {jnp.shape(x)} "
-                            f"{jnp.result_type(x)}")
+        if jnp.shape(x) not in shapes or jnp.result_type(x) != jnp.float32:
+            raise TypeError(f"per_world_fori_loop needs float32 per-world scalars{' or lane vectors' * (lanes > 1)}, "
+                            f"got {jnp.shape(x)} {jnp.result_type(x)}")
+    lane_mask = tuple(jnp.shape(x) != () for x in c_leaves + s_leaves)
     nc, ns = len(c_leaves), len(s_leaves)
     # the per-iteration outputs' structure, from an abstract evaluation of one step
     y_shape = jax.eval_shape(lambda c, s, x: step(c, s, x)[1], consts, carry,
@@ -193,7 +228,9 @@ def _per_world(n, step, xla, consts, carry, xs, mode, done=None):
         s, y = xla(c, s, x)
         return tuple(jax.tree_util.tree_leaves(s)) + tuple(jax.tree_util.tree_leaves(y))
 
-    def run_many(*leaves):  # per-world leaves (W,), per-iteration leaves (W, n)
+    def run_many(*leaves):  # per-world leaves (W,) or (W, lanes), per-iteration leaves (W, n)
+        if any(lane_mask):
+            return tuple(_lane_kernel(n, step, c_tree, s_tree, nc, ns, leaves, lane_mask, mode == "interpret", lanes))
         return tuple(_kernel(n, step, c_tree, s_tree, x_tree, y_tree, nc, ns, leaves, mode == "interpret", done))
 
     many = _flattening(run_many)
@@ -235,9 +272,11 @@ def _tiles(fields: int, tile: int) -> int:
     return _pow2(-(-fields // tile) * tile)
 
 
-def _blocks(w: int, interpret: bool) -> int:
-    """Kernel instances for ``w`` worlds: whole blocks, covering at least ``MIN_WORLDS`` when compiled."""
-    return -(-w // BLOCK) if interpret else -(-max(w, MIN_WORLDS) // BLOCK)
+def _blocks(w: int, interpret: bool, block: int | None = None) -> int:
+    """Kernel instances for ``w`` worlds: whole blocks of ``block`` worlds (``BLOCK``), covering at least
+    ``MIN_WORLDS`` when compiled."""
+    block = block or BLOCK
+    return -(-w // block) if interpret else -(-max(w, MIN_WORLDS) // block)
 
 
 def _tile_split(tile, width: int):
@@ -343,4 +382,74 @@ def _kernel(n, step, c_tree, s_tree, x_tree, y_tree, nc, ns, leaves, interpret, 
     out = [fields[g] for g in range(f_out)]
     if f_y:
         out += [outs[1][g, :n, :w].T for g in range(f_y)]
+    return out
+
+
+def _lane_kernel(n, step, c_tree, s_tree, nc, ns, leaves, lane_mask, interpret, lanes):
+    """``_kernel`` for loops with lane vectors: ``BLOCK // lanes`` worlds per instance, ``lanes``
+    threads per world. Inputs and outputs are (worlds, fields) arrays whose first columns hold the
+    lane vectors, one tile of ``lanes`` columns each (read and written as (worlds, lanes) tiles), and
+    the per-world scalars after them (read as (worlds, 1) columns of their tiles)."""
+    from jax.experimental import pallas as pl
+
+    bw = BLOCK // lanes
+    w = leaves[0].shape[0]
+    f_in = nc + ns
+    in_lane = [i for i in range(f_in) if lane_mask[i]]
+    in_scalar = [i for i in range(f_in) if not lane_mask[i]]
+    out_lane = [i - nc for i in in_lane if i >= nc]
+    out_scalar = [i - nc for i in in_scalar if i >= nc]
+
+    def columns(idx_lane, idx_scalar, arrays):
+        return ([arrays[i][:, j] for i in idx_lane for j in range(lanes)] + [arrays[i] for i in idx_scalar])
+
+    cols = columns(in_lane, in_scalar, leaves)
+    n_out = lanes * len(out_lane) + len(out_scalar)
+    cols_in, cols_out, wp = _tiles(len(cols), lanes), _tiles(n_out, lanes), _blocks(w, interpret, bw) * bw
+    x = jnp.pad(jnp.stack(cols, 0), ((0, cols_in - len(cols)), (0, wp - w))).T
+
+    def kernel(x_ref, o_ref):
+        tiles = [x_ref[:, j:j + lanes] for j in range(0, len(cols), lanes)]
+        vals = [None] * f_in
+        for k, i in enumerate(in_lane):
+            vals[i] = tiles[k]
+        singles = [p for t_ in tiles[len(in_lane):] for p in jnp.split(t_, lanes, axis=1)]
+        for k, i in enumerate(in_scalar):
+            vals[i] = singles[k]
+        c = jax.tree_util.tree_unflatten(c_tree, vals[:nc])
+        s = jax.tree_util.tree_unflatten(s_tree, vals[nc:])
+        _TRACING.in_kernel = True
+        try:
+            s = lax.fori_loop(0, n, lambda i, s_: step(c, s_, None)[0], s)
+        finally:
+            _TRACING.in_kernel = False
+        out = jax.tree_util.tree_leaves(s)
+        for k, i in enumerate(out_lane):
+            o_ref[:, lanes * k:lanes * (k + 1)] = jnp.broadcast_to(jnp.asarray(out[i], jnp.float32), (bw, lanes))
+        rows = [jnp.broadcast_to(jnp.asarray(out[i], jnp.float32), (bw, 1)).reshape(bw) for i in out_scalar]
+        rows += [jnp.zeros((bw,), jnp.float32)] * (-len(rows) % lanes)
+        base = lanes * len(out_lane)
+        for j in range(0, len(rows), lanes):
+            o_ref[:, base + j:base + j + lanes] = _tile_join(rows[j:j + lanes])
+
+    kwargs = {}
+    if not interpret:
+        from jax.experimental.pallas import triton as plt
+
+        kwargs["compiler_params"] = plt.CompilerParams(num_warps=NUM_WARPS)
+    res = pl.pallas_call(
+        kernel,
+        out_shape=jax.ShapeDtypeStruct((wp, cols_out), jnp.float32),
+        grid=(wp // bw,),
+        in_specs=[pl.BlockSpec((bw, cols_in), lambda i: (i, 0))],
+        out_specs=pl.BlockSpec((bw, cols_out), lambda i: (i, 0)),
+        interpret=interpret,
+        **kwargs,
+    )(x)[:w]
+    out = [None] * ns
+    for k, i in enumerate(out_lane):
+        out[i] = res[:, lanes * k:lanes * (k + 1)]
+    base = lanes * len(out_lane)
+    for k, i in enumerate(out_scalar):
+        out[i] = res[:, base + k]
     return out

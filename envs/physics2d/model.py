@@ -117,6 +117,11 @@ class SolverConfig:
     # same values while a world has at most m; one with more leaves out the last ones and says so in
     # the step's info["manifolds_crowded"]). Fewer slots make the fused velocity loop smaller
     velocity_manifolds: int = 0
+    # edge contacts, experimental speed knob: the velocity passes solve each body's manifolds in a lane
+    # of its own (``fused`` lanes: 4 GPU threads per world) after the joints; the same operations in the
+    # same order per body, as a body's manifolds touch no other dynamic body. Needs 4 bodies with
+    # manifolds, as many each (the walker's legs); ignored with velocity_manifolds or another layout
+    velocity_lanes: bool = False
     unroll: int = 1  # unroll factor of the solver-iteration loops (speed knob, no effect on results)
     # in the fused kernel, skip an edge contact point's position correction, and a body's time-of-impact
     # passes, in blocks of worlds none of which needs them (speed knob; results equal up to the sign of zero)

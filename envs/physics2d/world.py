@@ -321,6 +321,9 @@ def step(model: Model, world: WorldState, ground, gravity, force=None, torque=No
     else:
         vpass = functools.partial(_velocity_pass, model, slots)
     packed = edge_mode and projector is None and 0 < cfg.velocity_manifolds < len(ebody) // 2
+    layout = lane_layout(ebody) if edge_mode and projector is None and cfg.velocity_lanes and not packed else None
+    if layout is not None:
+        vpass, vconsts, carry = to_lanes(model, layout, ec["friction"], vconsts, carry)
     crowded = jnp.zeros((), bool)
     if packed:  # only manifolds with points enter the passes, packed into velocity_manifolds slots
         vconsts = {k: v for k, v in vconsts.items() if k not in econ}
@@ -333,7 +336,9 @@ def step(model: Model, world: WorldState, ground, gravity, force=None, torque=No
         with jax.named_scope("velocity_passes"):
             vel, omg, jimp, jmot, ln, lt = fused.per_world_fori_loop(
                 cfg.velocity_iterations, vpass, vconsts, carry,
-                mode=cfg.kernel, unroll=cfg.unroll)
+                mode=cfg.kernel, unroll=cfg.unroll, lanes=fused.TILE if layout is not None else 1)
+        if layout is not None:
+            vel, omg, jimp, jmot, ln, lt = from_lanes(layout, (vel, omg, jimp, jmot, ln, lt))
         if packed:
             ln = tuple(scalars_of(_unpack_impulses(idx, ln, len(ebody))))
             lt = tuple(scalars_of(_unpack_impulses(idx, lt, len(ebody))))
@@ -1038,6 +1043,81 @@ def _manifold_velocity(c, p, mi, ii, f1, f2, v, w, ln1, ln2, lt1, lt2):
     v = v + mi * (p1 + p2)
     w = w + ii * (r1.cross(p1) + r2.cross(p2))
     return v, w, new1, new2, lt_[0], lt_[1]
+
+
+def lane_layout(body) -> tuple | None:
+    """How ``_velocity_pass_lanes`` lays out edge manifolds whose points belong to bodies ``body``
+    (per point): ``((body, (manifold, ...)), ...)`` per lane, the bodies in their order of first
+    appearance and each body's manifolds in their order; None unless there are ``fused.TILE`` bodies
+    with as many manifolds each."""
+    n_man = len(body) // 2
+    bodies = tuple(dict.fromkeys(body[2 * p] for p in range(n_man)))
+    layout = tuple((b, tuple(p for p in range(n_man) if body[2 * p] == b)) for b in bodies)
+    if len(layout) != fused.TILE or len({len(m) for _, m in layout}) != 1:
+        return None
+    return layout
+
+
+def to_lanes(model: Model, layout, friction, consts, carry):
+    """The fused velocity loop of ``_velocity_pass_edges`` (its ``consts`` and ``carry``) in lane form,
+    -> (pass, consts, carry) for ``fused.per_world_fori_loop(..., lanes=fused.TILE)``: per lane (body of
+    ``layout``) its manifolds' constants and impulses as lane vectors; the joints' as they are."""
+    per_lane = len(layout[0][1])
+    man = [[ms[m] for _, ms in layout] for m in range(per_lane)]  # [m][lane] -> manifold
+    pts = [[2 * man[m][j] + q for j in range(len(layout))] for m in range(per_lane) for q in (0, 1)]
+
+    def lanes(values, idx):
+        return jnp.stack([values[k] for k in idx], -1)
+
+    c = {k: v for k, v in consts.items() if k not in ("on", "arm", "n", "nm", "tm", "blk", "k11", "k12", "k22", "inv")}
+    for name in ("on", "nm", "tm"):
+        c[name] = tuple(lanes(consts[name], idx) for idx in pts)
+    for name in ("n", "arm"):
+        c[name] = tuple(V2(lanes([v.x for v in consts[name]], idx), lanes([v.y for v in consts[name]], idx))
+                        for idx in pts)
+    for name in ("blk", "k11", "k12", "k22", "inv"):
+        c[name] = tuple(lanes(consts[name], idx) for idx in man)
+    vel, omg, jimp, jmot, ln, lt = carry
+    carry = (vel, omg, jimp, jmot, tuple(lanes(ln, idx) for idx in pts), tuple(lanes(lt, idx) for idx in pts))
+    inv_m, inv_i = model.inv_mass, model.inv_inertia
+    f = tuple(tuple(float(friction[k]) for k in idx) for idx in pts)
+    mass = (tuple(float(inv_m[b]) for b, _ in layout), tuple(float(inv_i[b]) for b, _ in layout))
+    return functools.partial(_velocity_pass_lanes, model, tuple(b for b, _ in layout), mass, f), c, carry
+
+
+def from_lanes(layout, carry):
+    """``to_lanes``' carry (after the loop) back in ``_velocity_pass_edges``' form."""
+    vel, omg, jimp, jmot, ln_l, lt_l = carry
+    per_lane = len(layout[0][1])
+    n_points = 2 * sum(len(ms) for _, ms in layout)
+    ln, lt = [None] * n_points, [None] * n_points
+    for m in range(per_lane):
+        for q in (0, 1):
+            for j, (_, ms) in enumerate(layout):
+                k = 2 * ms[m] + q
+                ln[k], lt[k] = ln_l[2 * m + q][..., j], lt_l[2 * m + q][..., j]
+    return vel, omg, jimp, jmot, tuple(ln), tuple(lt)
+
+
+def _velocity_pass_lanes(model: Model, lane_bodies, mass, friction, c, carry):
+    """``_velocity_pass_edges`` in lane form (``to_lanes``): the joints on per-world scalars, then every
+    lane's manifolds at once, lane j on body ``lane_bodies[j]``'s velocity (``fused`` lanes). A body's
+    manifolds change only its own velocity (the ground is static), so each lane does the operations
+    Box2D's sequential order does for that body, in that order."""
+    vel, omg, jimp, jmot, ln, lt = (list(x) for x in carry)
+    _joint_velocity_pass(model, c, vel, omg, jimp, jmot)
+    v = V2(fused.lanes_of(*(vel[b].x for b in lane_bodies)), fused.lanes_of(*(vel[b].y for b in lane_bodies)))
+    w = fused.lanes_of(*(omg[b] for b in lane_bodies))
+    mi, ii = fused.lanes_of(*mass[0]), fused.lanes_of(*mass[1])
+    for p in range(len(ln) // 2):
+        k1, k2 = 2 * p, 2 * p + 1
+        v, w, ln[k1], ln[k2], lt[k1], lt[k2] = _manifold_velocity(
+            c, p, mi, ii, fused.lanes_of(*friction[k1]), fused.lanes_of(*friction[k2]), v, w,
+            ln[k1], ln[k2], lt[k1], lt[k2])
+    for j, b in enumerate(lane_bodies):
+        vel[b] = V2(fused.lane(v.x, j), fused.lane(v.y, j))
+        omg[b] = fused.lane(w, j)
+    return tuple(vel), tuple(omg), tuple(jimp), tuple(jmot), tuple(ln), tuple(lt)
 
 
 def _pack_manifolds(model: Model, body, friction, econ, ln, lt, slots: int):
