@@ -140,7 +140,7 @@ def _is_field_default(obj, dotted: str, value) -> bool:
         declared = field.default_factory()
     else:
         return False
-    return jsonable(declared) == value
+    return jsonable(declared) == jsonable(value)  # either form of a non-finite float (-Infinity or "-inf")
 
 
 def run_group(config: dict) -> str:
