@@ -298,6 +298,15 @@ def _tile_join(rows):
     return jnp.stack([a, b], axis=-1).reshape(a.shape[0], 2 * a.shape[1])
 
 
+def _compiler_kwargs(interpret: bool) -> dict:
+    """``pallas_call``'s Triton options for a compiled kernel (``NUM_WARPS`` warps); none for the interpreter."""
+    if interpret:
+        return {}
+    from jax.experimental.pallas import triton as plt
+
+    return {"compiler_params": plt.CompilerParams(num_warps=NUM_WARPS)}
+
+
 def _kernel(n, step, c_tree, s_tree, x_tree, y_tree, nc, ns, leaves, interpret, done=None):
     """All ``n`` iterations for W worlds in one ``pallas_call`` over blocks of ``BLOCK`` worlds:
     per-world inputs and outputs as (worlds, fields) arrays, read and written ``TILE`` fields per memory
@@ -364,11 +373,6 @@ def _kernel(n, step, c_tree, s_tree, x_tree, y_tree, nc, ns, leaves, interpret, 
         for j in range(0, len(out), tile):
             o_ref[:, j:j + tile] = _tile_join(out[j:j + tile])
 
-    kwargs = {}
-    if not interpret:
-        from jax.experimental.pallas import triton as plt
-
-        kwargs["compiler_params"] = plt.CompilerParams(num_warps=NUM_WARPS)
     outs = pl.pallas_call(
         kernel,
         out_shape=tuple(out_shape),
@@ -376,7 +380,7 @@ def _kernel(n, step, c_tree, s_tree, x_tree, y_tree, nc, ns, leaves, interpret, 
         in_specs=in_specs,
         out_specs=tuple(out_specs),
         interpret=interpret,
-        **kwargs,
+        **_compiler_kwargs(interpret),
     )(*inputs)
     fields = outs[0][:w, :f_out].T
     out = [fields[g] for g in range(f_out)]
@@ -400,10 +404,7 @@ def _lane_kernel(n, step, c_tree, s_tree, nc, ns, leaves, lane_mask, interpret, 
     out_lane = [i - nc for i in in_lane if i >= nc]
     out_scalar = [i - nc for i in in_scalar if i >= nc]
 
-    def columns(idx_lane, idx_scalar, arrays):
-        return ([arrays[i][:, j] for i in idx_lane for j in range(lanes)] + [arrays[i] for i in idx_scalar])
-
-    cols = columns(in_lane, in_scalar, leaves)
+    cols = [leaves[i][:, j] for i in in_lane for j in range(lanes)] + [leaves[i] for i in in_scalar]
     n_out = lanes * len(out_lane) + len(out_scalar)
     cols_in, cols_out, wp = _tiles(len(cols), lanes), _tiles(n_out, lanes), _blocks(w, interpret, bw) * bw
     x = jnp.pad(jnp.stack(cols, 0), ((0, cols_in - len(cols)), (0, wp - w))).T
@@ -432,11 +433,6 @@ def _lane_kernel(n, step, c_tree, s_tree, nc, ns, leaves, lane_mask, interpret, 
         for j in range(0, len(rows), lanes):
             o_ref[:, base + j:base + j + lanes] = _tile_join(rows[j:j + lanes])
 
-    kwargs = {}
-    if not interpret:
-        from jax.experimental.pallas import triton as plt
-
-        kwargs["compiler_params"] = plt.CompilerParams(num_warps=NUM_WARPS)
     res = pl.pallas_call(
         kernel,
         out_shape=jax.ShapeDtypeStruct((wp, cols_out), jnp.float32),
@@ -444,7 +440,7 @@ def _lane_kernel(n, step, c_tree, s_tree, nc, ns, leaves, lane_mask, interpret, 
         in_specs=[pl.BlockSpec((bw, cols_in), lambda i: (i, 0))],
         out_specs=pl.BlockSpec((bw, cols_out), lambda i: (i, 0)),
         interpret=interpret,
-        **kwargs,
+        **_compiler_kwargs(interpret),
     )(x)[:w]
     out = [None] * ns
     for k, i in enumerate(out_lane):
