@@ -14,7 +14,7 @@ compile:
 
     PY -m experiments.gpu_compile loops --out FILE.json       # each fused loop of one step, alone
     PY -m experiments.gpu_compile loops --velocity-manifolds 6 --out FILE.json  # with 6 packed slots
-    PY -m experiments.gpu_compile loops --velocity-lanes --out FILE.json  # and the velocity loop in lanes
+    PY -m experiments.gpu_compile loops --lanes --out FILE.json  # and the velocity and position loops in lanes
     PY -m experiments.gpu_compile run "RUN FLAGS" --out FILE.json  # a run's initial state and first chunk
     PY -m experiments.gpu_compile run "RUN FLAGS" --launches 3 --out FILE.json  # and its launches per budget step
     PY -m experiments.gpu_compile update --env bipedal --out FILE.json  # launches of one PPO update
@@ -106,7 +106,7 @@ def _compile(label: str, lower, launches_depth: int = 0, per: int = 1) -> dict:
 def loops(device, worlds: int, lanes: bool = False, **options) -> list[dict]:
     """Each fused loop of one 2-D walker step (``env.step_without_reset``; ``options``: the env's), vmapped
     over ``worlds`` worlds, as the Pallas kernel the GPU runs (inputs abstract: nothing is computed);
-    ``lanes``: the velocity loop in lane form too (``solver_kernel_bench.lanes_program``)."""
+    ``lanes``: the velocity and position loops in lane form too (``solver_kernel_bench.lanes_program``)."""
     import jax
     import jax.numpy as jnp
     from jax.sharding import SingleDeviceSharding
@@ -122,9 +122,9 @@ def loops(device, worlds: int, lanes: bool = False, **options) -> list[dict]:
         with jax.default_device(device):
             row = _compile(name, lambda: skb.loop_program(n, body, done, "pallas").trace(consts, carry).lower())
         rows.append(dict(row, iterations=n, consts=ctree.num_leaves, carry=stree.num_leaves))
-        if lanes and name == skb.LOOPS[0]:  # the same loop in lane form (SolverConfig.velocity_lanes)
+        if lanes and name in skb.LOOPS[:2]:  # the same loop in lane form (SolverConfig.velocity_lanes, position_lanes)
             with jax.default_device(device):
-                row = _compile(name + "/lanes", lambda: skb.lanes_program(n, body, "pallas").trace(consts, carry).lower())
+                row = _compile(name + "/lanes", lambda: skb.lanes_program(n, body, done, "pallas").trace(consts, carry).lower())
             rows.append(dict(row, iterations=n, consts=ctree.num_leaves, carry=stree.num_leaves))
     return rows
 
@@ -241,8 +241,9 @@ def main(argv=None) -> int:
     lp.add_argument("--worlds", type=int, default=1024, help="worlds per loop (default: the kernels' least padding)")
     lp.add_argument("--velocity-manifolds", type=int, default=0,
                     help="the env's velocity_manifolds: manifold slots of the velocity passes (0: all 12)")
-    lp.add_argument("--velocity-lanes", action="store_true",
-                    help="also the velocity loop in lane form (4 threads per world: SolverConfig.velocity_lanes)")
+    lp.add_argument("--lanes", "--velocity-lanes", dest="lanes", action="store_true",
+                    help="also the velocity and position loops in lane form (4 threads per world: "
+                         "SolverConfig.velocity_lanes, position_lanes)")
     cp = sub.add_parser("launches", help="kernel launches per 2-D walker step (optimized HLO), by op and scope")
     cp.add_argument("--variant", default="default",
                     help="an env variant of experiments.profile_bipedal_step (default, packed_6, no_toi, ...)")
@@ -292,7 +293,7 @@ def main(argv=None) -> int:
     t = time.time()
     if a.cmd == "loops":
         try:
-            rows = loops(device, a.worlds, lanes=a.velocity_lanes, velocity_manifolds=a.velocity_manifolds)
+            rows = loops(device, a.worlds, lanes=a.lanes, velocity_manifolds=a.velocity_manifolds)
         except ValueError as e:  # the env's own check of the option, one line
             raise SystemExit(f"gpu_compile: {e}") from None
     elif a.cmd == "launches":

@@ -54,6 +54,8 @@ VARIANTS = {
     "packed_6": {"velocity_manifolds": 6},  # the velocity passes over 6 packed manifold slots, not 12
     "packed_4": {"velocity_manifolds": 4},
     "lanes": {"velocity_lanes": True},  # each leg's manifolds in a lane of the velocity loop: 4 threads per world
+    "position_lanes": {"position_lanes": True},  # ... and of the position loop
+    "lanes_both": {"velocity_lanes": True, "position_lanes": True},
     "toi_gated": {"toi_gate": True},  # the time of impact's solve only in batch-steps where some walker needs it
 }
 ENV_OPTIONS = {"full_reset": {"light_reset": False}, "profile_obstacles": {"obstacles": "profile"},

@@ -15,8 +15,9 @@ access of the kernel's inputs and outputs (``fused.TILE``; 1 is one field per ac
 ``experiments.gpu_compile``), ``lower2`` (the velocity / position
 pass over the lower legs' first two manifolds only: what a block whose worlds touch nothing else
 would need), ``libtrig`` (the kernels' sines and cosines from ``jnp.sin`` / ``jnp.cos``, the GPU's
-library calls, instead of ``envs.physics2d.vec.sincos``), ``lanes`` (the velocity loop only: each
-leg's manifolds in a lane of their own, 4 threads per world; ``SolverConfig.velocity_lanes``). ``ms`` is the wall time of a call (with the stacking and slicing around the kernel);
+library calls, instead of ``envs.physics2d.vec.sincos``), ``lanes`` (the velocity and position loops: each
+leg's manifolds in a lane of their own, 4 threads per world; ``SolverConfig.velocity_lanes`` and
+``position_lanes``). ``ms`` is the wall time of a call (with the stacking and slicing around the kernel);
 ``--trace`` adds the kernels' device time.
 """
 from __future__ import annotations
@@ -105,10 +106,11 @@ def loop_program(n: int, body, done, mode: str):
     return jax.jit(jax.vmap(lambda c, s: fused.per_world_fori_loop(n, body, c, s, mode=mode, done=done)))
 
 
-def lanes_program(n: int, body, mode: str):
-    """The velocity loop ``body`` (``_velocity_pass_edges``) in lane form (``world.to_lanes``: each
-    leg's manifolds in a lane of their own, 4 threads per world in the kernel), vmapped and jitted,
-    taking and returning the loop's own (consts, carry) form."""
+def lanes_program(n: int, body, done, mode: str):
+    """The velocity loop ``body`` (``_velocity_pass_edges``, ``world.to_lanes``) or the position loop
+    (``_position_pass_edges``, ``world.to_position_lanes``) in lane form (each leg's manifolds in a lane
+    of their own, 4 threads per world in the kernel), vmapped and jitted, taking and returning the
+    loop's own (consts, carry) form."""
     from envs.physics2d import fused, world
 
     layout = world.lane_layout(body.args[1])
@@ -116,6 +118,9 @@ def lanes_program(n: int, body, mode: str):
         raise ValueError(f"no lane layout for manifolds of bodies {body.args[1]}")
 
     def run(c, s):
+        if _name(body) == LOOPS[1]:
+            lb, lc = world.to_position_lanes(body.args[0], layout, c)
+            return fused.per_world_fori_loop(n, lb, lc, s, mode=mode, done=done, lanes=fused.TILE)
         lb, lc, ls = world.to_lanes(body.args[0], layout, body.args[2], c, s)
         return world.from_lanes(layout, fused.per_world_fori_loop(n, lb, lc, ls, mode=mode, lanes=fused.TILE))
 
@@ -213,12 +218,12 @@ def bench(inputs: str, variants: list[str], repeats: int, out: str, mode: str = 
                 if name not in LOOPS[:2]:
                     continue
                 b, c, s = _lower2(body, consts, carry)
-            if "lanes" in opts and name != LOOPS[0]:
+            if "lanes" in opts and name not in LOOPS[:2]:
                 continue
             fused.BLOCK = int(opts.get("block", 128))
             fused.NUM_WARPS = max(1, fused.BLOCK // 32)
             fused.TILE = int(opts.get("tile", tile))
-            fn = lanes_program(n, b, mode) if "lanes" in opts else loop_program(n, b, done, mode)
+            fn = lanes_program(n, b, done, mode) if "lanes" in opts else loop_program(n, b, done, mode)
             t = time.perf_counter()
             try:
                 with _library_trig() if "libtrig" in opts else contextlib.nullcontext():

@@ -254,6 +254,50 @@ def test_lanes_loop_matches_numpy_through_xla_and_the_kernels_interpreter():
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
 
 
+def lanes_until_body(c, s):
+    """Lanes with ``when`` and ``done``: a lane vector ``v`` halves (plus ``u``) in the lanes whose flag
+    is set (``on``; ``flag`` is the same as a ``BlockAny``, which the kernel reduces over its block); the
+    world counts its passes and is done once its smallest lane is below 0.1, then frozen."""
+    count, v, done = s
+    nv = fused.when(c["flag"], lambda v: jnp.where(c["on"] > 0.5, 0.5 * v + c["u"], v), v)
+    frozen = done > 0.5
+    return (jnp.where(frozen, count, count + 1.0), jnp.where(frozen, v, nv),
+            jnp.where(frozen | (fused.lane_min(nv) < 0.1), 1.0, 0.0))
+
+
+def test_lanes_loop_with_flags_and_an_early_stop_matches_numpy():
+    rng = np.random.default_rng(1)
+    w, n = 37, 30
+    flag = (rng.uniform(size=(w, 4)) < 0.6).astype(np.float32)
+    flag[:, 0] = 1.0  # every world reaches done, at its own pass
+    flag[:3] = 0.0  # ... but these, which run all n passes unchanged
+    flag[32:] = 0.0  # and the kernel's second block (32 worlds a block), where ``when`` skips
+    u = rng.uniform(0.0, 0.04, (w, 4)).astype(np.float32)
+    v0 = rng.uniform(0.5, 8.0, (w, 4)).astype(np.float32)
+    want_count, want_v = np.zeros(w, np.float32), v0.copy()
+    for i in range(w):
+        for _ in range(n):
+            if flag[i].any():
+                want_v[i] = np.where(flag[i] > 0.5, np.float32(0.5) * want_v[i] + u[i], want_v[i])
+            want_count[i] += 1
+            if want_v[i].min() < 0.1:
+                break
+    assert len(set(want_count.tolist())) > 3 and want_count.max() == n  # stops at many different passes
+    out = {}
+    for mode in ("xla", "interpret"):
+        run = jax.vmap(lambda c, s, m=mode: fused.per_world_fori_loop(
+            n, lanes_until_body, c, s, mode=m, lanes=4, done=lambda s: s[2]))
+        c = {"flag": fused.BlockAny(jnp.asarray(flag)), "on": jnp.asarray(flag), "u": jnp.asarray(u)}
+        out[mode] = jax.jit(run)(c, (jnp.zeros(w), jnp.asarray(v0), jnp.zeros(w)))
+        count, v, done = (np.asarray(x) for x in out[mode])
+        np.testing.assert_array_equal(count, want_count)
+        np.testing.assert_allclose(v, want_v, rtol=1e-6)
+        np.testing.assert_array_equal(done, (want_v.min(1) < 0.1).astype(np.float32))
+        assert np.array_equal(np.asarray(fused.lane_min(jnp.asarray(v))), v.min(1))
+    for x, y in zip(out["xla"], out["interpret"]):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
 def test_lane_helpers_are_exact_and_lanes_are_checked():
     v = jnp.asarray([-0.0, 1.5, np.float32(np.pi), -2.0], jnp.float32)
     got = [fused.lane(v, j) for j in range(4)]
@@ -263,8 +307,6 @@ def test_lane_helpers_are_exact_and_lanes_are_checked():
     np.testing.assert_array_equal(np.asarray(fused.lanes_of(*got)), np.asarray(v))
     with pytest.raises(ValueError, match="lanes must be 1 or 4"):
         fused.per_world_fori_loop(2, lambda c, s: s, {}, jnp.zeros(()), lanes=3)
-    with pytest.raises(ValueError, match="lanes and done"):
-        fused.per_world_fori_loop(2, lambda c, s: s, {}, jnp.zeros(()), lanes=4, done=lambda s: s)
     with pytest.raises(TypeError, match="per-world scalars or lane vectors"):
         fused.per_world_fori_loop(2, lambda c, s: s, {}, jnp.zeros(3), mode="interpret", lanes=4)
 

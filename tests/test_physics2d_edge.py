@@ -333,11 +333,12 @@ def test_edge_constraints_of_several_polygons_are_each_polygons_own_in_polygon_o
         np.testing.assert_array_equal(np.asarray(bare[name]), np.asarray(gone[name]), err_msg=name)
 
 
-def test_velocity_passes_in_lanes_equal_the_sequential_passes(monkeypatch):
-    """``SolverConfig.velocity_lanes``: four boxes of different masses on ground edges, two of them across
-    a junction (2 manifolds each), so each body's manifolds run in a lane of their own (``fused`` lanes,
-    4 threads per world in the kernel). A body's manifolds touch no other dynamic body, so the lanes do
-    each body's operations in Box2D's order: the trajectories are the sequential passes', through XLA
+def test_passes_in_lanes_equal_the_sequential_passes(monkeypatch):
+    """``SolverConfig.velocity_lanes`` and ``position_lanes``: four boxes of different masses on ground
+    edges, two of them across a junction (2 manifolds each), so each body's manifolds run in a lane of
+    their own (``fused`` lanes, 4 threads per world in the kernel). A body's manifolds touch no other
+    dynamic body, so the lanes do each body's operations in Box2D's order (the position passes' deepest
+    separation is a minimum, over the lanes): the trajectories are the sequential passes', through XLA
     loops and through the kernel's interpreter, to float32 rounding (XLA fuses, and so contracts, the
     lane programs' multiply-adds apart: a few ulps per step, where a manifold on the wrong body or
     point would be off by the impulse itself). A layout other than 4 bodies with as many manifolds
@@ -350,13 +351,15 @@ def test_velocity_passes_in_lanes_equal_the_sequential_passes(monkeypatch):
     assert W.lane_layout((0, 0, 0, 0, 1, 1, 1, 1, 2, 2, 2, 2, 3, 3, 3, 3)) == tuple(
         (b, (2 * b, 2 * b + 1)) for b in range(4))
     assert W.lane_layout((0, 0, 1, 1, 2, 2)) is None and W.lane_layout((0, 0, 0, 0, 1, 1, 2, 2, 3, 3)) is None
-    calls = []
-    lanes_pass = W._velocity_pass_lanes
-    monkeypatch.setattr(W, "_velocity_pass_lanes", lambda *a: calls.append(1) or lanes_pass(*a))
+    calls = {"_velocity_pass_lanes": 0, "_position_pass_lanes": 0}
+    for name in calls:
+        fn = getattr(W, name)
+        monkeypatch.setattr(W, name, lambda *a, _fn=fn, _name=name: calls.__setitem__(_name, calls[_name] + 1) or _fn(*a))
 
-    def run(lanes, kernel):
-        cfg = physics2d.SolverConfig(dt=1 / 50, velocity_iterations=8, position_iterations=3, edge_contacts=2,
-                                     velocity_lanes=lanes, kernel=kernel, continuous=False)
+    def run(lanes, kernel, position_iterations=3):
+        cfg = physics2d.SolverConfig(dt=1 / 50, velocity_iterations=8, position_iterations=position_iterations,
+                                     edge_contacts=2, velocity_lanes=lanes, position_lanes=lanes, kernel=kernel,
+                                     continuous=False)
         m = physics2d.make_model(4, [physics2d.Polygon(b, box, 1.0 + 0.5 * b, 0.2 + 0.1 * b) for b in range(4)], (), cfg)
 
         def make(y, a):
@@ -369,17 +372,25 @@ def test_velocity_passes_in_lanes_equal_the_sequential_passes(monkeypatch):
         return jax.jit(jax.vmap(lambda w: jax.lax.scan(step, w, None, length=12)[1]))(ws)
 
     seq = run(False, "xla")
-    assert not calls
+    assert not any(calls.values())
     touching = np.asarray(seq.touching).reshape(3, 12, 4, 2, 2).any(-1).sum(-1)  # manifolds with points per body
     assert touching[..., 0].max() == 2 and touching[..., 2].max() == 2 and touching[:, -1].min() >= 1, touching
     lanes = {kernel: run(True, kernel) for kernel in ("xla", "interpret")}
-    assert calls
+    assert all(calls.values()), calls
+
+    def close(got, want):
+        if np.issubdtype(np.asarray(want).dtype, np.floating):  # rounding, against each quantity's own scale
+            np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=2e-5,
+                                       atol=1e-5 * float(np.abs(np.asarray(want)).max(initial=0.0)) + 1e-7)
+        else:
+            np.testing.assert_array_equal(np.asarray(got), np.asarray(want))
+
     for a, b, c in zip(*(jax.tree_util.tree_leaves(x) for x in (seq, lanes["xla"], lanes["interpret"]))):
-        for got in (b, c):
-            if np.issubdtype(np.asarray(a).dtype, np.floating):  # rounding, against each quantity's own scale
-                np.testing.assert_allclose(np.asarray(got), np.asarray(a), rtol=2e-5,
-                                           atol=1e-5 * float(np.abs(np.asarray(a)).max(initial=0.0)) + 1e-7)
-            else:
-                np.testing.assert_array_equal(np.asarray(got), np.asarray(a))
+        close(b, a)
+        close(c, a)
+    # the position passes matter here: without them the poses are off by far more than the tolerance
+    free = run(False, "xla", position_iterations=0)
+    with pytest.raises(AssertionError):
+        close(free.bodies.com, seq.bodies.com)
     impulses = np.abs(np.asarray(seq.normal_impulse))
     assert impulses.max() > 0.05  # the tolerance is far below what a misplaced manifold would move

@@ -23,7 +23,8 @@ per world, e.g. one entry per leg body for constraints that touch one body each 
 kernel then gives each world 4 threads, one per lane: lane vectors are (worlds, 4) tiles, per-world
 scalars (worlds, 1) columns that every lane holds alike, so elementwise ops between them broadcast as
 () and (4,) do on the XLA paths. :func:`lane` takes one entry of a lane vector as a per-world scalar,
-:func:`lanes_of` makes a lane vector of per-world scalars; neither moves data between worlds.
+:func:`lanes_of` makes a lane vector of per-world scalars, :func:`lane_min` the smallest entry; none
+moves data between worlds. ``BlockAny`` flags may be lane vectors (reduced over the block's lanes too).
 
 Skipping work no world needs: a const leaf wrapped in ``BlockAny`` (a per-world 0/1 flag, e.g. "this
 contact touches") and ``when(flag, fn, operand)`` in the body. On the XLA paths ``when`` is plain
@@ -143,6 +144,11 @@ def lane(x, j: int):
     return jnp.sum(jnp.where(idx == j, x, -0.0), axis=-1, keepdims=in_kernel)
 
 
+def lane_min(x):
+    """The smallest entry of a lane vector ``x``, as a per-world scalar (exact)."""
+    return jnp.min(x, axis=-1, keepdims=getattr(_TRACING, "in_kernel", False))
+
+
 def lanes_of(*scalars):
     """The lane vector whose entry j is per-world scalar ``scalars[j]``."""
     in_kernel = getattr(_TRACING, "in_kernel", False)
@@ -167,12 +173,10 @@ def per_world_fori_loop(n: int, body, consts, carry, *, mode: str = "auto", unro
     guarantees that once it is 1, ``body`` returns the carry unchanged and it stays 1; the loop may then
     stop early with the same result. The XLA paths stop a batch when every world is done (a vmapped
     ``while_loop``), the kernel a block of ``BLOCK`` worlds when all of its worlds are. ``unroll``
-    applies only without ``done``. ``lanes=4``: leaves may be lane vectors (module docstring); not
-    with ``done``."""
+    applies only without ``done``. ``lanes=4``: leaves may be lane vectors (module docstring); ``done``
+    then returns a per-world scalar."""
     if lanes not in (1, TILE):
         raise ValueError(f"per_world_fori_loop: lanes must be 1 or {TILE} (the kernel's tile), got {lanes!r}")
-    if lanes > 1 and done is not None:
-        raise ValueError("per_world_fori_loop: lanes and done do not go together")
     if done is None:
         xla = lambda c, s, _: (lax.fori_loop(0, n, lambda _, x: body(c, x), s, unroll=unroll), ())  # noqa: E731
     else:
@@ -230,7 +234,8 @@ def _per_world(n, step, xla, consts, carry, xs, mode, done=None, lanes=1):
 
     def run_many(*leaves):  # per-world leaves (W,) or (W, lanes), per-iteration leaves (W, n)
         if any(lane_mask):
-            return tuple(_lane_kernel(n, step, c_tree, s_tree, nc, ns, leaves, lane_mask, mode == "interpret", lanes))
+            return tuple(_lane_kernel(n, step, c_tree, s_tree, nc, ns, leaves, lane_mask, mode == "interpret", lanes,
+                                      done))
         return tuple(_kernel(n, step, c_tree, s_tree, x_tree, y_tree, nc, ns, leaves, mode == "interpret", done))
 
     many = _flattening(run_many)
@@ -389,11 +394,12 @@ def _kernel(n, step, c_tree, s_tree, x_tree, y_tree, nc, ns, leaves, interpret, 
     return out
 
 
-def _lane_kernel(n, step, c_tree, s_tree, nc, ns, leaves, lane_mask, interpret, lanes):
+def _lane_kernel(n, step, c_tree, s_tree, nc, ns, leaves, lane_mask, interpret, lanes, done=None):
     """``_kernel`` for loops with lane vectors: ``BLOCK // lanes`` worlds per instance, ``lanes``
     threads per world. Inputs and outputs are (worlds, fields) arrays whose first columns hold the
     lane vectors, one tile of ``lanes`` columns each (read and written as (worlds, lanes) tiles), and
-    the per-world scalars after them (read as (worlds, 1) columns of their tiles)."""
+    the per-world scalars after them (read as (worlds, 1) columns of their tiles). ``done`` as
+    ``_kernel``'s: one more scalar column says which worlds are real."""
     from jax.experimental import pallas as pl
 
     bw = BLOCK // lanes
@@ -404,7 +410,8 @@ def _lane_kernel(n, step, c_tree, s_tree, nc, ns, leaves, lane_mask, interpret, 
     out_lane = [i - nc for i in in_lane if i >= nc]
     out_scalar = [i - nc for i in in_scalar if i >= nc]
 
-    cols = [leaves[i][:, j] for i in in_lane for j in range(lanes)] + [leaves[i] for i in in_scalar]
+    real_col = [jnp.ones((w,), jnp.float32)] if done is not None else []
+    cols = [leaves[i][:, j] for i in in_lane for j in range(lanes)] + [leaves[i] for i in in_scalar] + real_col
     n_out = lanes * len(out_lane) + len(out_scalar)
     cols_in, cols_out, wp = _tiles(len(cols), lanes), _tiles(n_out, lanes), _blocks(w, interpret, bw) * bw
     x = jnp.pad(jnp.stack(cols, 0), ((0, cols_in - len(cols)), (0, wp - w))).T
@@ -418,10 +425,17 @@ def _lane_kernel(n, step, c_tree, s_tree, nc, ns, leaves, lane_mask, interpret, 
         for k, i in enumerate(in_scalar):
             vals[i] = singles[k]
         c = jax.tree_util.tree_unflatten(c_tree, vals[:nc])
+        # block-uniform flags: reduced once, before the loop (over the block's worlds and lanes)
+        c = jax.tree_util.tree_map(lambda x: BlockAny(jnp.max(x.flag)) if _is_flag(x) else x, c, is_leaf=_is_flag)
         s = jax.tree_util.tree_unflatten(s_tree, vals[nc:])
         _TRACING.in_kernel = True
         try:
-            s = lax.fori_loop(0, n, lambda i, s_: step(c, s_, None)[0], s)
+            if done is None:
+                s = lax.fori_loop(0, n, lambda i, s_: step(c, s_, None)[0], s)
+            else:
+                real = singles[len(in_scalar)] > 0.5
+                cond = lambda x: (x[0] < n) & (jnp.min(jnp.where(real, done(x[1]), 1.0)) < 0.5)  # noqa: E731
+                s = lax.while_loop(cond, lambda x: (x[0] + 1, step(c, x[1], None)[0]), (jnp.int32(0), s))[1]
         finally:
             _TRACING.in_kernel = False
         out = jax.tree_util.tree_leaves(s)

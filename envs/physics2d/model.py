@@ -122,6 +122,10 @@ class SolverConfig:
     # same order per body, as a body's manifolds touch no other dynamic body. Needs 4 bodies with
     # manifolds, as many each (the walker's legs); ignored with velocity_manifolds or another layout
     velocity_lanes: bool = False
+    # edge contacts, experimental speed knob: the position passes correct each body's contact points in a
+    # lane of their own before the joints (the same layout and rule as velocity_lanes; the deepest
+    # separation is the minimum over the lanes)
+    position_lanes: bool = False
     unroll: int = 1  # unroll factor of the solver-iteration loops (speed knob, no effect on results)
     # in the fused kernel, skip an edge contact point's position correction, and a body's time-of-impact
     # passes, in blocks of worlds none of which needs them (speed knob; results equal up to the sign of zero)

@@ -375,9 +375,13 @@ def step(model: Model, world: WorldState, ground, gravity, force=None, torque=No
 
     pconsts = dict(on=tuple(active[k].astype(f32) for k in slots), q=tuple(V2.of(plane_q[k]) for k in slots),
                    n=tuple(V2.of(plane_n[k]) for k in slots), state=tuple(s.astype(f32) for s in jstate))
+    play = None
     if edge_mode:
         pconsts = dict(_edge_position_constants(model, b, ec) if ebody else {}, state=pconsts["state"])
         ppass = functools.partial(_position_pass_edges, model, ebody)
+        play = lane_layout(ebody) if cfg.position_lanes else None
+        if play is not None:
+            ppass, pconsts = to_position_lanes(model, play, pconsts)
     else:
         ppass = functools.partial(_position_pass, model, slots)
     if n_pos > 0:
@@ -385,7 +389,8 @@ def step(model: Model, world: WorldState, ground, gravity, force=None, torque=No
             com, ang, solved = fused.per_world_fori_loop(
                 n_pos, ppass,
                 pconsts, (tuple(V2.of(c) for c in com), tuple(ang), jnp.zeros((), f32)),
-                mode=cfg.kernel, unroll=cfg.unroll, done=_position_solved if cfg.position_early_stop else None)
+                mode=cfg.kernel, unroll=cfg.unroll, done=_position_solved if cfg.position_early_stop else None,
+                lanes=fused.TILE if play is not None else 1)
         com, ang, solved = [c.array() for c in com], list(ang), solved > 0.5
     else:
         solved = jnp.zeros((), bool)
@@ -1204,6 +1209,50 @@ def _position_pass_edges(model: Model, body, c, carry):
         point = functools.partial(_point_position, cfg, c, k, inv_m[i], inv_i[i])
         com[i], ang[i], min_sep = fused.when(c["any"][k], point, (com[i], ang[i], min_sep), cfg.skip_untouched)
     return _joint_positions_then_freeze(model, c, lc, carry, com, ang, min_sep)
+
+
+def to_position_lanes(model: Model, layout, consts):
+    """The position loop of ``_position_pass_edges`` (its ``consts``) in lane form, -> (pass, consts)
+    for ``fused.per_world_fori_loop(..., lanes=fused.TILE)``: per lane (body of ``layout``) its
+    manifolds' points' constants as lane vectors, in the body's order; the joints' as they are. The
+    carry stays per-world scalars."""
+    per_lane = len(layout[0][1])
+    pts = [[2 * ms[m] + q for _, ms in layout] for m in range(per_lane) for q in (0, 1)]  # [point][lane] -> point
+
+    def lanes(values, idx):
+        return jnp.stack([values[k] for k in idx], -1)
+
+    c = {"state": consts["state"]}
+    for name in ("on", "fb"):
+        c[name] = tuple(lanes(consts[name], idx) for idx in pts)
+    c["any"] = tuple(fused.BlockAny(lanes([f.flag for f in consts["any"]], idx)) for idx in pts)
+    for name in ("a", "nrm", "pt"):
+        c[name] = tuple(V2(lanes([v.x for v in consts[name]], idx), lanes([v.y for v in consts[name]], idx))
+                        for idx in pts)
+    mass = (tuple(float(model.inv_mass[b]) for b, _ in layout), tuple(float(model.inv_inertia[b]) for b, _ in layout))
+    return functools.partial(_position_pass_lanes, model, tuple(b for b, _ in layout), mass), c
+
+
+def _position_pass_lanes(model: Model, lane_bodies, mass, c, carry):
+    """``_position_pass_edges`` in lane form (``to_position_lanes``): every lane's contact points at once,
+    lane j on body ``lane_bodies[j]``'s pose, then the joints on per-world scalars. A point corrects
+    only its own body (the ground is static) and the deepest separation is a minimum, so each lane
+    does the operations Box2D's sequential order does for that body, in that order."""
+    cfg = model.config
+    com0, ang0, _ = carry
+    com, ang = list(com0), list(ang0)
+    al = fused.lanes_of(*(ang[b] for b in lane_bodies))
+    state = (V2(fused.lanes_of(*(com[b].x for b in lane_bodies)), fused.lanes_of(*(com[b].y for b in lane_bodies))),
+             al, jnp.zeros_like(al))
+    mi, ii = fused.lanes_of(*mass[0]), fused.lanes_of(*mass[1])
+    for k in range(len(c["on"])):
+        point = functools.partial(_point_position, cfg, c, k, mi, ii)
+        state = fused.when(c["any"][k], point, state, cfg.skip_untouched)
+    cl, al, sep = state
+    for j, b in enumerate(lane_bodies):
+        com[b], ang[b] = V2(fused.lane(cl.x, j), fused.lane(cl.y, j)), fused.lane(al, j)
+    lc = np.asarray(model.local_com, np.float32)
+    return _joint_positions_then_freeze(model, c, lc, carry, com, ang, fused.lane_min(sep))
 
 
 def _point_position(cfg, c, k, inv_m, inv_i, state, baumgarte=None):
