@@ -14,7 +14,7 @@ compile:
 
     PY -m experiments.gpu_compile loops --out FILE.json       # each fused loop of one step, alone
     PY -m experiments.gpu_compile loops --velocity-manifolds 6 --out FILE.json  # with 6 packed slots
-    PY -m experiments.gpu_compile loops --lanes --out FILE.json  # and the velocity and position loops in lanes
+    PY -m experiments.gpu_compile loops --lanes --out FILE.json  # and three of the loops in lanes
     PY -m experiments.gpu_compile run "RUN FLAGS" --out FILE.json  # a run's initial state and first chunk
     PY -m experiments.gpu_compile run "RUN FLAGS" --launches 3 --out FILE.json  # and its launches per budget step
     PY -m experiments.gpu_compile update --env bipedal --out FILE.json  # launches of one PPO update
@@ -106,7 +106,8 @@ def _compile(label: str, lower, launches_depth: int = 0, per: int = 1) -> dict:
 def loops(device, worlds: int, lanes: bool = False, **options) -> list[dict]:
     """Each fused loop of one 2-D walker step (``env.step_without_reset``; ``options``: the env's), vmapped
     over ``worlds`` worlds, as the Pallas kernel the GPU runs (inputs abstract: nothing is computed);
-    ``lanes``: the velocity and position loops in lane form too (``solver_kernel_bench.lanes_program``)."""
+    ``lanes``: the velocity, position and time-of-impact velocity loops in lane form too
+    (``solver_kernel_bench.lanes_program``)."""
     import jax
     import jax.numpy as jnp
     from jax.sharding import SingleDeviceSharding
@@ -122,7 +123,7 @@ def loops(device, worlds: int, lanes: bool = False, **options) -> list[dict]:
         with jax.default_device(device):
             row = _compile(name, lambda: skb.loop_program(n, body, done, "pallas").trace(consts, carry).lower())
         rows.append(dict(row, iterations=n, consts=ctree.num_leaves, carry=stree.num_leaves))
-        if lanes and name in skb.LOOPS[:2]:  # the same loop in lane form (SolverConfig.velocity_lanes, position_lanes)
+        if lanes and name != skb.LOOPS[2]:  # the same loop in lane form (SolverConfig.velocity_lanes, position_lanes)
             with jax.default_device(device):
                 row = _compile(name + "/lanes", lambda: skb.lanes_program(n, body, done, "pallas").trace(consts, carry).lower())
             rows.append(dict(row, iterations=n, consts=ctree.num_leaves, carry=stree.num_leaves))
@@ -242,7 +243,7 @@ def main(argv=None) -> int:
     lp.add_argument("--velocity-manifolds", type=int, default=0,
                     help="the env's velocity_manifolds: manifold slots of the velocity passes (0: all 12)")
     lp.add_argument("--lanes", "--velocity-lanes", dest="lanes", action="store_true",
-                    help="also the velocity and position loops in lane form (4 threads per world: "
+                    help="also the velocity, position and time-of-impact velocity loops in lane form (4 threads per world: "
                          "SolverConfig.velocity_lanes, position_lanes)")
     cp = sub.add_parser("launches", help="kernel launches per 2-D walker step (optimized HLO), by op and scope")
     cp.add_argument("--variant", default="default",

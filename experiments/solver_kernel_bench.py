@@ -15,9 +15,9 @@ access of the kernel's inputs and outputs (``fused.TILE``; 1 is one field per ac
 ``experiments.gpu_compile``), ``lower2`` (the velocity / position
 pass over the lower legs' first two manifolds only: what a block whose worlds touch nothing else
 would need), ``libtrig`` (the kernels' sines and cosines from ``jnp.sin`` / ``jnp.cos``, the GPU's
-library calls, instead of ``envs.physics2d.vec.sincos``), ``lanes`` (the velocity and position loops: each
-leg's manifolds in a lane of their own, 4 threads per world; ``SolverConfig.velocity_lanes`` and
-``position_lanes``). ``ms`` is the wall time of a call (with the stacking and slicing around the kernel);
+library calls, instead of ``envs.physics2d.vec.sincos``), ``lanes`` (the velocity, position and time-of-impact
+velocity loops: each leg's manifolds in a lane of their own, 4 threads per world;
+``SolverConfig.velocity_lanes`` and ``position_lanes``). ``ms`` is the wall time of a call (with the stacking and slicing around the kernel);
 ``--trace`` adds the kernels' device time.
 """
 from __future__ import annotations
@@ -107,8 +107,9 @@ def loop_program(n: int, body, done, mode: str):
 
 
 def lanes_program(n: int, body, done, mode: str):
-    """The velocity loop ``body`` (``_velocity_pass_edges``, ``world.to_lanes``) or the position loop
-    (``_position_pass_edges``, ``world.to_position_lanes``) in lane form (each leg's manifolds in a lane
+    """The velocity loop ``body`` (``_velocity_pass_edges``, ``world.to_lanes``), the position loop
+    (``_position_pass_edges``, ``world.to_position_lanes``) or the time of impact's velocity loop
+    (``_toi_velocity_pass_polygons``, ``to_lanes(..., joints=False)``) in lane form (each leg's manifolds in a lane
     of their own, 4 threads per world in the kernel), vmapped and jitted, taking and returning the
     loop's own (consts, carry) form."""
     from envs.physics2d import fused, world
@@ -121,6 +122,10 @@ def lanes_program(n: int, body, done, mode: str):
         if _name(body) == LOOPS[1]:
             lb, lc = world.to_position_lanes(body.args[0], layout, c)
             return fused.per_world_fori_loop(n, lb, lc, s, mode=mode, done=done, lanes=fused.TILE)
+        if _name(body) == LOOPS[3]:  # manifolds alone: no joint impulses in its carry
+            lb, lc, ls = world.to_lanes(body.args[0], layout, body.args[2], c, s[:2] + ((), ()) + s[2:], joints=False)
+            out = world.from_lanes(layout, fused.per_world_fori_loop(n, lb, lc, ls, mode=mode, lanes=fused.TILE))
+            return out[:2] + out[4:]
         lb, lc, ls = world.to_lanes(body.args[0], layout, body.args[2], c, s)
         return world.from_lanes(layout, fused.per_world_fori_loop(n, lb, lc, ls, mode=mode, lanes=fused.TILE))
 
@@ -218,7 +223,7 @@ def bench(inputs: str, variants: list[str], repeats: int, out: str, mode: str = 
                 if name not in LOOPS[:2]:
                     continue
                 b, c, s = _lower2(body, consts, carry)
-            if "lanes" in opts and name not in LOOPS[:2]:
+            if "lanes" in opts and name == LOOPS[2]:
                 continue
             fused.BLOCK = int(opts.get("block", 128))
             fused.NUM_WARPS = max(1, fused.BLOCK // 32)

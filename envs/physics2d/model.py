@@ -120,7 +120,8 @@ class SolverConfig:
     # edge contacts, experimental speed knob: the velocity passes solve each body's manifolds in a lane
     # of its own (``fused`` lanes: 4 GPU threads per world) after the joints; the same operations in the
     # same order per body, as a body's manifolds touch no other dynamic body. Needs 4 bodies with
-    # manifolds, as many each (the walker's legs); ignored with velocity_manifolds or another layout
+    # manifolds, as many each (the walker's legs); ignored with velocity_manifolds or another layout.
+    # The time of impact's velocity passes (manifolds alone) too, when they run as a loop (toi_loop)
     velocity_lanes: bool = False
     # edge contacts, experimental speed knob: the position passes correct each body's contact points in a
     # lane of their own before the joints (the same layout and rule as velocity_lanes; the deepest

@@ -593,9 +593,17 @@ def _toi_event(model: Model, sweep, end, shapes, ok, edges, valid, boxes, box_va
         with jax.named_scope("velocity_constants"):
             vconsts = _edge_velocity_constants(model, at_p, moved)
         zeros = tuple(jnp.zeros((), f32) for _ in body)
-        vpass = functools.partial(_toi_velocity_pass_polygons, model, body, ec["friction"])
-        vs, ws, _, _ = _toi_passes(cfg, cfg.toi_iterations, vpass, vconsts,
-                                   (tuple(V2.of(vel[g]) for g in range(nb)), tuple(omg[g] for g in range(nb)), zeros, zeros))
+        vcarry = (tuple(V2.of(vel[g]) for g in range(nb)), tuple(omg[g] for g in range(nb)), zeros, zeros)
+        layout = lane_layout(body) if cfg.velocity_lanes and cfg.toi_loop else None
+        if layout is not None:  # each body's manifolds in a lane of their own, as the step's velocity passes
+            lpass, lconsts, lcarry = to_lanes(model, layout, ec["friction"], vconsts, vcarry[:2] + ((), ()) + vcarry[2:],
+                                              joints=False)
+            out = fused.per_world_fori_loop(cfg.toi_iterations, lpass, lconsts, lcarry, mode=cfg.kernel,
+                                            unroll=cfg.unroll, lanes=fused.TILE)
+            vs, ws = from_lanes(layout, out)[:2]
+        else:
+            vpass = functools.partial(_toi_velocity_pass_polygons, model, body, ec["friction"])
+            vs, ws, _, _ = _toi_passes(cfg, cfg.toi_iterations, vpass, vconsts, vcarry)
         v_t = jnp.stack([v.array() for v in vs])
         w_t = jnp.stack(ws)
         rest = (1.0 - alpha) * cfg.dt  # the rest of the step, clamped as Box2D integrates
@@ -1063,10 +1071,12 @@ def lane_layout(body) -> tuple | None:
     return layout
 
 
-def to_lanes(model: Model, layout, friction, consts, carry):
+def to_lanes(model: Model, layout, friction, consts, carry, joints: bool = True):
     """The fused velocity loop of ``_velocity_pass_edges`` (its ``consts`` and ``carry``) in lane form,
     -> (pass, consts, carry) for ``fused.per_world_fori_loop(..., lanes=fused.TILE)``: per lane (body of
-    ``layout``) its manifolds' constants and impulses as lane vectors; the joints' as they are."""
+    ``layout``) its manifolds' constants and impulses as lane vectors; the joints' as they are.
+    ``joints=False``: the time of impact's passes (``_toi_velocity_pass_polygons``, manifolds alone;
+    its carry ``(vel, omg, ln, lt)`` given here with empty joint impulses ``(vel, omg, (), (), ln, lt)``)."""
     per_lane = len(layout[0][1])
     man = [[ms[m] for _, ms in layout] for m in range(per_lane)]  # [m][lane] -> manifold
     pts = [[2 * man[m][j] + q for j in range(len(layout))] for m in range(per_lane) for q in (0, 1)]
@@ -1074,7 +1084,7 @@ def to_lanes(model: Model, layout, friction, consts, carry):
     def lanes(values, idx):
         return jnp.stack([values[k] for k in idx], -1)
 
-    c = {k: v for k, v in consts.items() if k not in ("on", "arm", "n", "nm", "tm", "blk", "k11", "k12", "k22", "inv")}
+    c = {k: v for k, v in consts.items() if k not in ("on", "arm", "n", "nm", "tm", "blk", "k11", "k12", "k22", "inv", "t")}
     for name in ("on", "nm", "tm"):
         c[name] = tuple(lanes(consts[name], idx) for idx in pts)
     for name in ("n", "arm"):
@@ -1087,7 +1097,7 @@ def to_lanes(model: Model, layout, friction, consts, carry):
     inv_m, inv_i = model.inv_mass, model.inv_inertia
     f = tuple(tuple(float(friction[k]) for k in idx) for idx in pts)
     mass = (tuple(float(inv_m[b]) for b, _ in layout), tuple(float(inv_i[b]) for b, _ in layout))
-    return functools.partial(_velocity_pass_lanes, model, tuple(b for b, _ in layout), mass, f), c, carry
+    return functools.partial(_velocity_pass_lanes, model, tuple(b for b, _ in layout), mass, f, joints), c, carry
 
 
 def from_lanes(layout, carry):
@@ -1104,13 +1114,14 @@ def from_lanes(layout, carry):
     return vel, omg, jimp, jmot, tuple(ln), tuple(lt)
 
 
-def _velocity_pass_lanes(model: Model, lane_bodies, mass, friction, c, carry):
-    """``_velocity_pass_edges`` in lane form (``to_lanes``): the joints on per-world scalars, then every
-    lane's manifolds at once, lane j on body ``lane_bodies[j]``'s velocity (``fused`` lanes). A body's
-    manifolds change only its own velocity (the ground is static), so each lane does the operations
-    Box2D's sequential order does for that body, in that order."""
+def _velocity_pass_lanes(model: Model, lane_bodies, mass, friction, joints, c, carry):
+    """``_velocity_pass_edges`` in lane form (``to_lanes``): the joints on per-world scalars (unless
+    ``joints`` is False), then every lane's manifolds at once, lane j on body ``lane_bodies[j]``'s
+    velocity (``fused`` lanes). A body's manifolds change only its own velocity (the ground is static),
+    so each lane does the operations Box2D's sequential order does for that body, in that order."""
     vel, omg, jimp, jmot, ln, lt = (list(x) for x in carry)
-    _joint_velocity_pass(model, c, vel, omg, jimp, jmot)
+    if joints:
+        _joint_velocity_pass(model, c, vel, omg, jimp, jmot)
     v = V2(fused.lanes_of(*(vel[b].x for b in lane_bodies)), fused.lanes_of(*(vel[b].y for b in lane_bodies)))
     w = fused.lanes_of(*(omg[b] for b in lane_bodies))
     mi, ii = fused.lanes_of(*mass[0]), fused.lanes_of(*mass[1])
