@@ -123,7 +123,7 @@ def loops(device, worlds: int, lanes: bool = False, **options) -> list[dict]:
         with jax.default_device(device):
             row = _compile(name, lambda: skb.loop_program(n, body, done, "pallas").trace(consts, carry).lower())
         rows.append(dict(row, iterations=n, consts=ctree.num_leaves, carry=stree.num_leaves))
-        if lanes and name != skb.LOOPS[2]:  # the same loop in lane form (SolverConfig.velocity_lanes, position_lanes)
+        if lanes and name in (skb.LOOPS[0], skb.LOOPS[1], skb.LOOPS[3]):  # in lane form too (velocity_lanes, position_lanes)
             with jax.default_device(device):
                 row = _compile(name + "/lanes", lambda: skb.lanes_program(n, body, done, "pallas").trace(consts, carry).lower())
             rows.append(dict(row, iterations=n, consts=ctree.num_leaves, carry=stree.num_leaves))

@@ -257,21 +257,33 @@ def test_lanes_loop_matches_numpy_through_xla_and_the_kernels_interpreter():
 def lanes_until_body(c, s):
     """Lanes with ``when`` and ``done``: a lane vector ``v`` halves (plus ``u``) in the lanes whose flag
     is set (``on``; ``flag`` is the same as a ``BlockAny``, which the kernel reduces over its block); the
-    world counts its passes and is done once its smallest lane is below 0.1, then frozen."""
-    count, v, done = s
-    nv = fused.when(c["flag"], lambda v: jnp.where(c["on"] > 0.5, 0.5 * v + c["u"], v), v)
+    world counts its passes and is done once its smallest lane is below ``thr`` (0 in padding worlds:
+    never), then frozen. Two counters break the contracts on purpose, to show what the kernel ran:
+    ``passes`` counts every pass, done or not, and ``ran`` every call of the ``when`` branch."""
+    count, v, done, passes, ran = s
+
+    def halve(x):
+        v, ran = x
+        return jnp.where(c["on"] > 0.5, 0.5 * v + c["u"], v), ran + 1.0
+
+    nv, ran = fused.when(c["flag"], halve, (v, ran))
     frozen = done > 0.5
     return (jnp.where(frozen, count, count + 1.0), jnp.where(frozen, v, nv),
-            jnp.where(frozen | (fused.lane_min(nv) < 0.1), 1.0, 0.0))
+            jnp.where(frozen | (fused.lane_min(nv) < c["thr"]), 1.0, 0.0), passes + 1.0, ran)
 
 
 def test_lanes_loop_with_flags_and_an_early_stop_matches_numpy():
+    """Five kernel blocks of 32 worlds: the first runs all passes (three worlds never finish), the
+    second has no flag set (``when`` skips its branch; it never finishes), the third flags only
+    lanes 1-3 (so the branch runs; it never finishes), the fourth and the last (5 real worlds, then
+    padding that would never finish) stop at their slowest world's pass."""
     rng = np.random.default_rng(1)
-    w, n = 37, 30
+    w, n, bw = 133, 30, 32
     flag = (rng.uniform(size=(w, 4)) < 0.6).astype(np.float32)
-    flag[:, 0] = 1.0  # every world reaches done, at its own pass
+    flag[:, 0] = 1.0  # every flagged world reaches done, at its own pass
     flag[:3] = 0.0  # ... but these, which run all n passes unchanged
-    flag[32:] = 0.0  # and the kernel's second block (32 worlds a block), where ``when`` skips
+    flag[bw:2 * bw] = 0.0  # and the second block, where ``when`` skips
+    flag[2 * bw:3 * bw, 0] = 0.0  # and the third block's lane 0
     u = rng.uniform(0.0, 0.04, (w, 4)).astype(np.float32)
     v0 = rng.uniform(0.5, 8.0, (w, 4)).astype(np.float32)
     want_count, want_v = np.zeros(w, np.float32), v0.copy()
@@ -283,18 +295,28 @@ def test_lanes_loop_with_flags_and_an_early_stop_matches_numpy():
             if want_v[i].min() < 0.1:
                 break
     assert len(set(want_count.tolist())) > 3 and want_count.max() == n  # stops at many different passes
+    block_passes = np.repeat([want_count[k:k + bw].max() for k in range(0, w, bw)], bw)[:w]
+    assert list(block_passes[::bw] < n) == [False, False, False, True, True]
     out = {}
     for mode in ("xla", "interpret"):
         run = jax.vmap(lambda c, s, m=mode: fused.per_world_fori_loop(
             n, lanes_until_body, c, s, mode=m, lanes=4, done=lambda s: s[2]))
-        c = {"flag": fused.BlockAny(jnp.asarray(flag)), "on": jnp.asarray(flag), "u": jnp.asarray(u)}
-        out[mode] = jax.jit(run)(c, (jnp.zeros(w), jnp.asarray(v0), jnp.zeros(w)))
-        count, v, done = (np.asarray(x) for x in out[mode])
+        c = {"flag": fused.BlockAny(jnp.asarray(flag)), "on": jnp.asarray(flag), "u": jnp.asarray(u),
+             "thr": jnp.full((w,), 0.1, jnp.float32)}
+        z = jnp.zeros(w)
+        out[mode] = jax.jit(run)(c, (z, jnp.asarray(v0), z, z, z))
+        count, v, done, passes, ran = (np.asarray(x) for x in out[mode])
         np.testing.assert_array_equal(count, want_count)
         np.testing.assert_allclose(v, want_v, rtol=1e-6)
         np.testing.assert_array_equal(done, (want_v.min(1) < 0.1).astype(np.float32))
         assert np.array_equal(np.asarray(fused.lane_min(jnp.asarray(v))), v.min(1))
-    for x, y in zip(out["xla"], out["interpret"]):
+        if mode == "xla":  # a vmapped while_loop keeps each world's carry from its own last pass on
+            np.testing.assert_array_equal(passes, want_count)
+            np.testing.assert_array_equal(ran, want_count)
+        else:  # each block until its own last real world is done; the unflagged block never takes the branch
+            np.testing.assert_array_equal(passes, block_passes)
+            np.testing.assert_array_equal(ran, np.where(np.arange(w) // bw == 1, 0.0, block_passes))
+    for x, y in zip(out["xla"][:3], out["interpret"][:3]):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
 
 

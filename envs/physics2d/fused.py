@@ -172,7 +172,8 @@ def per_world_fori_loop(n: int, body, consts, carry, *, mode: str = "auto", unro
     ``done(carry)``, optional: a per-world 0/1 flag (e.g. Box2D's "position solved"). The caller
     guarantees that once it is 1, ``body`` returns the carry unchanged and it stays 1; the loop may then
     stop early with the same result. The XLA paths stop a batch when every world is done (a vmapped
-    ``while_loop``), the kernel a block of ``BLOCK`` worlds when all of its worlds are. ``unroll``
+    ``while_loop``), the kernel a block of ``BLOCK`` worlds (``BLOCK // lanes`` with lanes) when all of its
+    worlds are. ``unroll``
     applies only without ``done``. ``lanes=4``: leaves may be lane vectors (module docstring); ``done``
     then returns a per-world scalar."""
     if lanes not in (1, TILE):

@@ -120,12 +120,13 @@ class SolverConfig:
     # edge contacts, experimental speed knob: the velocity passes solve each body's manifolds in a lane
     # of its own (``fused`` lanes: 4 GPU threads per world) after the joints; the same operations in the
     # same order per body, as a body's manifolds touch no other dynamic body. Needs 4 bodies with
-    # manifolds, as many each (the walker's legs); ignored with velocity_manifolds or another layout.
-    # The time of impact's velocity passes (manifolds alone) too, when they run as a loop (toi_loop)
+    # manifolds, as many each (the walker's legs); the step's passes keep their form with
+    # velocity_manifolds or another layout. The time of impact's velocity passes (manifolds alone, never
+    # packed) take lanes too when they run as a loop (toi_loop), with or without velocity_manifolds
     velocity_lanes: bool = False
     # edge contacts, experimental speed knob: the position passes correct each body's contact points in a
-    # lane of their own before the joints (the same layout and rule as velocity_lanes; the deepest
-    # separation is the minimum over the lanes)
+    # lane of their own before the joints (the same layout as velocity_lanes, with or without
+    # velocity_manifolds; the deepest separation is the minimum over the lanes)
     position_lanes: bool = False
     unroll: int = 1  # unroll factor of the solver-iteration loops (speed knob, no effect on results)
     # in the fused kernel, skip an edge contact point's position correction, and a body's time-of-impact

@@ -1059,7 +1059,8 @@ def _manifold_velocity(c, p, mi, ii, f1, f2, v, w, ln1, ln2, lt1, lt2):
 
 
 def lane_layout(body) -> tuple | None:
-    """How ``_velocity_pass_lanes`` lays out edge manifolds whose points belong to bodies ``body``
+    """How the passes in lanes (``_velocity_pass_lanes``, ``_position_pass_lanes``, the time of impact's
+    velocity passes) lay out edge manifolds whose points belong to bodies ``body``
     (per point): ``((body, (manifold, ...)), ...)`` per lane, the bodies in their order of first
     appearance and each body's manifolds in their order; None unless there are ``fused.TILE`` bodies
     with as many manifolds each."""
