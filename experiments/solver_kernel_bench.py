@@ -109,10 +109,10 @@ def loop_program(n: int, body, done, mode: str):
 def lanes_program(n: int, body, done, mode: str):
     """The velocity loop ``body`` (``_velocity_pass_edges``, ``world.to_lanes``), the position loop
     (``_position_pass_edges``, ``world.to_position_lanes``) or the time of impact's velocity loop
-    (``_toi_velocity_pass_polygons``, ``to_lanes(..., joints=False)``) in lane form (each leg's manifolds in a lane
+    (``_toi_velocity_pass_polygons``, manifolds alone) in lane form (each leg's manifolds in a lane
     of their own, 4 threads per world in the kernel), vmapped and jitted, taking and returning the
     loop's own (consts, carry) form."""
-    from envs.physics2d import fused, world
+    from envs.physics2d import world
 
     layout = world.lane_layout(body.args[1])
     if layout is None:
@@ -120,14 +120,9 @@ def lanes_program(n: int, body, done, mode: str):
 
     def run(c, s):
         if _name(body) == LOOPS[1]:
-            lb, lc = world.to_position_lanes(body.args[0], layout, c)
-            return fused.per_world_fori_loop(n, lb, lc, s, mode=mode, done=done, lanes=fused.TILE)
-        if _name(body) == LOOPS[3]:  # manifolds alone: no joint impulses in its carry
-            lb, lc, ls = world.to_lanes(body.args[0], layout, body.args[2], c, s[:2] + ((), ()) + s[2:], joints=False)
-            out = world.from_lanes(layout, fused.per_world_fori_loop(n, lb, lc, ls, mode=mode, lanes=fused.TILE))
-            return out[:2] + out[4:]
-        lb, lc, ls = world.to_lanes(body.args[0], layout, body.args[2], c, s)
-        return world.from_lanes(layout, fused.per_world_fori_loop(n, lb, lc, ls, mode=mode, lanes=fused.TILE))
+            return world.position_passes_in_lanes(body.args[0], layout, n, c, s, mode=mode, done=done)
+        return world.velocity_passes_in_lanes(body.args[0], layout, body.args[2], n, c, s, mode=mode,
+                                              joints=_name(body) != LOOPS[3])
 
     return jax.jit(jax.vmap(run))
 

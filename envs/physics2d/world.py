@@ -322,8 +322,6 @@ def step(model: Model, world: WorldState, ground, gravity, force=None, torque=No
         vpass = functools.partial(_velocity_pass, model, slots)
     packed = edge_mode and projector is None and 0 < cfg.velocity_manifolds < len(ebody) // 2
     layout = lane_layout(ebody) if edge_mode and projector is None and cfg.velocity_lanes and not packed else None
-    if layout is not None:
-        vpass, vconsts, carry = to_lanes(model, layout, ec["friction"], vconsts, carry)
     crowded = jnp.zeros((), bool)
     if packed:  # only manifolds with points enter the passes, packed into velocity_manifolds slots
         vconsts = {k: v for k, v in vconsts.items() if k not in econ}
@@ -334,11 +332,13 @@ def step(model: Model, world: WorldState, ground, gravity, force=None, torque=No
         vpass = functools.partial(_velocity_pass_packed, model, tuple(sorted(set(ebody))))
     if projector is None:
         with jax.named_scope("velocity_passes"):
-            vel, omg, jimp, jmot, ln, lt = fused.per_world_fori_loop(
-                cfg.velocity_iterations, vpass, vconsts, carry,
-                mode=cfg.kernel, unroll=cfg.unroll, lanes=fused.TILE if layout is not None else 1)
-        if layout is not None:
-            vel, omg, jimp, jmot, ln, lt = from_lanes(layout, (vel, omg, jimp, jmot, ln, lt))
+            if layout is not None:
+                vel, omg, jimp, jmot, ln, lt = velocity_passes_in_lanes(
+                    model, layout, ec["friction"], cfg.velocity_iterations, vconsts, carry, mode=cfg.kernel,
+                    unroll=cfg.unroll)
+            else:
+                vel, omg, jimp, jmot, ln, lt = fused.per_world_fori_loop(
+                    cfg.velocity_iterations, vpass, vconsts, carry, mode=cfg.kernel, unroll=cfg.unroll)
         if packed:
             ln = tuple(scalars_of(_unpack_impulses(idx, ln, len(ebody))))
             lt = tuple(scalars_of(_unpack_impulses(idx, lt, len(ebody))))
@@ -375,22 +375,23 @@ def step(model: Model, world: WorldState, ground, gravity, force=None, torque=No
 
     pconsts = dict(on=tuple(active[k].astype(f32) for k in slots), q=tuple(V2.of(plane_q[k]) for k in slots),
                    n=tuple(V2.of(plane_n[k]) for k in slots), state=tuple(s.astype(f32) for s in jstate))
-    play = None
+    position_layout = None
     if edge_mode:
         pconsts = dict(_edge_position_constants(model, b, ec) if ebody else {}, state=pconsts["state"])
         ppass = functools.partial(_position_pass_edges, model, ebody)
-        play = lane_layout(ebody) if cfg.position_lanes else None
-        if play is not None:
-            ppass, pconsts = to_position_lanes(model, play, pconsts)
+        position_layout = lane_layout(ebody) if cfg.position_lanes else None
     else:
         ppass = functools.partial(_position_pass, model, slots)
     if n_pos > 0:
+        pcarry = (tuple(V2.of(c) for c in com), tuple(ang), jnp.zeros((), f32))
+        done = _position_solved if cfg.position_early_stop else None
         with jax.named_scope("position_passes"):
-            com, ang, solved = fused.per_world_fori_loop(
-                n_pos, ppass,
-                pconsts, (tuple(V2.of(c) for c in com), tuple(ang), jnp.zeros((), f32)),
-                mode=cfg.kernel, unroll=cfg.unroll, done=_position_solved if cfg.position_early_stop else None,
-                lanes=fused.TILE if play is not None else 1)
+            if position_layout is not None:
+                com, ang, solved = position_passes_in_lanes(model, position_layout, n_pos, pconsts, pcarry,
+                                                            mode=cfg.kernel, unroll=cfg.unroll, done=done)
+            else:
+                com, ang, solved = fused.per_world_fori_loop(n_pos, ppass, pconsts, pcarry, mode=cfg.kernel,
+                                                             unroll=cfg.unroll, done=done)
         com, ang, solved = [c.array() for c in com], list(ang), solved > 0.5
     else:
         solved = jnp.zeros((), bool)
@@ -596,11 +597,8 @@ def _toi_event(model: Model, sweep, end, shapes, ok, edges, valid, boxes, box_va
         vcarry = (tuple(V2.of(vel[g]) for g in range(nb)), tuple(omg[g] for g in range(nb)), zeros, zeros)
         layout = lane_layout(body) if cfg.velocity_lanes and cfg.toi_loop else None
         if layout is not None:  # each body's manifolds in a lane of their own, as the step's velocity passes
-            lpass, lconsts, lcarry = to_lanes(model, layout, ec["friction"], vconsts, vcarry[:2] + ((), ()) + vcarry[2:],
-                                              joints=False)
-            out = fused.per_world_fori_loop(cfg.toi_iterations, lpass, lconsts, lcarry, mode=cfg.kernel,
-                                            unroll=cfg.unroll, lanes=fused.TILE)
-            vs, ws = from_lanes(layout, out)[:2]
+            vs, ws, _, _ = velocity_passes_in_lanes(model, layout, ec["friction"], cfg.toi_iterations, vconsts, vcarry,
+                                                    mode=cfg.kernel, unroll=cfg.unroll, joints=False)
         else:
             vpass = functools.partial(_toi_velocity_pass_polygons, model, body, ec["friction"])
             vs, ws, _, _ = _toi_passes(cfg, cfg.toi_iterations, vpass, vconsts, vcarry)
@@ -1072,12 +1070,33 @@ def lane_layout(body) -> tuple | None:
     return layout
 
 
+def velocity_passes_in_lanes(model: Model, layout, friction, n: int, consts, carry, *, mode: str, unroll: int = 1,
+                             joints: bool = True):
+    """``n`` velocity passes in lane form (``fused`` lanes, 4 threads per world), taking and returning
+    the sequential passes' ``consts`` and ``carry``: ``_velocity_pass_edges``' (vel, omg, jimp, jmot,
+    ln, lt), or with ``joints=False`` the time of impact's ``_toi_velocity_pass_polygons``' (vel, omg,
+    ln, lt), manifolds alone."""
+    full = carry if joints else carry[:2] + ((), ()) + carry[2:]
+    lpass, lconsts, lcarry = to_lanes(model, layout, friction, consts, full, joints=joints)
+    out = from_lanes(layout, fused.per_world_fori_loop(n, lpass, lconsts, lcarry, mode=mode, unroll=unroll,
+                                                       lanes=fused.TILE))
+    return out if joints else out[:2] + out[4:]
+
+
+def position_passes_in_lanes(model: Model, layout, n: int, consts, carry, *, mode: str, unroll: int = 1, done=None):
+    """``n`` position passes of ``_position_pass_edges`` in lane form (``to_position_lanes``), taking its
+    ``consts`` and carry (com, angle, solved, per-world scalars) and returning the carry; ``done``: the
+    early stop, as ``fused.per_world_fori_loop``'s."""
+    lpass, lconsts = to_position_lanes(model, layout, consts)
+    return fused.per_world_fori_loop(n, lpass, lconsts, carry, mode=mode, unroll=unroll, done=done, lanes=fused.TILE)
+
+
 def to_lanes(model: Model, layout, friction, consts, carry, joints: bool = True):
     """The fused velocity loop of ``_velocity_pass_edges`` (its ``consts`` and ``carry``) in lane form,
     -> (pass, consts, carry) for ``fused.per_world_fori_loop(..., lanes=fused.TILE)``: per lane (body of
     ``layout``) its manifolds' constants and impulses as lane vectors; the joints' as they are.
-    ``joints=False``: the time of impact's passes (``_toi_velocity_pass_polygons``, manifolds alone;
-    its carry ``(vel, omg, ln, lt)`` given here with empty joint impulses ``(vel, omg, (), (), ln, lt)``)."""
+    ``joints=False``: manifolds alone (the carry's joint impulses empty); ``velocity_passes_in_lanes``
+    runs the loop."""
     per_lane = len(layout[0][1])
     man = [[ms[m] for _, ms in layout] for m in range(per_lane)]  # [m][lane] -> manifold
     pts = [[2 * man[m][j] + q for j in range(len(layout))] for m in range(per_lane) for q in (0, 1)]
